@@ -1,0 +1,76 @@
+"""SIR: the bootstrap particle filter (Gordon et al. 1993), batched over beliefs."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from escort_rl.belief.base import BeliefFilter
+from escort_rl.belief.particle_belief import ParticleBelief
+
+
+def systematic_resample_indices(log_weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
+    """Systematic resampling: one uniform offset per belief.
+
+    With normalised weights ``w`` ``[*B, N]`` and ``u ~ U[0, 1)``, particle ``k`` of the new set is
+    the index ``i`` with ``C_{i-1} ≤ (u + k)/N < C_i``, where ``C`` is the cumulative sum of ``w``.
+    Returns indices ``[*B, N]`` (int64).
+    """
+    n = log_weights.shape[-1]
+    w = torch.softmax(log_weights, dim=-1)
+    cdf = torch.cumsum(w, dim=-1)
+    cdf[..., -1] = 1.0  # guard against round-off at the top
+    u = torch.rand((*log_weights.shape[:-1], 1), generator=generator, device=w.device, dtype=w.dtype)
+    positions = (u + torch.arange(n, device=w.device, dtype=w.dtype)) / n
+    return torch.searchsorted(cdf.contiguous(), positions.contiguous(), right=True).clamp_max(n - 1)
+
+
+class SIRFilter(BeliefFilter):
+    """Bootstrap particle filter: propagate, weight by the likelihood, resample when ESS is low.
+
+    Args:
+        resample_threshold: resample a belief when ``ESS/N < resample_threshold``; ``1.0`` resamples
+            every step, ``0.0`` never. Default 0.5.
+        roughening: if > 0, after resampling add ``N(0, (roughening·range·N^(-1/d))²)`` per dimension,
+            where ``range`` is the per-dimension spread of the resampled particles (Gordon et al.).
+            Default 0 (off).
+    """
+
+    def __init__(self, resample_threshold: float = 0.5, roughening: float = 0.0) -> None:
+        if not 0.0 <= resample_threshold <= 1.0:
+            raise ValueError(f"resample_threshold: must be in [0, 1], got {resample_threshold}")
+        if roughening < 0:
+            raise ValueError(f"roughening: must be >= 0, got {roughening}")
+        self.resample_threshold = resample_threshold
+        self.roughening = roughening
+
+    def _update(self, model, belief, action, observation, generator):
+        x = belief.particles
+        n, d = x.shape[-2], x.shape[-1]
+        a = action.unsqueeze(-1).expand(x.shape[:-1])  # [*B, N]
+        x_next = model.transition(x, a, generator)
+        log_lik = model.observation_log_prob(observation.unsqueeze(-2), x_next, a)  # [*B, N]
+        log_w = belief.log_weights + log_lik
+        all_neg_inf = torch.isneginf(log_w).all(-1, keepdim=True)
+        # If every particle has zero likelihood, keep the prior weights instead of producing NaN.
+        log_w = torch.where(all_neg_inf, belief.log_weights, log_w)
+        log_w = log_w - torch.logsumexp(log_w, dim=-1, keepdim=True)
+
+        ess_ratio = 1.0 / (torch.exp(2 * log_w).sum(-1) * n)  # [*B]
+        resample = ess_ratio < self.resample_threshold
+        if self.resample_threshold >= 1.0:
+            resample = torch.ones_like(resample)
+        if resample.any():
+            idx = systematic_resample_indices(log_w, generator)
+            x_res = torch.gather(x_next, -2, idx.unsqueeze(-1).expand(*idx.shape, d))
+            if self.roughening > 0:
+                spread = x_res.amax(-2, keepdim=True) - x_res.amin(-2, keepdim=True)
+                scale = self.roughening * spread * n ** (-1.0 / d)
+                eps = torch.randn(x_res.shape, generator=generator, device=x.device, dtype=x.dtype)
+                x_res = x_res + scale * eps
+            uniform = torch.full_like(log_w, -math.log(n))
+            x_next = torch.where(resample[..., None, None], x_res, x_next)
+            log_w = torch.where(resample[..., None], uniform, log_w)
+        return ParticleBelief(x_next, log_w)

@@ -1,0 +1,239 @@
+"""Light-Dark 10D (paper, Appendix "Domains: Light Dark 10D").
+
+State ``s = (x, v)``: 5-D position ``x`` and 5-D velocity ``v`` (``state_dim = 10``).
+Actions ``a ∈ {0..9}``: ``a = 2i`` pushes dimension ``i`` with force ``+f``, ``a = 2i+1`` with ``-f``.
+
+Dynamics (additive correlated Gaussian noise ``η ~ N(0, Σ)``):
+
+    x' = x + Δt·v + η_x
+    v' = v + f_a - γ·v + η_v
+
+Observation: a noisy copy of the next position, ``o = P·x' + σ(x')·ε`` with
+``σ²(x) = σ_base²·(1 - L(x)) + σ_min²`` and ``L`` the light field below. In very dark places
+(``L(x) < 0.1``) the permutation ``P`` swaps dimensions (1, 2) or (3, 4), each with probability
+``confusion_prob / 2``; elsewhere ``P = I``. ``observation_log_prob`` is the exact mixture over these
+events, computed with log-sum-exp.
+
+Light field: ``L(x) = max(0.05, max_j I_j·(1 - (d_j/r_j)²)·[d_j < r_j])`` over seven regions.
+
+Choices the paper leaves open (documented in ``docs/DESIGN.md`` and ``configs/env/lightdark10d.yaml``):
+the process-noise scale (the paper gives correlations only), the radii of the goal beacon and the
+ambiguous region, and the start velocity (zero).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from escort_rl.models.gaussian import (
+    diag_normal_log_prob,
+    make_positive_definite,
+    mvn_log_prob_tril,
+    nearest_correlation_matrix,
+)
+
+# (centre, radius, intensity); centres in 5-D position space.
+LIGHT_REGIONS: tuple[tuple[tuple[float, ...], float, float], ...] = (
+    ((5.0, 0.0, 0.0, 0.0, 0.0), 2.0, 0.9),  # primary corridor
+    ((0.0, 5.0, 0.0, 0.0, 0.0), 2.0, 0.9),  # mirror corridor
+    ((0.0, 0.0, 2.5, 2.5, 0.0), 1.5, 0.8),  # Z-path start
+    ((0.0, 0.0, 5.0, 5.0, 0.0), 1.5, 0.8),  # Z-path middle
+    ((0.0, 0.0, 7.5, 7.5, 0.0), 1.5, 0.8),  # Z-path end
+    ((0.0, 0.0, 0.0, 0.0, 7.0), 2.0, 1.0),  # goal beacon (radius not given by the paper)
+    ((3.33, 3.33, 3.33, 0.0, 0.0), 2.0, 0.4),  # ambiguous region (radius not given by the paper)
+)
+
+
+def paper_correlations(n_pos: int = 5) -> Tensor:
+    """The process-noise correlation matrix exactly as the paper lists it (``[10, 10]`` float64).
+
+    ρ(x_i, v_i) = 0.8, ρ(x_i, x_{i+1}) = 0.5, ρ(v_i, v_{i+1}) = 0.6, ρ(x1, x3) = ρ(x2, x4) = 0.4,
+    ρ(v1, v2) = 0.7, ρ(v1, v3) = 0.5 (the later entries override the adjacent-velocity value).
+    This matrix is not positive semi-definite (smallest eigenvalue ≈ -0.66).
+    """
+    d = 2 * n_pos
+    c = torch.eye(d, dtype=torch.float64)
+
+    def put(i: int, j: int, r: float) -> None:
+        c[i, j] = c[j, i] = r
+
+    for i in range(n_pos):
+        put(i, n_pos + i, 0.8)
+    for i in range(n_pos - 1):
+        put(i, i + 1, 0.5)
+        put(n_pos + i, n_pos + i + 1, 0.6)
+    put(0, 2, 0.4)
+    put(1, 3, 0.4)
+    put(n_pos + 0, n_pos + 1, 0.7)
+    put(n_pos + 0, n_pos + 2, 0.5)
+    return c
+
+
+class LightDark10D:
+    """The 10-D Light-Dark navigation POMDP. All tensors are float32 on ``device``.
+
+    Args:
+        position_noise_std: std of the position process noise per step (paper: unspecified).
+        velocity_noise_std: std of the velocity process noise per step (paper: unspecified).
+        force: force magnitude per action (paper: 0.1).
+        damping: velocity damping γ (paper: 0.1).
+        dt: time step Δt (paper: 0.1).
+        sigma_base, sigma_min: observation noise law (paper: 0.5, 0.01).
+        confusion_prob: probability of a dimension swap when ``L < dark_threshold`` (paper: 0.2).
+        dark_threshold: light level under which swaps happen (paper: 0.1).
+        goal: goal position (paper: (8, 8, 8, 8, 8)); success_radius (paper: 0.5).
+        start_low, start_high: the start box for positions (paper: [0, 2]^5).
+        device: where the model's constant tensors live.
+    """
+
+    n_pos = 5
+    state_dim = 10
+    obs_dim = 5
+    n_actions = 10
+
+    def __init__(
+        self,
+        position_noise_std: float = 0.05,
+        velocity_noise_std: float = 0.05,
+        force: float = 0.1,
+        damping: float = 0.1,
+        dt: float = 0.1,
+        sigma_base: float = 0.5,
+        sigma_min: float = 0.01,
+        confusion_prob: float = 0.2,
+        dark_threshold: float = 0.1,
+        goal: float = 8.0,
+        success_radius: float = 0.5,
+        start_low: float = 0.0,
+        start_high: float = 2.0,
+        device: torch.device | str | None = None,
+    ) -> None:
+        for name, value in (
+            ("position_noise_std", position_noise_std),
+            ("velocity_noise_std", velocity_noise_std),
+            ("sigma_base", sigma_base),
+            ("sigma_min", sigma_min),
+            ("dt", dt),
+        ):
+            if not value > 0:
+                raise ValueError(f"LightDark10D.{name}: must be > 0, got {value}")
+        if not 0.0 <= confusion_prob < 1.0:
+            raise ValueError(f"LightDark10D.confusion_prob: must be in [0, 1), got {confusion_prob}")
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.force, self.damping, self.dt = force, damping, dt
+        self.sigma_base, self.sigma_min = sigma_base, sigma_min
+        self.confusion_prob, self.dark_threshold = confusion_prob, dark_threshold
+        self.success_radius = success_radius
+        self.start_low, self.start_high = start_low, start_high
+        self.goal = torch.full((self.n_pos,), float(goal), device=self.device)
+
+        self.correlation = make_positive_definite(nearest_correlation_matrix(paper_correlations()))
+        stds = torch.tensor([position_noise_std] * 5 + [velocity_noise_std] * 5, dtype=torch.float64)
+        cov = self.correlation * stds[:, None] * stds[None, :]
+        self.noise_covariance = cov.to(torch.float32).to(self.device)
+        self._scale_tril = torch.linalg.cholesky(cov).to(torch.float32).to(self.device)
+
+        self.light_centres = torch.tensor([c for c, _, _ in LIGHT_REGIONS], device=self.device)
+        self.light_radii = torch.tensor([r for _, r, _ in LIGHT_REGIONS], device=self.device)
+        self.light_intensities = torch.tensor([i for _, _, i in LIGHT_REGIONS], device=self.device)
+        forces = torch.zeros(self.n_actions, self.state_dim, device=self.device)
+        for a in range(self.n_actions):
+            forces[a, self.n_pos + a // 2] = force if a % 2 == 0 else -force
+        self._velocity_force = forces  # [n_actions, d]: the force added to v' per action
+        swaps = torch.stack([torch.arange(5), torch.tensor([1, 0, 2, 3, 4]), torch.tensor([0, 1, 3, 2, 4])])
+        self._swap_perms = swaps.to(self.device)  # [3, 5]: identity, swap(1,2), swap(3,4)
+
+    # ------------------------------------------------------------------ light and noise
+    def light(self, pos: Tensor) -> Tensor:
+        """Light intensity ``L(x)`` in [0.05, 1]. ``pos``: ``[*S, 5]`` -> ``[*S]``."""
+        dist = torch.linalg.vector_norm(pos.unsqueeze(-2) - self.light_centres, dim=-1)  # [*S, 7]
+        inside = dist < self.light_radii
+        level = self.light_intensities * (1.0 - (dist / self.light_radii) ** 2)
+        level = torch.where(inside, level, torch.zeros_like(level))
+        return level.amax(-1).clamp_min(0.05)
+
+    def observation_std(self, pos: Tensor) -> Tensor:
+        """σ(x) = sqrt(σ_base²(1 - L(x)) + σ_min²). ``pos``: ``[*S, 5]`` -> ``[*S]``."""
+        return torch.sqrt(self.sigma_base**2 * (1.0 - self.light(pos)) + self.sigma_min**2)
+
+    # ------------------------------------------------------------------ protocol
+    def initial_state(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor:
+        """Position uniform in the start box, velocity zero. Returns ``[*shape, 10]``."""
+        u = torch.rand(*shape, self.n_pos, generator=generator, device=self.device)
+        pos = self.start_low + (self.start_high - self.start_low) * u
+        return torch.cat([pos, torch.zeros_like(pos)], dim=-1)
+
+    def initial_belief(
+        self, shape: tuple[int, ...], n: int, generator: torch.Generator | None = None
+    ) -> Tensor:
+        """``n`` draws of the start distribution per batch element: ``[*shape, n, 10]``."""
+        return self.initial_state((*shape, n), generator)
+
+    def transition_mean(self, s: Tensor, a: Tensor) -> Tensor:
+        """Noise-free dynamics. ``s``: ``[*S, 10]``, ``a``: ``[*S]`` -> ``[*S, 10]``."""
+        pos, vel = s[..., : self.n_pos], s[..., self.n_pos :]
+        new_pos = pos + self.dt * vel
+        new_vel = (1.0 - self.damping) * vel
+        return torch.cat([new_pos, new_vel], dim=-1) + self._velocity_force[a.long()]
+
+    def transition_scale_tril(self) -> Tensor:
+        """``[10, 10]`` Cholesky factor of the process-noise covariance."""
+        return self._scale_tril
+
+    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        mean = self.transition_mean(s, a)
+        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
+        return mean + eps @ self._scale_tril.T
+
+    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
+        return mvn_log_prob_tril(s_next, self.transition_mean(s, a), self._scale_tril)
+
+    def _is_dark(self, pos: Tensor) -> Tensor:
+        return self.light(pos) < self.dark_threshold
+
+    def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """``o = P·x' + σ(x')·ε``. ``s_next``: ``[*S, 10]`` -> ``[*S, 5]``."""
+        pos = s_next[..., : self.n_pos]
+        u = torch.rand(pos.shape[:-1], generator=generator, device=pos.device)
+        half = self.confusion_prob / 2
+        event = torch.where(u < half, 1, torch.where(u < 2 * half, 2, 0))
+        event = torch.where(self._is_dark(pos), event, torch.zeros_like(event))
+        perm = self._swap_perms[event]  # [*S, 5]
+        seen = torch.gather(pos, -1, perm)
+        eps = torch.randn(pos.shape, generator=generator, device=pos.device, dtype=pos.dtype)
+        return seen + self.observation_std(pos).unsqueeze(-1) * eps
+
+    def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
+        """``log O(o | s')``: a mixture over {no swap, swap(1,2), swap(3,4)} in the dark.
+
+        ``o``: ``[*S, 5]``, ``s_next``: ``[*S, 10]`` (broadcast) -> ``[*S]``.
+        """
+        pos = s_next[..., : self.n_pos]
+        std = self.observation_std(pos).unsqueeze(-1)  # [*S, 1]
+        candidates = pos[..., self._swap_perms]  # [*S, 3, 5]
+        comp = diag_normal_log_prob(o.unsqueeze(-2), candidates, std.unsqueeze(-1))  # [*S', 3]
+        half = self.confusion_prob / 2
+        log_w_dark = torch.log(torch.tensor([1 - self.confusion_prob, half, half], device=pos.device))
+        dark = self._is_dark(pos).unsqueeze(-1)  # [*S, 1]
+        log_w_lit = torch.tensor([0.0, float("-inf"), float("-inf")], device=pos.device)
+        log_w = torch.where(dark, log_w_dark, log_w_lit)
+        if self.confusion_prob == 0.0:
+            log_w = log_w_lit.expand_as(log_w)
+        return torch.logsumexp(comp + log_w, dim=-1)
+
+    def distance_to_goal(self, s: Tensor) -> Tensor:
+        """‖x - x_goal‖₂. ``s``: ``[*S, 10]`` -> ``[*S]``."""
+        return torch.linalg.vector_norm(s[..., : self.n_pos] - self.goal, dim=-1)
+
+    def reward(self, s: Tensor, a: Tensor, s_next: Tensor) -> Tensor:
+        """``r = -0.1·‖x' - x_goal‖ - 0.1`` (paper; evaluated at the next state)."""
+        return -0.1 * self.distance_to_goal(s_next) - 0.1
+
+    def is_terminal(self, s: Tensor) -> Tensor:
+        """Success: within ``success_radius`` of the goal."""
+        return self.distance_to_goal(s) < self.success_radius
+
+    def position(self, s: Tensor) -> Tensor:
+        """The position part of a state: ``[*S, 10]`` -> ``[*S, 5]``."""
+        return s[..., : self.n_pos]

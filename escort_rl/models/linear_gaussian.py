@@ -1,0 +1,122 @@
+"""A linear-Gaussian POMDP. Its exact posterior is the Kalman filter, so it calibrates the filters.
+
+    s' = F s + u_a + w,   w ~ N(0, Q)
+    o  = H s' + v,        v ~ N(0, R)
+    s_0 ~ N(m_0, P_0)
+
+Actions select a control offset ``u_a`` from a fixed table ``[n_actions, d]``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from escort_rl.models.gaussian import mvn_log_prob_tril
+
+
+class LinearGaussian:
+    """Linear-Gaussian model with dense matrices (float32 on ``device``).
+
+    Args:
+        state_dim, obs_dim, n_actions: sizes.
+        transition_matrix: ``F`` ``[d, d]``; default ``0.95·I``.
+        process_cov: ``Q`` ``[d, d]``; default ``0.1·I``.
+        observation_matrix: ``H`` ``[m, d]``; default the first ``m`` coordinates.
+        observation_cov: ``R`` ``[m, m]``; default ``0.25·I``.
+        controls: ``u`` ``[n_actions, d]``; default ``±0.5`` along each axis.
+        prior_mean, prior_cov: ``m_0`` ``[d]`` and ``P_0`` ``[d, d]``; default ``0`` and ``I``.
+    """
+
+    def __init__(
+        self,
+        state_dim: int = 4,
+        obs_dim: int | None = None,
+        n_actions: int | None = None,
+        transition_matrix: Tensor | None = None,
+        process_cov: Tensor | None = None,
+        observation_matrix: Tensor | None = None,
+        observation_cov: Tensor | None = None,
+        controls: Tensor | None = None,
+        prior_mean: Tensor | None = None,
+        prior_cov: Tensor | None = None,
+        device: torch.device | str | None = None,
+    ) -> None:
+        d = state_dim
+        m = obs_dim if obs_dim is not None else d
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        f32 = dict(dtype=torch.float32, device=self.device)
+        self.F = torch.as_tensor(transition_matrix, **f32) if transition_matrix is not None else 0.95 * torch.eye(d, **f32)
+        self.Q = torch.as_tensor(process_cov, **f32) if process_cov is not None else 0.1 * torch.eye(d, **f32)
+        self.H = torch.as_tensor(observation_matrix, **f32) if observation_matrix is not None else torch.eye(m, d, **f32)
+        self.R = torch.as_tensor(observation_cov, **f32) if observation_cov is not None else 0.25 * torch.eye(m, **f32)
+        if controls is None:
+            eye = torch.eye(d, **f32)
+            controls = torch.cat([0.5 * eye, -0.5 * eye], dim=0)
+        self.controls = torch.as_tensor(controls, **f32)
+        self.m0 = torch.as_tensor(prior_mean, **f32) if prior_mean is not None else torch.zeros(d, **f32)
+        self.P0 = torch.as_tensor(prior_cov, **f32) if prior_cov is not None else torch.eye(d, **f32)
+        self.state_dim, self.obs_dim = d, m
+        self.n_actions = n_actions if n_actions is not None else self.controls.shape[0]
+        for name, mat in (("process_cov", self.Q), ("observation_cov", self.R), ("prior_cov", self.P0)):
+            try:
+                torch.linalg.cholesky(mat)
+            except RuntimeError as err:
+                raise ValueError(f"LinearGaussian.{name}: must be symmetric positive definite") from err
+        self._q_tril = torch.linalg.cholesky(self.Q)
+        self._r_tril = torch.linalg.cholesky(self.R)
+        self._p0_tril = torch.linalg.cholesky(self.P0)
+
+    def _noise(self, shape, tril: Tensor, generator) -> Tensor:
+        eps = torch.randn(*shape, tril.shape[0], generator=generator, device=self.device)
+        return eps @ tril.T
+
+    def initial_state(self, shape, generator=None) -> Tensor:
+        return self.m0 + self._noise(tuple(shape), self._p0_tril, generator)
+
+    def initial_belief(self, shape, n, generator=None) -> Tensor:
+        return self.initial_state((*shape, n), generator)
+
+    def transition_mean(self, s: Tensor, a: Tensor) -> Tensor:
+        return s @ self.F.T + self.controls[a.long()]
+
+    def transition_scale_tril(self) -> Tensor:
+        return self._q_tril
+
+    def transition(self, s, a, generator=None) -> Tensor:
+        mean = self.transition_mean(s, a)
+        return mean + self._noise(mean.shape[:-1], self._q_tril, generator)
+
+    def transition_log_prob(self, s_next, s, a) -> Tensor:
+        return mvn_log_prob_tril(s_next, self.transition_mean(s, a), self._q_tril)
+
+    def observe(self, s_next, a, generator=None) -> Tensor:
+        mean = s_next @ self.H.T
+        return mean + self._noise(mean.shape[:-1], self._r_tril, generator)
+
+    def observation_log_prob(self, o, s_next, a) -> Tensor:
+        return mvn_log_prob_tril(o, s_next @ self.H.T, self._r_tril)
+
+    def reward(self, s, a, s_next) -> Tensor:
+        return -torch.linalg.vector_norm(s_next, dim=-1)
+
+    def is_terminal(self, s) -> Tensor:
+        return torch.zeros(s.shape[:-1], dtype=torch.bool, device=s.device)
+
+    def kalman_step(self, mean: Tensor, cov: Tensor, a: Tensor, o: Tensor) -> tuple[Tensor, Tensor]:
+        """The exact posterior after one (action, observation) step, in float64.
+
+        ``mean`` ``[*B, d]``, ``cov`` ``[*B, d, d]``, ``a`` ``[*B]``, ``o`` ``[*B, m]``.
+        Predict: ``m⁻ = F m + u_a``, ``P⁻ = F P Fᵀ + Q``. Update: ``K = P⁻Hᵀ(H P⁻ Hᵀ + R)⁻¹``,
+        ``m = m⁻ + K(o - H m⁻)``, ``P = (I - K H) P⁻``.
+        """
+        F, Q, H, R = (t.double() for t in (self.F, self.Q, self.H, self.R))
+        mean, cov, o = mean.double(), cov.double(), o.double()
+        m_pred = mean @ F.T + self.controls.double()[a.long()]
+        p_pred = F @ cov @ F.T + Q
+        s = H @ p_pred @ H.T + R
+        gain = torch.linalg.solve(s, H @ p_pred).transpose(-1, -2)  # P⁻Hᵀ S⁻¹ (S symmetric)
+        innov = o - m_pred @ H.T
+        m_post = m_pred + (gain @ innov.unsqueeze(-1)).squeeze(-1)
+        p_post = p_pred - gain @ H @ p_pred
+        return m_post, (p_post + p_post.transpose(-1, -2)) / 2

@@ -1,0 +1,89 @@
+"""The POMDP model protocol: the one source of truth that envs and filters share.
+
+Every function is batched over leading dimensions and written in torch. States end in
+``state_dim``, observations in ``obs_dim``, and integer actions have the leading shape of the
+state they act on. Log densities are differentiable in the state (filters take scores with
+autograd).
+
+The protocol is structural: any object with these attributes and methods is a model, including a
+user's class that imports nothing from ``escort_rl``.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+
+@runtime_checkable
+class POMDPModel(Protocol):
+    """A POMDP with continuous states, continuous observations and discrete actions.
+
+    Shapes (``*S`` is any batch shape; arguments broadcast over it):
+
+    - ``initial_state(shape, generator)`` -> ``[*shape, d]``: the true start state.
+    - ``initial_belief(shape, n, generator)`` -> ``[*shape, n, d]``: the prior particles.
+    - ``transition(s [*S, d], a [*S], generator)`` -> ``[*S, d]``: a sample of ``s' ~ T(.|s, a)``.
+    - ``transition_log_prob(s_next [*S, d], s [*S, d], a [*S])`` -> ``[*S]``: ``log T(s'|s, a)``.
+    - ``transition_mean(s [*S, d], a [*S])`` -> ``[*S, d]``: ``E[s'|s, a]``.
+    - ``transition_scale_tril()`` -> ``[d, d]``: Cholesky factor of the additive process noise.
+    - ``observe(s_next [*S, d], a [*S], generator)`` -> ``[*S, obs_dim]``: ``o ~ O(.|s', a)``.
+    - ``observation_log_prob(o [*S, obs_dim], s_next [*S, d], a [*S])`` -> ``[*S]``.
+    - ``reward(s, a, s_next)`` -> ``[*S]``.
+    - ``is_terminal(s [*S, d])`` -> ``[*S]`` (bool).
+    """
+
+    state_dim: int
+    obs_dim: int
+    n_actions: int
+
+    def initial_state(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor: ...
+
+    def initial_belief(
+        self, shape: tuple[int, ...], n: int, generator: torch.Generator | None = None
+    ) -> Tensor: ...
+
+    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor: ...
+
+    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor: ...
+
+    def transition_mean(self, s: Tensor, a: Tensor) -> Tensor: ...
+
+    def transition_scale_tril(self) -> Tensor: ...
+
+    def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor: ...
+
+    def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor: ...
+
+    def reward(self, s: Tensor, a: Tensor, s_next: Tensor) -> Tensor: ...
+
+    def is_terminal(self, s: Tensor) -> Tensor: ...
+
+
+def check_model(model: object) -> None:
+    """Raise ``TypeError`` naming the first missing attribute if ``model`` is not a POMDPModel."""
+    for name in ("state_dim", "obs_dim", "n_actions"):
+        if not isinstance(getattr(model, name, None), int):
+            raise TypeError(
+                f"model.{name}: expected an int attribute on {type(model).__name__}; "
+                "a model must follow escort_rl.models.POMDPModel"
+            )
+    for name in (
+        "initial_state",
+        "initial_belief",
+        "transition",
+        "transition_log_prob",
+        "transition_mean",
+        "transition_scale_tril",
+        "observe",
+        "observation_log_prob",
+        "reward",
+        "is_terminal",
+    ):
+        if not callable(getattr(model, name, None)):
+            raise TypeError(
+                f"model.{name}: {type(model).__name__} has no method {name}(); "
+                "a model must follow escort_rl.models.POMDPModel"
+            )
