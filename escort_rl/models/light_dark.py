@@ -23,11 +23,12 @@ ambiguous region, and the start velocity (zero).
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
 from escort_rl.models.gaussian import (
-    diag_normal_log_prob,
     make_positive_definite,
     mvn_log_prob_tril,
     nearest_correlation_matrix,
@@ -137,6 +138,11 @@ class LightDark10D:
         self.light_centres = torch.tensor([c for c, _, _ in LIGHT_REGIONS], device=self.device)
         self.light_radii = torch.tensor([r for _, r, _ in LIGHT_REGIONS], device=self.device)
         self.light_intensities = torch.tensor([i for _, _, i in LIGHT_REGIONS], device=self.device)
+        self._centre_sq = (self.light_centres**2).sum(-1)
+        self._radius_sq = self.light_radii**2
+        half = confusion_prob / 2
+        # log-probabilities of {no swap, swap(1,2), swap(3,4)} in the dark
+        self._log_event_probs = torch.log(torch.tensor([1 - confusion_prob, half, half], device=self.device))
         forces = torch.zeros(self.n_actions, self.state_dim, device=self.device)
         for a in range(self.n_actions):
             forces[a, self.n_pos + a // 2] = force if a % 2 == 0 else -force
@@ -147,15 +153,19 @@ class LightDark10D:
     # ------------------------------------------------------------------ light and noise
     def light(self, pos: Tensor) -> Tensor:
         """Light intensity ``L(x)`` in [0.05, 1]. ``pos``: ``[*S, 5]`` -> ``[*S]``."""
-        dist = torch.linalg.vector_norm(pos.unsqueeze(-2) - self.light_centres, dim=-1)  # [*S, 7]
-        inside = dist < self.light_radii
-        level = self.light_intensities * (1.0 - (dist / self.light_radii) ** 2)
-        level = torch.where(inside, level, torch.zeros_like(level))
+        # squared distances to the centres by ‖x‖² - 2x·c + ‖c‖² (one matmul, no [*S, 7, 5] tensor)
+        sq = (pos * pos).sum(-1, keepdim=True) - 2 * pos @ self.light_centres.T + self._centre_sq
+        ratio = sq.clamp_min(0.0) / self._radius_sq  # (d_j / r_j)²
+        level = self.light_intensities * (1.0 - ratio)  # negative exactly when d_j > r_j
         return level.amax(-1).clamp_min(0.05)
 
+    def observation_std_from_light(self, light: Tensor) -> Tensor:
+        """σ = sqrt(σ_base²(1 - L) + σ_min²), elementwise."""
+        return torch.sqrt(self.sigma_base**2 * (1.0 - light) + self.sigma_min**2)
+
     def observation_std(self, pos: Tensor) -> Tensor:
-        """σ(x) = sqrt(σ_base²(1 - L(x)) + σ_min²). ``pos``: ``[*S, 5]`` -> ``[*S]``."""
-        return torch.sqrt(self.sigma_base**2 * (1.0 - self.light(pos)) + self.sigma_min**2)
+        """σ(x) for positions ``[*S, 5]`` -> ``[*S]``."""
+        return self.observation_std_from_light(self.light(pos))
 
     # ------------------------------------------------------------------ protocol
     def initial_state(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor:
@@ -189,38 +199,42 @@ class LightDark10D:
     def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
         return mvn_log_prob_tril(s_next, self.transition_mean(s, a), self._scale_tril)
 
-    def _is_dark(self, pos: Tensor) -> Tensor:
-        return self.light(pos) < self.dark_threshold
-
     def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """``o = P·x' + σ(x')·ε``. ``s_next``: ``[*S, 10]`` -> ``[*S, 5]``."""
         pos = s_next[..., : self.n_pos]
         u = torch.rand(pos.shape[:-1], generator=generator, device=pos.device)
         half = self.confusion_prob / 2
         event = torch.where(u < half, 1, torch.where(u < 2 * half, 2, 0))
-        event = torch.where(self._is_dark(pos), event, torch.zeros_like(event))
+        event = torch.where(self.light(pos) < self.dark_threshold, event, torch.zeros_like(event))
         perm = self._swap_perms[event]  # [*S, 5]
         seen = torch.gather(pos, -1, perm)
         eps = torch.randn(pos.shape, generator=generator, device=pos.device, dtype=pos.dtype)
         return seen + self.observation_std(pos).unsqueeze(-1) * eps
 
     def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
-        """``log O(o | s')``: a mixture over {no swap, swap(1,2), swap(3,4)} in the dark.
+        """``log O(o | s')``: in the dark, the mixture over {no swap, swap(1,2), swap(3,4)}.
 
-        ``o``: ``[*S, 5]``, ``s_next``: ``[*S, 10]`` (broadcast) -> ``[*S]``.
+        ``o``: ``[*S, 5]``, ``s_next``: ``[*S, 10]`` (broadcast) -> ``[*S]``. With isotropic noise σ,
+        each component is ``-‖o - P x‖²/(2σ²) - 5 log σ - (5/2) log 2π``; the swapped squared errors
+        differ from the unswapped one only in the two swapped coordinates.
         """
         pos = s_next[..., : self.n_pos]
-        std = self.observation_std(pos).unsqueeze(-1)  # [*S, 1]
-        candidates = pos[..., self._swap_perms]  # [*S, 3, 5]
-        comp = diag_normal_log_prob(o.unsqueeze(-2), candidates, std.unsqueeze(-1))  # [*S', 3]
-        half = self.confusion_prob / 2
-        log_w_dark = torch.log(torch.tensor([1 - self.confusion_prob, half, half], device=pos.device))
-        dark = self._is_dark(pos).unsqueeze(-1)  # [*S, 1]
-        log_w_lit = torch.tensor([0.0, float("-inf"), float("-inf")], device=pos.device)
-        log_w = torch.where(dark, log_w_dark, log_w_lit)
-        if self.confusion_prob == 0.0:
-            log_w = log_w_lit.expand_as(log_w)
-        return torch.logsumexp(comp + log_w, dim=-1)
+        light = self.light(pos)
+        var = self.sigma_base**2 * (1.0 - light) + self.sigma_min**2  # [*S]
+        diff = o - pos  # [*S, 5]
+        sq = diff * diff
+        sq_id = sq.sum(-1)
+
+        def swapped(i: int, j: int) -> Tensor:
+            cross = (o[..., i] - pos[..., j]) ** 2 + (o[..., j] - pos[..., i]) ** 2
+            return sq_id - sq[..., i] - sq[..., j] + cross
+
+        errs = torch.stack([sq_id, swapped(0, 1), swapped(2, 3)], dim=-1)  # [*S, 3]
+        log_norm = -0.5 * self.n_pos * (torch.log(var) + math.log(2 * math.pi))
+        comp = -0.5 * errs / var.unsqueeze(-1)
+        dark = light < self.dark_threshold
+        mixed = torch.logsumexp(comp + self._log_event_probs, dim=-1)
+        return log_norm + torch.where(dark, mixed, comp[..., 0])
 
     def distance_to_goal(self, s: Tensor) -> Tensor:
         """‖x - x_goal‖₂. ``s``: ``[*S, 10]`` -> ``[*S]``."""

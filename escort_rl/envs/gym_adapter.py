@@ -1,0 +1,69 @@
+"""Gymnasium adapters: a single (unbatched) POMDP model as a ``gymnasium.Env``."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from escort_rl.models.protocol import check_model
+
+LIGHT_DARK_ID = "escort_rl/LightDark10D-v0"
+LIGHT_DARK_MAX_STEPS = 500  # see configs/env/lightdark10d.yaml for why
+
+
+class POMDPGymEnv(gym.Env):
+    """One environment of a POMDP model with the gymnasium API.
+
+    Observations are ``float32`` arrays ``[obs_dim]``; actions are ``Discrete(n_actions)``.
+    ``info["true_state"]`` holds the hidden state (for evaluation). Randomness comes from a torch
+    generator seeded from ``self.np_random`` at each ``reset(seed=...)``.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, model) -> None:
+        check_model(model)
+        self.model = model
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(model.obs_dim,), dtype=np.float32)
+        self.action_space = gym.spaces.Discrete(model.n_actions)
+        self._generator = torch.Generator()
+        self._state: torch.Tensor | None = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self._generator.manual_seed(int(self.np_random.integers(0, 2**62)))
+        s0 = self.model.initial_state((), self._generator)
+        self._state = s0
+        obs = self.model.observe(s0, torch.tensor(0), self._generator)
+        return obs.numpy().astype(np.float32), {"true_state": s0.numpy().copy()}
+
+    def step(self, action):
+        if self._state is None:
+            raise RuntimeError("step() called before reset()")
+        if not self.action_space.contains(action):
+            raise ValueError(f"action: expected an int in [0, {self.model.n_actions}), got {action!r}")
+        a = torch.tensor(int(action))
+        s_next = self.model.transition(self._state, a, self._generator)
+        obs = self.model.observe(s_next, a, self._generator)
+        reward = float(self.model.reward(self._state, a, s_next))
+        terminated = bool(self.model.is_terminal(s_next))
+        self._state = s_next
+        return obs.numpy().astype(np.float32), reward, terminated, False, {"true_state": s_next.numpy().copy()}
+
+
+def make_light_dark_gym(**model_kwargs) -> POMDPGymEnv:
+    """Entry point of ``escort_rl/LightDark10D-v0``; keyword arguments go to ``LightDark10D``."""
+    from escort_rl.models.light_dark import LightDark10D
+
+    return POMDPGymEnv(LightDark10D(**model_kwargs))
+
+
+def register_gymnasium_envs() -> None:
+    """Register the package's gymnasium ids (idempotent)."""
+    if LIGHT_DARK_ID not in gym.registry:
+        gym.register(
+            id=LIGHT_DARK_ID,
+            entry_point="escort_rl.envs.gym_adapter:make_light_dark_gym",
+            max_episode_steps=LIGHT_DARK_MAX_STEPS,
+        )

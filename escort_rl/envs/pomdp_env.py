@@ -1,0 +1,157 @@
+"""POMDPEnv: a batched TorchRL environment over any POMDP model."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from escort_rl.models.protocol import check_model
+
+
+class POMDPEnv(EnvBase):
+    """Runs a POMDP model on a batch of environments.
+
+    The true state is held by the env (a stateful env, like a simulator) and written under
+    ``"true_state"`` for evaluation only; policies read the observation or a belief.
+
+    Keys (``B`` = ``batch_size``):
+        - ``"observation"``: ``[*B, obs_dim]``. At reset it is an observation of the start state
+          (``model.observe(s_0, a=0)``); after a step, of the next state.
+        - ``"true_state"``: ``[*B, d]``, the hidden state (for evaluation; not for policies).
+        - ``"step_count"``: ``[*B, 1]`` int64, steps since the last reset.
+        - ``"action"``: ``[*B]`` int64 in ``[0, n_actions)``.
+        - ``"reward"``: ``[*B, 1]``; ``"done"``, ``"terminated"``, ``"truncated"``: ``[*B, 1]`` bool.
+
+    ``terminated`` is ``model.is_terminal(s')``; ``truncated`` is set after ``max_steps`` steps.
+    Partial resets (a ``"_reset"`` mask ``[*B, 1]``) reset only the selected rows.
+
+    Args:
+        model: any object following :class:`escort_rl.models.POMDPModel`.
+        batch_size: the batch of environments, e.g. ``(32,)``.
+        device: where tensors live; defaults to CPU.
+        seed: seeds the env's generator (also via :meth:`set_seed`).
+        max_steps: episode length before truncation (``None``: never truncate).
+    """
+
+    def __init__(self, model, batch_size=(1,), device=None, seed: int | None = None,
+                 max_steps: int | None = None) -> None:
+        check_model(model)
+        batch_size = torch.Size(batch_size if not isinstance(batch_size, int) else (batch_size,))
+        super().__init__(device=device if device is not None else "cpu", batch_size=batch_size)
+        if max_steps is not None and max_steps < 1:
+            raise ValueError(f"max_steps: must be a positive int or None, got {max_steps}")
+        self.model = model
+        self.max_steps = max_steps
+        self.generator = torch.Generator(device=self.device)
+        if seed is not None:
+            self.generator.manual_seed(seed)
+        else:
+            self.generator.seed()
+        b = tuple(batch_size)
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(*b, model.obs_dim), dtype=torch.float32, device=self.device),
+            true_state=Unbounded(shape=(*b, model.state_dim), dtype=torch.float32, device=self.device),
+            step_count=Bounded(low=0, high=torch.iinfo(torch.int64).max, shape=(*b, 1),
+                               dtype=torch.int64, device=self.device),
+            shape=batch_size,
+            device=self.device,
+        )
+        self.action_spec = Categorical(model.n_actions, shape=b, dtype=torch.int64, device=self.device)
+        self.reward_spec = Unbounded(shape=(*b, 1), dtype=torch.float32, device=self.device)
+        flag = Categorical(2, shape=(*b, 1), dtype=torch.bool, device=self.device)
+        self.done_spec = Composite(done=flag, terminated=flag.clone(), truncated=flag.clone(),
+                                   shape=batch_size, device=self.device)
+        self._state = model.initial_state(b, self.generator).to(self.device)
+        self._obs = torch.zeros(*b, model.obs_dim, device=self.device)
+        self._steps = torch.zeros(*b, 1, dtype=torch.int64, device=self.device)
+
+    @property
+    def state(self) -> torch.Tensor:
+        """The hidden states ``[*B, d]`` (a copy)."""
+        return self._state.clone()
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            self.generator.seed()
+        else:
+            self.generator.manual_seed(int(seed))
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        if reset is None:
+            rows = torch.ones(self.batch_size, dtype=torch.bool, device=self.device)
+        else:
+            rows = reset.reshape(self.batch_size)
+        n = int(rows.sum())
+        if n:
+            s0 = self.model.initial_state((n,), self.generator).to(self.device)
+            a0 = torch.zeros(n, dtype=torch.int64, device=self.device)
+            self._state[rows] = s0
+            self._obs[rows] = self.model.observe(s0, a0, self.generator).to(self.device)
+            self._steps[rows] = 0
+        done = torch.zeros(*self.batch_size, 1, dtype=torch.bool, device=self.device)
+        return TensorDict(
+            {
+                "observation": self._obs.clone(),
+                "true_state": self._state.clone(),
+                "step_count": self._steps.clone(),
+                "done": done,
+                "terminated": done.clone(),
+                "truncated": done.clone(),
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = check_action(tensordict.get("action"), self.batch_size, self.model.n_actions)
+        s = self._state
+        s_next = self.model.transition(s, action, self.generator)
+        obs = self.model.observe(s_next, action, self.generator)
+        reward = self.model.reward(s, action, s_next).unsqueeze(-1)
+        terminated = self.model.is_terminal(s_next).unsqueeze(-1)
+        self._steps = self._steps + 1
+        if self.max_steps is not None:
+            truncated = (self._steps >= self.max_steps) & ~terminated
+        else:
+            truncated = torch.zeros_like(terminated)
+        self._state, self._obs = s_next, obs
+        return TensorDict(
+            {
+                "observation": obs.clone(),
+                "true_state": s_next.clone(),
+                "step_count": self._steps.clone(),
+                "reward": reward.to(torch.float32),
+                "done": terminated | truncated,
+                "terminated": terminated,
+                "truncated": truncated,
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+
+def check_action(action, batch_size: torch.Size, n_actions: int) -> torch.Tensor:
+    """Validate an action batch: integer dtype, shape ``batch_size``, values in ``[0, n_actions)``.
+
+    Raises ``ValueError`` naming the ``action`` field. Returns the action as int64.
+    """
+    if not isinstance(action, torch.Tensor):
+        raise ValueError(f"action: expected a tensor of shape {tuple(batch_size)}, got {type(action).__name__}")
+    if action.dtype.is_floating_point or action.dtype == torch.bool or action.is_complex():
+        raise ValueError(
+            f"action: expected integer action indices (int64) of shape {tuple(batch_size)}, "
+            f"got dtype {action.dtype}"
+        )
+    if action.shape != batch_size:
+        raise ValueError(
+            f"action: expected shape {tuple(batch_size)} (one index per env), got {tuple(action.shape)}; "
+            "one-hot actions are not accepted"
+        )
+    if action.numel() and (int(action.min()) < 0 or int(action.max()) >= n_actions):
+        raise ValueError(
+            f"action: values must lie in [0, {n_actions}), got min {int(action.min())}, max {int(action.max())}"
+        )
+    return action.long()

@@ -1,0 +1,85 @@
+"""DeepSetsActor: a permutation-invariant policy over a weighted particle set (paper §3.5)."""
+
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import Tensor, nn
+from torchrl.modules import ProbabilisticActor
+from torch.distributions import Categorical
+
+
+def _mlp(sizes: list[int], activation: type[nn.Module] = nn.Tanh, last_activation: bool = True) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2 or last_activation:
+            layers.append(activation())
+    return nn.Sequential(*layers)
+
+
+class DeepSetsActor(nn.Module):
+    """``logits = g(ρ(Σ_i w_i φ(x_i)))``: a per-particle encoder φ, weighted pooling, an MLP ρ and a
+    linear head g.
+
+    With equal weights the pooling is the mean (the paper's ``(1/n) Σ_i h_i``); with SIR weights
+    it is the weighted mean under ``softmax(log_weights)``. The output is invariant to any permutation
+    of the particles (applied to particles and weights together).
+
+    Args:
+        state_dim: ``d``.
+        n_actions: number of discrete actions.
+        hidden: width of φ and ρ.
+        input_loc, input_scale: particles are standardised as ``(x - loc) / scale`` before φ
+            (scalars or ``[d]``).
+
+    Shapes: ``particles`` ``[*B, N, d]``, ``log_weights`` ``[*B, N]`` or ``None`` -> ``[*B, n_actions]``.
+    """
+
+    def __init__(self, state_dim: int, n_actions: int, hidden: int = 64,
+                 input_loc: float | list[float] = 0.0, input_scale: float | list[float] = 1.0) -> None:
+        super().__init__()
+        self.state_dim, self.n_actions = state_dim, n_actions
+        self.register_buffer("input_loc", torch.as_tensor(input_loc, dtype=torch.float32).expand(state_dim).clone())
+        self.register_buffer("input_scale", torch.as_tensor(input_scale, dtype=torch.float32).expand(state_dim).clone())
+        self.phi = _mlp([state_dim, hidden, hidden])
+        self.rho = _mlp([hidden, hidden])
+        self.head = nn.Linear(hidden, n_actions)
+
+    def pool(self, particles: Tensor, log_weights: Tensor | None = None) -> Tensor:
+        """The pooled belief embedding ``ρ(Σ_i w_i φ(x_i))``: ``[*B, hidden]``."""
+        if particles.shape[-1] != self.state_dim:
+            raise ValueError(
+                f"particles: last dimension {particles.shape[-1]} does not match the actor's "
+                f"state_dim {self.state_dim}"
+            )
+        h = self.phi((particles - self.input_loc) / self.input_scale)  # [*B, N, H]
+        if log_weights is None:
+            pooled = h.mean(-2)
+        else:
+            w = torch.softmax(log_weights, dim=-1).unsqueeze(-1)
+            pooled = (w * h).sum(-2)
+        return self.rho(pooled)
+
+    def forward(self, particles: Tensor, log_weights: Tensor | None = None) -> Tensor:
+        return self.head(self.pool(particles, log_weights))
+
+
+def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
+                         log_weights_key: str | None = "particle_log_weights",
+                         action_key: str = "action") -> ProbabilisticActor:
+    """Wrap a :class:`DeepSetsActor` as a TorchRL ``ProbabilisticActor`` with a categorical head.
+
+    Reads ``particles_key`` (and ``log_weights_key`` unless ``None``), writes ``"logits"``,
+    ``action_key`` (int64 index ``[*B]``) and ``"action_log_prob"``.
+    """
+    in_keys = [particles_key] if log_weights_key is None else [particles_key, log_weights_key]
+    module = TensorDictModule(actor, in_keys=in_keys, out_keys=["logits"])
+    return ProbabilisticActor(
+        module,
+        in_keys=["logits"],
+        out_keys=[action_key],
+        distribution_class=Categorical,
+        return_log_prob=True,
+        log_prob_key="action_log_prob",
+    )

@@ -1,0 +1,156 @@
+"""Evaluate a trained policy against a uniform-random policy on the same seeded episodes."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from escort_rl.bench.plots import plot_belief_projection, plot_learning_curve
+from escort_rl.modules import make_deepsets_policy
+from escort_rl.trainers.builders import build_actor, build_model, make_env
+from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
+
+
+def first_episode_metrics(rollout: TensorDict, model) -> dict:
+    """Per-env metrics of the first episode in a rollout ``[E, T]``.
+
+    Returns tensors: ``final_distance`` ``[E]``, ``success`` ``[E]``, ``episode_return`` ``[E]``,
+    ``length`` ``[E]`` and ``position_error`` ``[E, T]`` (NaN after the episode ends), where the
+    position error is ``‖E_b[pos] − pos_true‖₂`` of the belief after each step.
+    """
+    done = rollout["next", "done"].squeeze(-1)  # [E, T]
+    e, t = done.shape
+    has_done = done.any(1)
+    end = torch.where(has_done, done.float().argmax(1), torch.full((e,), t - 1))
+    steps = torch.arange(t).expand(e, t)
+    inside = steps <= end.unsqueeze(1)
+    rewards = rollout["next", "reward"].squeeze(-1)
+    true_state = rollout["next", "true_state"]
+    final_state = true_state[torch.arange(e), end]
+    belief_w = torch.softmax(rollout["next", "particle_log_weights"], -1).unsqueeze(-1)
+    belief_mean = (belief_w * rollout["next", "particles"]).sum(-2)  # [E, T, d]
+    pos_dim = getattr(model, "n_pos", model.obs_dim)
+    pos_err = torch.linalg.vector_norm(belief_mean[..., :pos_dim] - true_state[..., :pos_dim], dim=-1)
+    return {
+        "final_distance": model.distance_to_goal(final_state),
+        "success": rollout["next", "terminated"].squeeze(-1)[torch.arange(e), end],
+        "episode_return": (rewards * inside).sum(1),
+        "length": end + 1,
+        "position_error": torch.where(inside, pos_err, torch.full_like(pos_err, float("nan"))),
+    }
+
+
+def _summary(metrics: dict) -> dict:
+    n = metrics["final_distance"].numel()
+
+    def mean_se(x: torch.Tensor) -> tuple[float, float]:
+        x = x.double()
+        return float(x.mean()), float(x.std() / n**0.5) if n > 1 else 0.0
+
+    fd, fd_se = mean_se(metrics["final_distance"])
+    ret, ret_se = mean_se(metrics["episode_return"])
+    sr, sr_se = mean_se(metrics["success"].double())
+    pe = metrics["position_error"]
+    pe_final = pe[torch.arange(pe.shape[0]), metrics["length"] - 1]
+    pe_m, pe_se = mean_se(pe_final)
+    return {"episodes": n, "final_distance": fd, "final_distance_se": fd_se, "success_rate": sr,
+            "success_rate_se": sr_se, "episode_return": ret, "episode_return_se": ret_se,
+            "final_position_error": pe_m, "final_position_error_se": pe_se,
+            "mean_length": float(metrics["length"].double().mean())}
+
+
+def run_episodes(cfg, policy, episodes: int, seed: int) -> tuple[TensorDict, float]:
+    """Roll ``policy`` (or uniform-random actions when ``None``) for one episode in each of
+    ``episodes`` envs seeded with ``seed``. Returns the rollout ``[E, T]`` and seconds per step."""
+    env = make_env(cfg, episodes, seed=seed)
+    torch.manual_seed(seed)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        rollout = env.rollout(int(cfg.env.max_steps), policy, break_when_any_done=False)
+    per_step = (time.perf_counter() - t0) / rollout.shape[1]
+    env.close()
+    return rollout, per_step
+
+
+def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | Path | None = None,
+             greedy: bool | None = None) -> dict:
+    """Evaluate the checkpointed policy and a uniform-random policy on the same seeded episodes.
+
+    Writes ``summary.md``, ``metrics.json``, ``learning_curve.png`` and ``belief_projection.png``
+    into ``output`` (default: ``<run>/evaluation``) and returns the metrics.
+    """
+    ckpt_path = resolve_checkpoint(checkpoint)
+    meta = load_checkpoint(ckpt_path)  # reads config and history without restoring modules
+    cfg = OmegaConf.create(meta["config"])
+    model = build_model(cfg.env, cfg.device)
+    actor = build_actor(cfg, model.state_dim, model.n_actions)
+    load_checkpoint(ckpt_path, actor=actor)
+    actor.eval()
+    episodes = int(episodes if episodes is not None else cfg.evaluate.episodes)
+    greedy = bool(cfg.evaluate.greedy if greedy is None else greedy)
+    seed = int(cfg.evaluate.seed)
+    out = Path(output) if output is not None else ckpt_path.parent.parent / "evaluation"
+    out.mkdir(parents=True, exist_ok=True)
+
+    policy = make_deepsets_policy(actor)
+    mode = ExplorationType.DETERMINISTIC if greedy else ExplorationType.RANDOM
+    with set_exploration_type(mode):
+        trained, trained_step_s = run_episodes(cfg, policy, episodes, seed)
+    random_rollout, random_step_s = run_episodes(cfg, None, episodes, seed)
+    m_trained = first_episode_metrics(trained, model)
+    m_random = first_episode_metrics(random_rollout, model)
+    result = {
+        "checkpoint": str(ckpt_path),
+        "env": cfg.env.name,
+        "filter": cfg.filter.name,
+        "num_particles": int(cfg.num_particles),
+        "episodes": episodes,
+        "eval_seed": seed,
+        "greedy": greedy,
+        "trained_iterations": int(meta["trainer_state"]["iteration"]),
+        "trained": {**_summary(m_trained), "seconds_per_step": trained_step_s},
+        "random": {**_summary(m_random), "seconds_per_step": random_step_s},
+    }
+    (out / "metrics.json").write_text(json.dumps(result, indent=2))
+    history = meta["trainer_state"].get("history", [])
+    if history:
+        plot_learning_curve(history, out / "learning_curve.png")
+    pos_dim = getattr(model, "n_pos", model.obs_dim)
+    plot_belief_projection(trained["next", "particles"][0], trained["next", "true_state"][0, :, :pos_dim],
+                           out / "belief_projection.png",
+                           position_error=torch.nanmean(m_trained["position_error"], 0))
+    (out / "summary.md").write_text(_markdown(result))
+    return result
+
+
+def _markdown(r: dict) -> str:
+    rows = []
+    for name in ("trained", "random"):
+        m = r[name]
+        rows.append(
+            f"| {name} | {m['final_distance']:.3f} ± {m['final_distance_se']:.3f} | "
+            f"{m['success_rate']:.3f} ± {m['success_rate_se']:.3f} | "
+            f"{m['episode_return']:.1f} ± {m['episode_return_se']:.1f} | "
+            f"{m['final_position_error']:.3f} ± {m['final_position_error_se']:.3f} | "
+            f"{m['mean_length']:.0f} | {1e3 * m['seconds_per_step']:.2f} |"
+        )
+    return "\n".join([
+        f"# Evaluation: {r['env']}, belief filter {r['filter']} (N={r['num_particles']})",
+        "",
+        f"Checkpoint `{r['checkpoint']}` after {r['trained_iterations']} iterations; "
+        f"{r['episodes']} episodes with env seed {r['eval_seed']}, the same for both policies; "
+        f"trained policy {'greedy' if r['greedy'] else 'sampled'}. Mean ± standard error.",
+        "",
+        "| policy | final distance to goal | success rate | return | final position error | steps | ms per step (batch) |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+        *rows,
+        "",
+        "Position error: ‖E_b[pos] − pos_true‖₂ of the belief at the episode's last step.",
+        "",
+    ])

@@ -1,0 +1,163 @@
+"""BeliefTransform: keeps each environment's particle belief in the tensordict across steps."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Composite, Unbounded
+from torchrl.envs.transforms import Transform
+
+from escort_rl.belief.base import BeliefFilter
+from escort_rl.belief.particle_belief import ParticleBelief
+from escort_rl.models.protocol import check_model
+
+
+class BeliefTransform(Transform):
+    """Tracks a particle belief per environment with any filter (SIR, SVGD, ESCORT).
+
+    On reset it writes the prior ``filter.init(model, ...)`` into the rows being reset; on each step
+    it reads the root particles and ``action`` and the next ``observation``, and writes the updated
+    belief under ``next``. Keys (``B`` = env batch size, ``N`` = ``num_particles``, ``d`` = state dim):
+
+    - ``particles_key`` (default ``"particles"``): ``[*B, N, d]``.
+    - ``log_weights_key`` (default ``"particle_log_weights"``): ``[*B, N]``, normalised.
+
+    Both keys are registered in the observation spec and in the state spec: ParallelEnv ships only
+    state-spec keys to its workers, so an observation-only spec would lose the particles there.
+
+    Args:
+        model: the POMDP model the filter uses (the env's model, or an approximation of it).
+        filter: a :class:`escort_rl.belief.BeliefFilter`.
+        num_particles: ``N``.
+        observation_key, action_key: where the observation and the action are read.
+        particles_key, log_weights_key: where the belief is written.
+        seed: ``None`` (default) draws the filter's randomness from the base env's ``generator``
+            when it has one (as :class:`escort_rl.envs.POMDPEnv` does), so that ``env.set_seed(s)``
+            and ``collector.set_seed(s)`` seed the belief too; an int gives the transform its own
+            generator with that seed (see :meth:`set_seed`).
+    """
+
+    def __init__(
+        self,
+        model,
+        filter: BeliefFilter,
+        num_particles: int,
+        observation_key: str = "observation",
+        action_key: str = "action",
+        particles_key: str = "particles",
+        log_weights_key: str = "particle_log_weights",
+        seed: int | None = None,
+    ) -> None:
+        check_model(model)
+        if not isinstance(filter, BeliefFilter):
+            raise TypeError(f"filter: expected a BeliefFilter, got {type(filter).__name__}")
+        if not isinstance(num_particles, int) or num_particles < 1:
+            raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
+        super().__init__(in_keys=[observation_key, action_key], out_keys=[particles_key, log_weights_key])
+        self.model = model
+        self.filter = filter
+        self.num_particles = num_particles
+        self.observation_key, self.action_key = observation_key, action_key
+        self.particles_key, self.log_weights_key = particles_key, log_weights_key
+        self._seed = seed
+        self._generator: torch.Generator | None = None
+
+    # ------------------------------------------------------------------ randomness
+    def set_seed(self, seed: int | None) -> None:
+        """Seed the generator used for the filter's randomness (on the env's device)."""
+        self._seed = seed
+        self._generator = None
+
+    def _get_generator(self, device: torch.device) -> torch.Generator:
+        if self._seed is None:
+            base_env = getattr(getattr(self, "container", None), "base_env", None)
+            shared = getattr(base_env, "generator", None)
+            if isinstance(shared, torch.Generator) and shared.device == torch.device(device):
+                return shared
+        if self._generator is None or self._generator.device != device:
+            self._generator = torch.Generator(device=device)
+            if self._seed is None:
+                self._generator.seed()
+            else:
+                self._generator.manual_seed(int(self._seed))
+        return self._generator
+
+    def generator_state(self) -> torch.Tensor | None:
+        return None if self._generator is None else self._generator.get_state()
+
+    # ------------------------------------------------------------------ specs
+    def _belief_specs(self, batch_shape: torch.Size, device) -> dict:
+        n, d = self.num_particles, self.model.state_dim
+        return {
+            self.particles_key: Unbounded(shape=(*batch_shape, n, d), dtype=torch.float32, device=device),
+            self.log_weights_key: Unbounded(shape=(*batch_shape, n), dtype=torch.float32, device=device),
+        }
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        obs_spec = observation_spec.get(self.observation_key, None)
+        if obs_spec is None:
+            raise KeyError(
+                f"BeliefTransform.observation_key: the env has no '{self.observation_key}' in its "
+                "observation spec"
+            )
+        if obs_spec.shape[-1] != self.model.obs_dim:
+            raise ValueError(
+                f"BeliefTransform.model: model.obs_dim is {self.model.obs_dim} but the env's "
+                f"'{self.observation_key}' has last dimension {obs_spec.shape[-1]}; pass the env's model"
+            )
+        true_state = observation_spec.get("true_state", None)
+        if true_state is not None and true_state.shape[-1] != self.model.state_dim:
+            raise ValueError(
+                f"BeliefTransform.model: model.state_dim is {self.model.state_dim} but the env's "
+                f"'true_state' has last dimension {true_state.shape[-1]}; pass the env's model"
+            )
+        for key, spec in self._belief_specs(observation_spec.shape, observation_spec.device).items():
+            observation_spec[key] = spec
+        return observation_spec
+
+    def transform_state_spec(self, state_spec: Composite) -> Composite:
+        for key, spec in self._belief_specs(state_spec.shape, state_spec.device).items():
+            state_spec[key] = spec
+        return state_spec
+
+    # ------------------------------------------------------------------ reset and step
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        batch = tensordict_reset.batch_size
+        device = tensordict_reset.device or torch.device("cpu")
+        reset = tensordict.get("_reset", None) if tensordict is not None else None
+        rows = torch.ones(batch, dtype=torch.bool, device=device) if reset is None else reset.reshape(batch)
+        n, d = self.num_particles, self.model.state_dim
+        old_x = tensordict.get(self.particles_key, None) if tensordict is not None else None
+        old_w = tensordict.get(self.log_weights_key, None) if tensordict is not None else None
+        particles = old_x.clone() if old_x is not None else torch.zeros(*batch, n, d, device=device)
+        log_w = old_w.clone() if old_w is not None else torch.full((*batch, n), -float(torch.log(torch.tensor(n))), device=device)
+        k = int(rows.sum())
+        if k:
+            prior = self.filter.init(self.model, (k,), n, self._get_generator(device))
+            particles[rows] = prior.particles.to(device, torch.float32)
+            log_w[rows] = prior.log_weights.to(device, torch.float32)
+        tensordict_reset.set(self.particles_key, particles)
+        tensordict_reset.set(self.log_weights_key, log_w)
+        return tensordict_reset
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        particles = tensordict.get(self.particles_key, None)
+        if particles is None:
+            raise KeyError(
+                f"BeliefTransform: '{self.particles_key}' is missing from the input tensordict; "
+                "call env.reset() before env.step()"
+            )
+        belief = ParticleBelief(particles, tensordict.get(self.log_weights_key))
+        action = tensordict.get(self.action_key)
+        observation = next_tensordict.get(self.observation_key)
+        device = particles.device
+        new = self.filter.update(self.model, belief, action, observation, self._get_generator(device))
+        next_tensordict.set(self.particles_key, new.particles.to(torch.float32))
+        next_tensordict.set(self.log_weights_key, new.log_weights.to(torch.float32))
+        return next_tensordict
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        raise NotImplementedError(
+            "BeliefTransform is an environment transform: append it to a TransformedEnv, "
+            "it cannot be applied to stored data"
+        )
