@@ -1,0 +1,113 @@
+"""The REINFORCE trainer: returns, config errors, checkpoints and kill/resume."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from torchrl.checkpoint import CheckpointRotation
+
+from escort_rl.cli import main
+from escort_rl.config import ConfigError, compose
+from escort_rl.modules import DeepSetsActor
+from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint
+from escort_rl.trainers.reinforce import complete_episode_mask, returns_to_go, train
+
+TINY = ["trainer.num_envs=4", "env.max_steps=12", "num_particles=16", "actor.hidden=16",
+        "trainer.minibatch_size=64", "trainer.checkpoint_every=1"]
+
+
+def test_returns_to_go_closed_form():
+    reward = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    done = torch.tensor([[False, True, False, True]])
+    g = returns_to_go(reward, done, gamma=0.5)
+    torch.testing.assert_close(g, torch.tensor([[1 + 0.5 * 2, 2.0, 3 + 0.5 * 4, 4.0]]))
+
+
+def test_complete_episode_mask_drops_the_cut_episode():
+    done = torch.tensor([[False, True, False, False], [False, False, False, True]])
+    mask = complete_episode_mask(done)
+    assert mask.tolist() == [[True, True, False, False], [True, True, True, True]]
+
+
+def test_unknown_config_key_names_the_key():
+    with pytest.raises(ConfigError, match="trainer.lrr"):
+        compose(["trainer.lrr=0.1"])
+
+
+def test_bad_config_value_names_the_key(tmp_path):
+    cfg = compose([*TINY, "trainer.baseline=mean", f"output_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match="^trainer.baseline:"):
+        train(cfg, progress=False)
+
+
+def test_cli_unknown_key_is_one_line(capsys):
+    assert main(["train", "nonsense_key=3"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: config: unknown key 'nonsense_key'") and "\n" not in err
+
+
+def test_corrupt_checkpoint_gives_one_line_error(tmp_path, capsys):
+    run = tmp_path / "run"
+    train(compose([*TINY, "trainer.iterations=1", f"output_dir={run}"]), progress=False)
+    ckpt = CheckpointRotation(run / "checkpoints", keep_last=10).latest()
+    assert load_checkpoint(ckpt)["trainer_state"]["iteration"] == 1
+    for f in (ckpt / "components").rglob("*"):
+        if f.is_file() and f.suffix in (".memmap", ".json"):
+            f.write_bytes(b"\x00garbage")
+    with pytest.raises(CheckpointLoadError, match="^checkpoint: cannot load"):
+        load_checkpoint(ckpt, actor=DeepSetsActor(10, 10, hidden=16))
+    assert main(["evaluate", "--checkpoint", str(run), "--episodes", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: checkpoint:") and "\n" not in err
+
+
+def test_missing_checkpoint_path(capsys):
+    assert main(["evaluate", "--checkpoint", "/nonexistent/run"]) == 2
+    assert capsys.readouterr().err.startswith("error: checkpoint: '/nonexistent/run' does not exist")
+
+
+def _actor_params(run: Path) -> dict:
+    actor = DeepSetsActor(10, 10, hidden=16)
+    load_checkpoint(run, actor=actor)
+    return {k: v.clone() for k, v in actor.state_dict().items()}
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_to_the_same_parameters(tmp_path):
+    iterations = 8
+    args = [*TINY, f"trainer.iterations={iterations}", "trainer.keep_checkpoints=3"]
+    reference = tmp_path / "reference"
+    assert main(["train", "--quiet", *args, f"output_dir={reference}"]) == 0
+
+    killed = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "escort_rl.cli", "train", "--quiet", *args, f"output_dir={killed}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    rotation = CheckpointRotation(killed / "checkpoints", keep_last=100)
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        latest = rotation.latest()
+        if latest is not None and load_checkpoint(latest)["trainer_state"]["iteration"] >= 3:
+            break
+        if proc.poll() is not None:
+            pytest.fail(f"training exited early: {proc.stderr.read().decode()[-2000:]}")
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    survivors = rotation.checkpoints()
+    assert survivors, "no checkpoint survived the kill"
+    reached = [load_checkpoint(p)["trainer_state"]["iteration"] for p in survivors]  # none is corrupt
+    assert max(reached) < iterations, "the run finished before it was killed; the test proves nothing"
+
+    assert main(["train", "--quiet", f"resume={killed}"]) == 0
+    final = load_checkpoint(killed)
+    assert final["trainer_state"]["iteration"] == iterations
+    ref, res = _actor_params(reference), _actor_params(killed)
+    for key in ref:
+        assert torch.equal(ref[key], res[key]), key
+    ref_hist = load_checkpoint(reference)["trainer_state"]["history"]
+    assert [h["episode_return"] for h in ref_hist] == [h["episode_return"] for h in final["trainer_state"]["history"]]
