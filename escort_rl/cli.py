@@ -4,6 +4,7 @@
     escort-rl train [KEY=VALUE ...]      train; resume with resume=RUN_DIR
     escort-rl evaluate --checkpoint PATH evaluate a checkpoint against a random policy
     escort-rl config [KEY=VALUE ...]     print the composed config
+    escort-rl describe                   print the Light-Dark process-noise correlations
 """
 
 from __future__ import annotations
@@ -39,6 +40,9 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--output", default=None, help="output folder (default: RUN_DIR/evaluation)")
     ev.add_argument("--greedy", action=argparse.BooleanOptionalAction, default=None,
                     help="take the most probable action instead of sampling (default: evaluate.greedy)")
+    sub.add_parser("describe", help="print the Light-Dark 10D process-noise correlations (paper vs used)",
+                   description="The paper's correlations are not PSD; this prints the nearest correlation "
+                   "matrix that the model uses.")
     cfg = sub.add_parser("config", help="print the composed config", description="Print the config as YAML.")
     cfg.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     return parser
@@ -76,6 +80,10 @@ def main(argv: list[str] | None = None) -> int:
             from escort_rl.config import compose
 
             print(OmegaConf.to_yaml(compose(args.overrides)))
+        elif args.command == "describe":
+            from escort_rl.models.light_dark import describe_correlations
+
+            print(describe_correlations())
         elif args.command == "train":
             run_dir = _train(args.overrides, args.quiet)
             print(f"checkpoints and logs: {run_dir.resolve()}")

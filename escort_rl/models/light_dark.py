@@ -251,3 +251,27 @@ class LightDark10D:
     def position(self, s: Tensor) -> Tensor:
         """The position part of a state: ``[*S, 10]`` -> ``[*S, 5]``."""
         return s[..., : self.n_pos]
+
+
+def describe_correlations() -> str:
+    """A Markdown report of the paper's process-noise correlations and the nearest correlation
+    matrix (Higham 2002) that :class:`LightDark10D` uses instead."""
+    paper = paper_correlations()
+    used = LightDark10D().correlation
+    names = [f"x{i + 1}" for i in range(5)] + [f"v{i + 1}" for i in range(5)]
+    lines = [
+        "Light-Dark 10D process-noise correlations",
+        "",
+        f"smallest eigenvalue: paper {torch.linalg.eigvalsh(paper).min().item():.4f} (not PSD), "
+        f"used {torch.linalg.eigvalsh(used).min().item():.4f}",
+        "",
+        "| pair | paper | used |",
+        "| --- | --- | --- |",
+    ]
+    for i in range(10):
+        for j in range(i + 1, 10):
+            if paper[i, j] != 0:
+                lines.append(f"| rho({names[i]}, {names[j]}) | {paper[i, j]:.2f} | {used[i, j]:.3f} |")
+    off = (used * (paper == 0)).abs().max().item()
+    lines += ["", f"largest |correlation| the used matrix adds where the paper has none: {off:.3f}"]
+    return "\n".join(lines)
