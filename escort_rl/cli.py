@@ -5,6 +5,7 @@
     escort-rl evaluate --checkpoint PATH evaluate a checkpoint against a random policy
     escort-rl config [KEY=VALUE ...]     print the composed config
     escort-rl describe                   print the Light-Dark process-noise correlations
+    escort-rl bench throughput           collector frames/s with the belief transform
 """
 
 from __future__ import annotations
@@ -43,6 +44,17 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("describe", help="print the Light-Dark 10D process-noise correlations (paper vs used)",
                    description="The paper's correlations are not PSD; this prints the nearest correlation "
                    "matrix that the model uses.")
+    bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints what it measured.")
+    bench_sub = bench.add_subparsers(dest="bench", required=True)
+    thr = bench_sub.add_parser("throughput", help="collector frames/s with the belief transform",
+                               description="Env frames per second through Collector (1 worker) or "
+                               "MultiSyncCollector (K workers), belief transform and DeepSets policy in the loop.")
+    thr.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to time")
+    thr.add_argument("--num-envs", type=int, default=32, help="environments in all (B)")
+    thr.add_argument("--steps", type=int, default=100, help="steps per env per batch")
+    thr.add_argument("--batches", type=int, default=3, help="timed batches (after one warm-up batch)")
+    thr.add_argument("--output", default=None, help="write the results as JSON here")
+    thr.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     cfg = sub.add_parser("config", help="print the composed config", description="Print the config as YAML.")
     cfg.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     return parser
@@ -80,6 +92,20 @@ def main(argv: list[str] | None = None) -> int:
             from escort_rl.config import compose
 
             print(OmegaConf.to_yaml(compose(args.overrides)))
+        elif args.command == "bench" and args.bench == "throughput":
+            from escort_rl.bench.throughput import collection_throughput
+            from escort_rl.config import compose
+
+            cfg = compose(args.overrides)
+            rows = []
+            for k in args.workers:
+                row = collection_throughput(cfg, k, args.num_envs, args.steps, args.batches)
+                rows.append(row)
+                print(f"workers={k} B={row['num_envs']} N={row['num_particles']} filter={row['filter']}: "
+                      f"{row['frames_per_second']:.0f} frames/s ({row['frames']} frames in {row['seconds']:.2f} s)")
+            if args.output:
+                Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+                Path(args.output).write_text(json.dumps(rows, indent=1))
         elif args.command == "describe":
             from escort_rl.models.light_dark import describe_correlations
 

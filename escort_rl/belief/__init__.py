@@ -1,11 +1,14 @@
-"""Particle beliefs and the filters that update them (SIR now; SVGD and ESCORT build on the same interface)."""
+"""Particle beliefs and the filters that update them: SIR, SVGD and ESCORT."""
 
 from escort_rl.belief.base import BeliefFilter, validate_update_inputs
+from escort_rl.belief.escort import ESCORTFilter, SVGDFilter
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.sir import SIRFilter, systematic_resample_indices
 
 __all__ = [
     "BeliefFilter",
+    "ESCORTFilter",
+    "SVGDFilter",
     "ParticleBelief",
     "SIRFilter",
     "systematic_resample_indices",

@@ -1,0 +1,188 @@
+"""SVGD and ESCORT: closed-form pieces, calibration against the Kalman filter, numerical safety."""
+
+import math
+
+import pytest
+import torch
+
+from escort_rl.belief import ESCORTFilter, ParticleBelief, SVGDFilter
+from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists, svgd_direction
+from escort_rl.belief.prior import SmoothedPrior, silverman_factor
+from escort_rl.belief.projections import (
+    correlation_force,
+    correlation_projections,
+    sorted_matching,
+    temporal_force,
+)
+from escort_rl.models import LightDark10D, LinearGaussian
+
+
+def test_pairwise_and_median_match_direct_computation():
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 25, 4, generator=g)
+    sq = pairwise_sq_dists(x)
+    direct = ((x.unsqueeze(-2) - x.unsqueeze(-3)) ** 2).sum(-1)
+    torch.testing.assert_close(sq, direct, atol=1e-4, rtol=1e-4)
+    off = ~torch.eye(25, dtype=torch.bool)
+    for b in range(3):
+        vals = torch.sort(direct[b][off]).values
+        expected = vals[(vals.numel() - 1) // 2] / math.log(25)  # lower median over ordered pairs
+        torch.testing.assert_close(median_bandwidth(sq)[b], expected, atol=1e-4, rtol=1e-4)
+
+
+def test_svgd_direction_matches_the_naive_sum():
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 15, 3, generator=g)
+    score = torch.randn(2, 15, 3, generator=g)
+    h = torch.tensor([0.7, 1.3])
+    out = svgd_direction(x, score, h, repulsion=1.5)
+    diff = x.unsqueeze(-2) - x.unsqueeze(-3)  # [B, i, j, d] = x_i - x_j
+    k = torch.exp(-(diff**2).sum(-1) / h[:, None, None])
+    grad_k = 2.0 / h[:, None, None, None] * diff * k.unsqueeze(-1)  # ∇_{x_j} k(x_j, x_i)
+    naive = ((k.unsqueeze(-1) * score.unsqueeze(-3)).sum(-2) + 1.5 * grad_k.sum(-2)) / 15
+    torch.testing.assert_close(out, naive, atol=1e-5, rtol=1e-4)
+
+
+def test_smoothed_prior_matches_the_mixture_and_its_autograd_score():
+    g = torch.Generator().manual_seed(2)
+    means = torch.randn(2, 30, 3, generator=g, dtype=torch.float64)
+    tril = torch.tensor([[0.5, 0, 0], [0.1, 0.4, 0], [0.0, -0.2, 0.3]], dtype=torch.float64)
+    prior = SmoothedPrior(means, tril)
+    h = silverman_factor(30, 3)
+    x = torch.randn(2, 7, 3, generator=g, dtype=torch.float64)
+    for b in range(2):
+        cov = tril @ tril.T + h * h * torch.cov(means[b].T, correction=0) + 1e-6 * torch.eye(3, dtype=torch.float64)
+        comp = torch.distributions.MultivariateNormal(means[b], covariance_matrix=cov)
+        ref = torch.logsumexp(comp.log_prob(x[b].unsqueeze(-2)), -1) - math.log(30)
+        torch.testing.assert_close(prior.log_prob(x)[b], ref)
+    xg = x.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(prior.log_prob(xg).sum(), xg)
+    torch.testing.assert_close(prior.score(x), grad)
+
+
+def test_sorted_matching_is_the_monotone_permutation():
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(1, 12, 2, generator=g)
+    r = torch.randn(1, 12, 2, generator=g)
+    theta = torch.tensor([[[1.0, 0.0], [0.0, 1.0]]])
+    sigma = sorted_matching(x, r, theta)
+    for j in range(2):
+        assert sorted(sigma[0, j].tolist()) == list(range(12))
+        px, pr = x[0, :, j], r[0, sigma[0, j], j]
+        order = torch.argsort(px)
+        assert torch.all(pr[order][1:] >= pr[order][:-1])  # monotone: the 1-D OT plan
+
+
+def test_temporal_force_pulls_toward_the_matched_reference_and_clips():
+    x = torch.zeros(1, 4, 2)
+    r = torch.full((1, 4, 2), 100.0)
+    theta = torch.tensor([[[1.0, 0.0]]])
+    force = temporal_force(x, r, theta, torch.ones(1, 1), strength=0.5, clip=10.0)
+    assert torch.all(force == 10.0)
+
+
+def test_correlation_force_vanishes_for_a_uniform_velocity():
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(2, 50, 5, generator=g)
+    y = torch.randn(2, 50, 5, generator=g) @ torch.diag(torch.tensor([1.0, 2, 1, 1, 3]))
+    a, w = correlation_projections(x, y, torch.zeros(2, 50), n_proj=3, proj_dim=2, generator=g)
+    eye = torch.eye(2)
+    torch.testing.assert_close(a.transpose(-1, -2) @ a, eye.expand_as(a.transpose(-1, -2) @ a), atol=1e-5, rtol=0)
+    torch.testing.assert_close(w.sum(-1), torch.ones(2))
+    phi = torch.ones(2, 50, 5) * torch.tensor([1.0, -2, 0.5, 0, 3])
+    assert correlation_force(phi, a, w, 0.1).abs().max() < 1e-6
+    assert correlation_force(phi, a, w, 0.1, form="position", x=x).abs().max() > 1e-3
+
+
+def _episode_errors(filt, steps=12, n=300, batch=4, seed=0):
+    model = LinearGaussian(state_dim=4)
+    g = torch.Generator().manual_seed(seed)
+    belief = filt.init(model, (batch,), n, g)
+    s = model.initial_state((batch,), g)
+    mean = model.m0.expand(batch, 4).double()
+    cov = model.P0.expand(batch, 4, 4).double()
+    maha, ratio = [], []
+    for _ in range(steps):
+        a = torch.randint(0, model.n_actions, (batch,), generator=g)
+        s = model.transition(s, a, g)
+        o = model.observe(s, a, g)
+        belief = filt.update(model, belief, a, o, g)
+        mean, cov = model.kalman_step(mean, cov, a, o)
+        diff = (belief.mean().double() - mean).unsqueeze(-1)
+        maha.append(torch.sqrt((diff.transpose(-1, -2) @ torch.linalg.solve(cov, diff)).squeeze()).mean())
+        ratio.append((torch.diagonal(belief.covariance().double(), dim1=-2, dim2=-1).sum(-1)
+                      / torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1)).mean())
+        assert torch.isfinite(belief.particles).all()
+    return float(torch.stack(maha).mean()), float(torch.stack(ratio).mean())
+
+
+@pytest.mark.parametrize("filt", [SVGDFilter(), ESCORTFilter()], ids=["svgd", "escort"])
+def test_calibrated_against_the_kalman_filter(filt):
+    """SPEC §4: over a 12-step episode with N=300, mean within 0.6 Mahalanobis units of the Kalman
+    mean on average, and total variance within [0.6, 1.6]× the Kalman variance."""
+    maha, ratio = _episode_errors(filt)
+    assert maha < 0.6, maha
+    assert 0.6 <= ratio <= 1.6, ratio
+
+
+def test_position_form_contracts_the_belief():
+    """The appendix's position-form correlation term shrinks the variance below the velocity form's."""
+    _, ratio_velocity = _episode_errors(ESCORTFilter(), steps=6, batch=2)
+    _, ratio_position = _episode_errors(ESCORTFilter(corr_form="position"), steps=6, batch=2)
+    assert ratio_position < ratio_velocity
+
+
+def test_variants_are_configurations():
+    model = LightDark10D()
+    g = torch.Generator().manual_seed(5)
+    for filt in (ESCORTFilter(lambda_corr=0.0), ESCORTFilter(lambda_temp=0.0), ESCORTFilter(projection="random"),
+                 ESCORTFilter(prior="exact", num_steps=5), ESCORTFilter(likelihood_pull=0.1, num_steps=5),
+                 ESCORTFilter(temp_schedule="constant", num_steps=5)):
+        b = filt.init(model, (2,), 40, g)
+        a = torch.tensor([0, 3])
+        out = filt.update(model, b, a, torch.ones(2, 5), g)
+        assert out.particles.shape == (2, 40, 10) and torch.isfinite(out.particles).all()
+    with pytest.raises(ValueError, match="^SVGDFilter.lambda_corr"):
+        SVGDFilter(lambda_corr=0.1)
+    with pytest.raises(ValueError, match="^ESCORTFilter.corr_form"):
+        ESCORTFilter(corr_form="other")
+
+
+def test_coincident_particles_do_not_give_nan():
+    model = LinearGaussian(state_dim=3)
+    filt = ESCORTFilter(num_steps=10, jitter=0.0)
+    belief = ParticleBelief.uniform(torch.zeros(2, 20, 3))
+    model_q0 = LinearGaussian(state_dim=3, process_cov=1e-8 * torch.eye(3))
+    for m in (model, model_q0):
+        out = filt.update(m, belief, torch.zeros(2, dtype=torch.long), torch.zeros(2, 3))
+        assert torch.isfinite(out.particles).all()
+    x = filt.fit(lambda z: -(z**2).sum(-1), torch.zeros(1, 10, 3), num_steps=5)
+    assert torch.isfinite(x).all()
+
+
+class _ImpossibleObservation(LinearGaussian):
+    def observation_log_prob(self, o, s_next, a):
+        lp = super().observation_log_prob(o, s_next, a)
+        return torch.where(s_next[..., 0] > 0, torch.full_like(lp, -float("inf")), lp * 1e8)
+
+
+def test_infinite_and_huge_log_densities_do_not_give_nan():
+    model = _ImpossibleObservation(state_dim=2)
+    g = torch.Generator().manual_seed(6)
+    for filt in (SVGDFilter(num_steps=10), ESCORTFilter(num_steps=10)):
+        b = filt.init(model, (3,), 30, g)
+        out = filt.update(model, b, torch.zeros(3, dtype=torch.long), torch.full((3, 2), 5.0), g)
+        assert torch.isfinite(out.particles).all()
+        assert torch.isfinite(out.mean()).all()
+
+
+def test_fit_static_gaussian_target():
+    g = torch.Generator().manual_seed(7)
+    target = torch.distributions.MultivariateNormal(torch.tensor([1.0, -2.0]),
+                                                    covariance_matrix=torch.tensor([[1.0, 0.8], [0.8, 1.0]]))
+    x0 = 3.0 * torch.randn(1, 200, 2, generator=g)
+    for filt in (SVGDFilter(), ESCORTFilter()):
+        x = filt.fit(target.log_prob, x0, num_steps=300, generator=g)
+        torch.testing.assert_close(x.mean(-2)[0], target.mean, atol=0.15, rtol=0)
+        corr = torch.corrcoef(x[0].T)[0, 1]
+        assert abs(float(corr) - 0.8) < 0.1, float(corr)
