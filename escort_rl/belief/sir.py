@@ -46,6 +46,9 @@ class SIRFilter(BeliefFilter):
         self.resample_threshold = resample_threshold
         self.roughening = roughening
 
+    def __repr__(self) -> str:
+        return f"SIRFilter(resample_threshold={self.resample_threshold}, roughening={self.roughening})"
+
     def _update(self, model, belief, action, observation, generator):
         x = belief.particles
         n, d = x.shape[-2], x.shape[-1]

@@ -9,7 +9,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import TransformedEnv
 
-from escort_rl.belief import SIRFilter
+from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
 from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
 from escort_rl.models import LightDark10D
@@ -17,7 +17,7 @@ from escort_rl.modules import DeepSetsActor
 from escort_rl.transforms import BeliefTransform
 
 MODELS = {"lightdark10d": LightDark10D}
-FILTERS = {"sir": SIRFilter}
+FILTERS = {"sir": SIRFilter, "svgd": SVGDFilter, "escort": ESCORTFilter}
 
 
 def _kwargs(node: DictConfig, exclude: tuple[str, ...] = ("name",)) -> dict:
@@ -36,13 +36,15 @@ def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
 
 
 def build_filter(filter_cfg: DictConfig):
-    """The belief filter named by ``filter.name`` with the other keys as keyword arguments."""
-    if filter_cfg.name not in FILTERS:
-        raise ConfigError(f"filter.name: unknown filter '{filter_cfg.name}'; choose one of {sorted(FILTERS)}")
+    """The belief filter of class ``filter.kind`` with the keys other than ``name`` and ``kind`` as
+    keyword arguments (``name`` labels a configuration, e.g. ``escort_nocorr``)."""
+    kind = filter_cfg.get("kind", filter_cfg.name)
+    if kind not in FILTERS:
+        raise ConfigError(f"filter.kind: unknown filter '{kind}'; choose one of {sorted(FILTERS)}")
     try:
-        return FILTERS[filter_cfg.name](**_kwargs(filter_cfg))
-    except TypeError as err:
-        raise ConfigError(f"filter: {err}") from None
+        return FILTERS[kind](**_kwargs(filter_cfg, exclude=("name", "kind")))
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"filter: {str(err).splitlines()[0]}") from None
 
 
 def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None) -> TransformedEnv:
