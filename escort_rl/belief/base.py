@@ -80,6 +80,11 @@ def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observ
         raise ValueError(f"action: expected shape {tuple(batch)} (one integer per belief), got {shape}")
     if action.dtype.is_floating_point or action.dtype == torch.bool:
         raise ValueError(f"action: expected an integer tensor, got dtype {action.dtype}")
+    if action.numel() and (int(action.min()) < 0 or int(action.max()) >= model.n_actions):
+        raise ValueError(
+            f"action: values must lie in [0, {model.n_actions}), got min {int(action.min())}, "
+            f"max {int(action.max())}"
+        )
     if not isinstance(observation, Tensor) or observation.shape != (*batch, model.obs_dim):
         shape = tuple(observation.shape) if isinstance(observation, Tensor) else type(observation).__name__
         raise ValueError(

@@ -21,9 +21,13 @@ def systematic_resample_indices(log_weights: Tensor, generator: torch.Generator 
     n = log_weights.shape[-1]
     w = torch.softmax(log_weights, dim=-1)
     cdf = torch.cumsum(w, dim=-1)
-    cdf[..., -1] = 1.0  # guard against round-off at the top
+    cdf = cdf / cdf[..., -1:]  # exactly 1 at the top, and flat after the last positive weight
     u = torch.rand((*log_weights.shape[:-1], 1), generator=generator, device=w.device, dtype=w.dtype)
     positions = (u + torch.arange(n, device=w.device, dtype=w.dtype)) / n
+    # (u + N - 1)/N can round up to 1.0; keep positions strictly below 1 so that a trailing
+    # zero-weight particle (whose cdf value equals 1) is never selected.
+    one = torch.ones((), dtype=w.dtype, device=w.device)
+    positions = positions.clamp_max(torch.nextafter(one, torch.zeros_like(one)))
     return torch.searchsorted(cdf.contiguous(), positions.contiguous(), right=True).clamp_max(n - 1)
 
 
