@@ -6,6 +6,9 @@
     escort-rl config [KEY=VALUE ...]     print the composed config
     escort-rl describe                   print the Light-Dark process-noise correlations
     escort-rl bench throughput           collector frames/s with the belief transform
+    escort-rl bench cost                 time per belief update, ESCORT vs SVGD vs SIR
+    escort-rl bench synthetic            the paper's GMM targets (Table 2 layout)
+    escort-rl bench scaling              RMSE against dimension, ESCORT vs NoCorr vs SVGD
 """
 
 from __future__ import annotations
@@ -55,6 +58,36 @@ def _parser() -> argparse.ArgumentParser:
     thr.add_argument("--batches", type=int, default=3, help="timed batches (after one warm-up batch)")
     thr.add_argument("--output", default=None, help="write the results as JSON here")
     thr.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
+    cost = bench_sub.add_parser("cost", help="time one belief update: ESCORT vs SVGD vs SIR over d, N, B",
+                                description="Times one update for d, N and B, ESCORT, SVGD and SIR in the same "
+                                "run; reports the ESCORT breakdown, the fitted exponent in d and GFLOP/s.")
+    cost.add_argument("--dims", type=int, nargs="+", default=[10, 20, 50, 100, 200])
+    cost.add_argument("--particles", type=int, nargs="+", default=[100, 1000])
+    cost.add_argument("--batches", type=int, nargs="+", default=[1, 32])
+    cost.add_argument("--repeats", type=int, default=3)
+    cost.add_argument("--num-steps", type=int, default=50, help="K for ESCORT and SVGD")
+    cost.add_argument("--device", default="cpu")
+    cost.add_argument("--quick", action="store_true", help="a small smoke grid: d 10 20, N 100, B 1 2")
+    cost.add_argument("--output", default="outputs/bench/cost", help="folder for cost.md and cost.json")
+    syn = bench_sub.add_parser("synthetic", help="fit the paper's GMM targets: ESCORT, NoCorr, SVGD, SIR, oracle",
+                               description="Static-target benchmark (paper Table 2 layout): MMD², W1, sliced W1, "
+                               "mode coverage, correlation error and RMSE, mean ± s.e. over seeds.")
+    syn.add_argument("--targets", nargs="+", default=["gmm1d", "gmm2d", "gmm3d", "gmm5d", "gmm20d"])
+    syn.add_argument("--methods", nargs="+", default=["escort", "escort_nocorr", "svgd", "sir", "oracle"])
+    syn.add_argument("--seeds", type=int, default=30)
+    syn.add_argument("--particles", type=int, default=1000)
+    syn.add_argument("--num-steps", type=int, default=500)
+    syn.add_argument("--quick", action="store_true", help="smoke run: 2 targets, 2 seeds, N=100, 30 steps")
+    syn.add_argument("--output", default="outputs/bench/synthetic")
+    sca = bench_sub.add_parser("scaling", help="RMSE of ESCORT vs ESCORT-NoCorr vs SVGD on 5-mode GMMs, 1D-200D",
+                               description="The paper's RMSE-vs-dimension table, with the NoCorr gap.")
+    sca.add_argument("--dims", type=int, nargs="+", default=[1, 5, 20, 50, 100, 200])
+    sca.add_argument("--structures", nargs="+", default=["block", "banded", "long_range", "sparse"])
+    sca.add_argument("--seeds", type=int, default=5)
+    sca.add_argument("--particles", type=int, default=1000)
+    sca.add_argument("--num-steps", type=int, default=500)
+    sca.add_argument("--quick", action="store_true", help="smoke run: d 1 5, block, 2 seeds, N=100, 30 steps")
+    sca.add_argument("--output", default="outputs/bench/scaling")
     cfg = sub.add_parser("config", help="print the composed config", description="Print the config as YAML.")
     cfg.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     return parser
@@ -106,6 +139,55 @@ def main(argv: list[str] | None = None) -> int:
             if args.output:
                 Path(args.output).parent.mkdir(parents=True, exist_ok=True)
                 Path(args.output).write_text(json.dumps(rows, indent=1))
+        elif args.command == "bench" and args.bench == "cost":
+            from escort_rl.bench.cost import cost_markdown, run_cost_benchmark
+
+            grid = dict(dims=args.dims, particles=args.particles, batches=args.batches)
+            if args.quick:
+                grid = dict(dims=[10, 20], particles=[100], batches=[1, 2])
+
+            def show(row):
+                print(f"{row['filter']:>6} d={row['d']:<4} N={row['N']:<5} B={row['B']:<3} "
+                      f"{1e3 * row['seconds']:9.2f} ms", flush=True)
+
+            result = run_cost_benchmark(**grid, repeats=args.repeats, num_steps=args.num_steps,
+                                        device=args.device, progress=show)
+            out = Path(args.output)
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "cost.json").write_text(json.dumps(result, indent=1))
+            (out / "cost.md").write_text(cost_markdown(result))
+            print(cost_markdown(result))
+            print(f"results: {out.resolve()}")
+        elif args.command == "bench" and args.bench in ("synthetic", "scaling"):
+            from escort_rl.bench import synthetic as syn
+
+            def show(row):
+                where = row.get("target") or f"d={row['dim']} {row['structure']}"
+                s = row["summary"]
+                print(f"{where:>18} {row['method']:>14}: MMD2 {s['mmd2'][0]:.4f} SW1 {s['sliced_w1'][0]:.3f} "
+                      f"cover {s['mode_coverage'][0]:.2f} corr {s['corr_error'][0]:.3f} RMSE {s['rmse'][0]:.3f} "
+                      f"({row['seconds']:.1f} s)", flush=True)
+
+            if args.bench == "synthetic":
+                kw = dict(targets=args.targets, methods=args.methods, seeds=args.seeds, n=args.particles,
+                          num_steps=args.num_steps)
+                if args.quick:
+                    kw.update(targets=["gmm1d", "gmm2d"], seeds=2, n=100, num_steps=30)
+                result = syn.run_synthetic(**kw, progress=show)
+                md = syn.synthetic_markdown(result)
+            else:
+                kw = dict(dims=args.dims, structures=args.structures, seeds=args.seeds, n=args.particles,
+                          num_steps=args.num_steps)
+                if args.quick:
+                    kw.update(dims=[1, 5], structures=["block"], seeds=2, n=100, num_steps=30)
+                result = syn.run_scaling(**kw, progress=show)
+                md = syn.scaling_markdown(result)
+            out = Path(args.output)
+            out.mkdir(parents=True, exist_ok=True)
+            (out / f"{args.bench}.json").write_text(json.dumps(result, indent=1))
+            (out / f"{args.bench}.md").write_text(md)
+            print(md)
+            print(f"results: {out.resolve()}")
         elif args.command == "describe":
             from escort_rl.models.light_dark import describe_correlations
 

@@ -1,0 +1,148 @@
+"""The cost of one belief update (SPEC §8): time against d, N and batch B for ESCORT, SVGD and SIR
+in the same run, a breakdown of ESCORT's time, a fitted scaling exponent in d, and achieved
+GFLOP/s next to the machine's measured float32 matmul GFLOP/s."""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+
+import torch
+
+from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
+from escort_rl.models import LightDark10D, LinearGaussian
+
+
+def matmul_gflops(size: int = 1024, repeats: int = 10, device: str = "cpu") -> float:
+    """Measured float32 GFLOP/s of a ``size × size`` matmul (``2 size³`` flops), median of ``repeats``."""
+    a = torch.randn(size, size, device=device)
+    b = torch.randn(size, size, device=device)
+    for _ in range(3):
+        a @ b
+    times = []
+    for _ in range(repeats):
+        _sync(device)
+        t0 = time.perf_counter()
+        a @ b
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    return 2 * size**3 / statistics.median(times) / 1e9
+
+
+def _sync(device) -> None:
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def svgd_flops(n: int, d: int, k: int, batch: int, corr: bool) -> float:
+    """Counted flops of the dominant dense work of one SVGD/ESCORT update:
+    per iteration ``6 N² d`` (pairwise distances, ``K·score`` and ``K·x``) and, with the
+    correlation term, ``2 N d²`` to apply ``Σ_k w_k A_k A_kᵀ``; times ``K`` iterations and ``B``."""
+    per_iter = 6.0 * n * n * d + (2.0 * n * d * d if corr else 0.0)
+    return batch * k * per_iter
+
+
+def cost_model(d: int, device: str = "cpu"):
+    """Light-Dark 10D at d = 10; otherwise a linear-Gaussian model with ``obs_dim = d/2``."""
+    if d == 10:
+        return LightDark10D(device=device)
+    return LinearGaussian(state_dim=d, obs_dim=max(1, d // 2), device=device)
+
+
+def time_update(filt, model, batch: int, n: int, repeats: int = 5, warmup: int = 1, device: str = "cpu",
+                seed: int = 0) -> dict:
+    """Median seconds of one ``filt.update`` on ``batch`` beliefs of ``n`` particles, with the
+    ESCORT/SVGD breakdown (kernel / score / correlation / temporal) of the median run."""
+    g = torch.Generator(device=device).manual_seed(seed)
+    belief = filt.init(model, (batch,), n, g)
+    s = model.initial_state((batch,), g)
+    a = torch.randint(0, model.n_actions, (batch,), generator=g, device=device)
+    o = model.observe(model.transition(s, a, g), a, g)
+    runs = []
+    for i in range(warmup + repeats):
+        breakdown: dict = {}
+        _sync(device)
+        t0 = time.perf_counter()
+        if hasattr(filt, "evolve"):
+            filt._update(model, belief, a, o, g, breakdown=breakdown)
+        else:
+            filt.update(model, belief, a, o, g)
+        _sync(device)
+        if i >= warmup:
+            runs.append((time.perf_counter() - t0, breakdown))
+    runs.sort(key=lambda r: r[0])
+    seconds, breakdown = runs[len(runs) // 2]
+    return {"seconds": seconds, "breakdown": breakdown}
+
+
+def fit_exponent(ds: list[int], seconds: list[float]) -> float:
+    """Least-squares slope of log(seconds) against log(d)."""
+    x = [math.log(v) for v in ds]
+    y = [math.log(v) for v in seconds]
+    mx, my = sum(x) / len(x), sum(y) / len(y)
+    den = sum((a - mx) ** 2 for a in x)
+    return sum((a - mx) * (b - my) for a, b in zip(x, y)) / den if den > 0 else float("nan")
+
+
+def run_cost_benchmark(dims=(10, 20, 50, 100, 200), particles=(100, 1000), batches=(1, 32), repeats: int = 3,
+                       num_steps: int = 50, device: str = "cpu", progress=None) -> dict:
+    """Time ESCORT, SVGD and SIR for every (d, N, B); returns rows, exponents and machine GFLOP/s."""
+    filters = {
+        "escort": ESCORTFilter(num_steps=num_steps),
+        "svgd": SVGDFilter(num_steps=num_steps),
+        "sir": SIRFilter(),
+    }
+    machine = matmul_gflops(device=device)
+    rows = []
+    for d in dims:
+        model = cost_model(d, device)
+        for n in particles:
+            for b in batches:
+                for name, filt in filters.items():
+                    r = time_update(filt, model, b, n, repeats=repeats, device=device)
+                    flops = svgd_flops(n, d, num_steps, b, corr=name == "escort") if name != "sir" else float("nan")
+                    row = {"filter": name, "d": d, "N": n, "B": b, "model": type(model).__name__,
+                           "seconds": r["seconds"], "gflop": flops / 1e9,
+                           "gflops_per_s": flops / r["seconds"] / 1e9 if name != "sir" else float("nan"),
+                           "breakdown": r["breakdown"]}
+                    rows.append(row)
+                    if progress is not None:
+                        progress(row)
+    exponents = {}
+    for name in filters:
+        for n in particles:
+            sel = [r for r in rows if r["filter"] == name and r["N"] == n and r["B"] == 1]
+            if len(sel) >= 2:
+                exponents[f"{name}_N{n}"] = fit_exponent([r["d"] for r in sel], [r["seconds"] for r in sel])
+    return {"device": device, "torch_threads": torch.get_num_threads(), "num_steps": num_steps,
+            "matmul_gflops": machine, "rows": rows, "exponents": exponents}
+
+
+def cost_markdown(result: dict) -> str:
+    lines = [
+        "# Cost of one belief update",
+        "",
+        f"Device {result['device']}, {result['torch_threads']} torch threads, K = {result['num_steps']} "
+        f"iterations for ESCORT and SVGD. Machine float32 matmul: {result['matmul_gflops']:.1f} GFLOP/s. "
+        "Median of repeated runs after a warm-up. Models: Light-Dark 10D at d = 10, a linear-Gaussian "
+        "model with obs_dim = d/2 otherwise.",
+        "",
+        "| d | N | B | ESCORT ms | SVGD ms | SIR ms | ESCORT/SVGD | ESCORT/SIR | ESCORT GFLOP/s | "
+        "ESCORT breakdown (kernel/score/corr/temp, ms) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    rows = result["rows"]
+    keys = sorted({(r["d"], r["N"], r["B"]) for r in rows})
+    for d, n, b in keys:
+        by = {r["filter"]: r for r in rows if (r["d"], r["N"], r["B"]) == (d, n, b)}
+        e, s, p = by["escort"], by["svgd"], by["sir"]
+        bd = e["breakdown"]
+        parts = "/".join(f"{1e3 * bd.get(k, 0.0):.0f}" for k in ("kernel", "score", "correlation", "temporal"))
+        lines.append(
+            f"| {d} | {n} | {b} | {1e3 * e['seconds']:.1f} | {1e3 * s['seconds']:.1f} | {1e3 * p['seconds']:.2f} | "
+            f"{e['seconds'] / s['seconds']:.2f} | {e['seconds'] / p['seconds']:.0f} | {e['gflops_per_s']:.2f} | {parts} |"
+        )
+    lines += ["", "Fitted exponent of time in d (B = 1): "
+              + ", ".join(f"{k} {v:.2f}" for k, v in result["exponents"].items()), ""]
+    return "\n".join(lines)

@@ -1,0 +1,51 @@
+"""Smoke runs of the benchmark commands (their --quick modes) and the cost helpers."""
+
+import json
+import math
+
+from escort_rl.bench.cost import fit_exponent, svgd_flops
+from escort_rl.cli import main
+
+
+def test_fit_exponent_recovers_a_power_law():
+    ds = [10, 20, 50, 100]
+    assert abs(fit_exponent(ds, [3.0 * d**1.7 for d in ds]) - 1.7) < 1e-9
+
+
+def test_svgd_flops_formula():
+    assert svgd_flops(100, 10, 50, 1, corr=False) == 50 * 6 * 100 * 100 * 10
+    assert svgd_flops(100, 10, 50, 2, corr=True) == 2 * 50 * (6 * 100 * 100 * 10 + 2 * 100 * 10 * 10)
+
+
+def test_bench_cost_quick(tmp_path, capsys):
+    assert main(["bench", "cost", "--quick", "--repeats", "1", "--num-steps", "3", "--output", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "cost.json").read_text())
+    assert {r["filter"] for r in result["rows"]} == {"escort", "svgd", "sir"}
+    assert all(r["seconds"] > 0 for r in result["rows"])
+    assert result["matmul_gflops"] > 0
+    assert "ESCORT/SVGD" in (tmp_path / "cost.md").read_text()
+
+
+def test_bench_synthetic_quick(tmp_path):
+    assert main(["bench", "synthetic", "--quick", "--output", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "synthetic.json").read_text())
+    methods = {r["method"] for r in result["rows"]}
+    assert methods == {"escort", "escort_nocorr", "svgd", "sir", "oracle"}
+    oracle = [r for r in result["rows"] if r["method"] == "oracle" and r["target"] == "gmm1d"][0]
+    assert oracle["summary"]["mode_coverage"][0] == 1.0
+    assert not math.isnan(oracle["summary"]["w1"][0])
+    assert "| gmm2d | escort |" in (tmp_path / "synthetic.md").read_text()
+
+
+def test_bench_scaling_quick(tmp_path):
+    assert main(["bench", "scaling", "--quick", "--output", str(tmp_path)]) == 0
+    text = (tmp_path / "scaling.md").read_text()
+    assert "NoCorr gap" in text and "| 5 | block |" in text
+
+
+def test_bench_throughput_quick(tmp_path, capsys):
+    out = tmp_path / "t.json"
+    assert main(["bench", "throughput", "--workers", "1", "--num-envs", "2", "--steps", "5", "--batches", "1",
+                 "--output", str(out), "num_particles=10"]) == 0
+    rows = json.loads(out.read_text())
+    assert rows[0]["frames"] == 10 and rows[0]["frames_per_second"] > 0
