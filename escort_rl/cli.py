@@ -209,7 +209,9 @@ def main(argv: list[str] | None = None) -> int:
             from escort_rl.trainers.evaluate import evaluate
 
             result = evaluate(args.checkpoint, args.episodes, args.output, args.greedy)
-            out = Path(args.output) if args.output else Path(result["checkpoint"]).parent.parent / "evaluation"
+            from escort_rl.trainers.checkpointing import resolve_checkpoint
+
+            out = Path(args.output) if args.output else resolve_checkpoint(args.checkpoint).parent.parent / "evaluation"
             print(json.dumps({k: result[k] for k in ("trained", "random")}, indent=1))
             print(f"results: {out.resolve()}")
     except (ConfigError, CheckpointLoadError) as err:
