@@ -1,5 +1,6 @@
 """The REINFORCE trainer: returns, config errors, checkpoints and kill/resume."""
 
+import math
 import os
 import signal
 import subprocess
@@ -111,3 +112,29 @@ def test_killed_run_resumes_to_the_same_parameters(tmp_path):
         assert torch.equal(ref[key], res[key]), key
     ref_hist = load_checkpoint(reference)["trainer_state"]["history"]
     assert [h["episode_return"] for h in ref_hist] == [h["episode_return"] for h in final["trainer_state"]["history"]]
+
+
+@pytest.mark.slow
+def test_two_collector_workers_and_learned_baseline(tmp_path):
+    run = tmp_path / "run"
+    train(compose([*TINY, "trainer.iterations=2", "collector.workers=2", "trainer.baseline=learned",
+                   f"output_dir={run}"]), progress=False)
+    state = load_checkpoint(run)
+    assert state["trainer_state"]["iteration"] == 2
+    history = state["trainer_state"]["history"]
+    assert all(h["episodes"] == 4 for h in history)  # 4 envs split over 2 workers, one episode each
+    assert all(math.isfinite(h["loss"]) for h in history)
+    critic = DeepSetsActor(10, 1, hidden=16)
+    load_checkpoint(run, actor=DeepSetsActor(10, 10, hidden=16), critic=critic)
+
+
+def test_evaluate_writes_reports(tmp_path):
+    run = tmp_path / "run"
+    train(compose([*TINY, "trainer.iterations=1", f"output_dir={run}"]), progress=False)
+    assert main(["evaluate", "--checkpoint", str(run), "--episodes", "3", "--output", str(tmp_path / "ev")]) == 0
+    for name in ("summary.md", "metrics.json", "learning_curve.png", "belief_projection.png"):
+        assert (tmp_path / "ev" / name).stat().st_size > 0
+    import json
+
+    metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
+    assert metrics["trained"]["episodes"] == 3 and metrics["random"]["episodes"] == 3
