@@ -24,18 +24,20 @@ from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists, svgd_d
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.prior import SmoothedPrior
 from escort_rl.belief.projections import (
+    TemporalReference,
     correlation_force,
     correlation_projections,
     max_sliced_directions,
+    projector,
     random_projections,
-    temporal_force,
 )
 
 MAX_SCORE = 1e6  # scores are clamped to ±MAX_SCORE; AdaGrad normalises the step anyway
 
 
 def _finite(t: Tensor, bound: float = MAX_SCORE) -> Tensor:
-    return torch.nan_to_num(t, nan=0.0, posinf=bound, neginf=-bound).clamp(-bound, bound)
+    """NaN → 0 and ±inf → ±bound (finite values are left as they are)."""
+    return torch.nan_to_num(t, nan=0.0, posinf=bound, neginf=-bound)
 
 
 class ESCORTFilter(BeliefFilter):
@@ -145,7 +147,7 @@ class ESCORTFilter(BeliefFilter):
                 log_lik = model.observation_log_prob(obs, xg, action)
                 log_lik = torch.where(torch.isfinite(log_lik), log_lik, torch.full_like(log_lik, -1e30))
                 (grad,) = torch.autograd.grad(log_lik.sum(), xg)
-            return _finite(grad) + _finite(prior(x))
+            return (grad + prior(x)).clamp(-MAX_SCORE, MAX_SCORE)
 
         return score
 
@@ -176,49 +178,52 @@ class ESCORTFilter(BeliefFilter):
         (``None`` turns ``F_temp`` off). ``breakdown``, if given, accumulates seconds per part.
         """
         k_total = self.num_steps if num_steps is None else num_steps
-        n, d = x.shape[-2], x.shape[-1]
+        d = x.shape[-1]
         use_corr = self.lambda_corr > 0 and target_samples is not None
         use_temp = self.lambda_temp > 0 and reference is not None
         repulsion = self.repulsion_scale(d)
-        hist = torch.zeros_like(x)
         timer = _Timer(breakdown)
-        projections = proj_weights = theta = theta_w = None
-        if use_temp:
-            with timer("temporal"):
-                theta, theta_w = max_sliced_directions(x, reference, self.n_proj, generator)
-        with timer("kernel"):
-            bandwidth = median_bandwidth(pairwise_sq_dists(x))
-        for k in range(k_total):
-            with timer("score"):
-                score = score_fn(x)
-            with timer("kernel"):
-                sq = pairwise_sq_dists(x)
-                if k > 0 and k % self.bandwidth_every == 0:
-                    bandwidth = median_bandwidth(sq)
-                phi = svgd_direction(x, score, bandwidth, repulsion, sq_dists=sq)
-            velocity = phi
-            if use_corr:
-                with timer("correlation"):
-                    if projections is None or k % self.projection_every == 0:
-                        if self.projection == "learned":
-                            projections, proj_weights = correlation_projections(
-                                x, target_samples, target_log_weights, self.n_proj, self.proj_dim,
-                                generator=generator)
-                        elif projections is None:
-                            projections = random_projections(x.shape[:-2], d, self.n_proj, min(self.proj_dim, d),
-                                                             generator, x.device, x.dtype)
-                            proj_weights = torch.full(projections.shape[:-2], 1.0 / self.n_proj,
-                                                      dtype=x.dtype, device=x.device)
-                    velocity = velocity + correlation_force(phi, projections, proj_weights, self.lambda_corr,
-                                                            self.corr_form, x)
+        projections = proj_weights = proj = temporal = None
+        with torch.no_grad():
             if use_temp:
                 with timer("temporal"):
-                    lam = self.lambda_temp * (1.0 - k / k_total) if self.temp_schedule == "anneal" else self.lambda_temp
-                    velocity = velocity + temporal_force(x, reference, theta, theta_w, lam, self.temp_clip)
-            velocity = _finite(velocity)
-            hist = velocity**2 if k == 0 else self.adagrad_alpha * hist + (1 - self.adagrad_alpha) * velocity**2
-            eps = self.step_size / (1.0 + self.step_decay * k)
-            x = x + eps * velocity / (1e-6 + torch.sqrt(hist))
+                    theta, theta_w = max_sliced_directions(x, reference, self.n_proj, generator)
+                    temporal = TemporalReference(reference, theta, theta_w)
+            hist = torch.zeros_like(x)
+            for k in range(k_total):
+                with timer("score"):
+                    score = score_fn(x)
+                with timer("kernel"):
+                    sq = pairwise_sq_dists(x)
+                    if k % self.bandwidth_every == 0:
+                        bandwidth = median_bandwidth(sq)
+                    phi = svgd_direction(x, score, bandwidth, repulsion, sq_dists=sq)
+                velocity = phi
+                if use_corr:
+                    with timer("correlation"):
+                        if projections is None or (self.projection == "learned" and k % self.projection_every == 0):
+                            if self.projection == "learned":
+                                projections, proj_weights = correlation_projections(
+                                    x, target_samples, target_log_weights, self.n_proj, self.proj_dim,
+                                    generator=generator)
+                            else:
+                                projections = random_projections(x.shape[:-2], d, self.n_proj,
+                                                                 min(self.proj_dim, d), generator, x.device, x.dtype)
+                                proj_weights = torch.full(projections.shape[:-2], 1.0 / self.n_proj,
+                                                          dtype=x.dtype, device=x.device)
+                            proj = projector(projections, proj_weights)
+                        velocity = velocity + correlation_force(phi, projections, proj_weights, self.lambda_corr,
+                                                                self.corr_form, x, proj=proj)
+                if use_temp:
+                    with timer("temporal"):
+                        lam = (self.lambda_temp * (1.0 - k / k_total) if self.temp_schedule == "anneal"
+                               else self.lambda_temp)
+                        velocity = velocity + temporal.force(x, lam, self.temp_clip)
+                velocity = _finite(velocity)
+                sq_v = velocity * velocity
+                hist = sq_v if k == 0 else hist.mul_(self.adagrad_alpha).add_(sq_v, alpha=1 - self.adagrad_alpha)
+                eps = self.step_size / (1.0 + self.step_decay * k)
+                x = x + eps * velocity / (hist.sqrt() + 1e-6)
         return x
 
     # ------------------------------------------------------------------ filter interface

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -26,13 +28,14 @@ class SmoothedPrior:
     """``p̂(x) = Σ_j w_j N(x; μ_j, S)`` with ``S = Σ_T + h² Σ̂`` shared by all components.
 
     ``μ_j = transition_mean(X_t[j], a)`` ``[*B, N, d]``, ``Σ_T`` the process-noise covariance, ``Σ̂``
-    the weighted covariance of the ``μ_j`` and ``h`` Silverman's factor. With ``L = chol(S)``,
-    ``z = L⁻¹x`` and ``m_j = L⁻¹μ_j``:
+    the weighted covariance of the ``μ_j`` and ``h`` Silverman's factor. With the precision
+    ``P = S⁻¹``:
 
-        log p̂(x) = logsumexp_j(log w_j − ½‖z − m_j‖²) − Σ log L_ii − (d/2) log 2π
-        ∇ log p̂(x) = −L⁻ᵀ (z − Σ_j r_j m_j),   r_j = softmax_j(log w_j − ½‖z − m_j‖²)
+        log p̂(x) = logsumexp_j(ℓ_j(x)) − ½ log det(2π S),  ℓ_j(x) = log w_j − ½ (x − μ_j)ᵀ P (x − μ_j)
+        ∇ log p̂(x) = −P (x − Σ_j r_j μ_j),   r_j = softmax_j ℓ_j(x)
 
-    The responsibilities come from one ``[N, N]`` matmul per belief; nothing of size ``[N, N, d]``.
+    Expanding ``ℓ_j = log w_j − ½ xᵀPx + xᵀPμ_j − ½ μ_jᵀPμ_j`` gives the responsibilities from one
+    ``[M, N]`` matmul per belief: nothing of size ``[M, N, d]`` is built.
     """
 
     def __init__(self, means: Tensor, process_scale_tril: Tensor, log_weights: Tensor | None = None,
@@ -43,34 +46,27 @@ class SmoothedPrior:
         cov = process_cov + h * h * weighted_covariance(means, log_weights)
         cov = cov + ridge * torch.eye(d, dtype=means.dtype, device=means.device)
         self.scale_tril = torch.linalg.cholesky(cov)  # [*B, d, d]
+        self.precision = torch.cholesky_inverse(self.scale_tril)  # [*B, d, d], symmetric
         self.means = means
-        self.whitened_means = self._whiten(means)  # [*B, N, d]
-        n_tensor = torch.tensor(float(n), dtype=means.dtype, device=means.device)
-        self.log_weights = (torch.full(means.shape[:-1], 0.0, dtype=means.dtype, device=means.device) - torch.log(n_tensor)
-                            if log_weights is None else torch.log_softmax(log_weights, dim=-1))
-        self._m_sq = (self.whitened_means**2).sum(-1)  # [*B, N]
-
-    def _whiten(self, x: Tensor) -> Tensor:
-        """``L⁻¹ x`` for points ``[*B, M, d]``."""
-        return torch.linalg.solve_triangular(self.scale_tril, x.transpose(-1, -2), upper=False).transpose(-1, -2)
-
-    def _logits(self, z: Tensor) -> Tensor:
-        z_sq = (z * z).sum(-1, keepdim=True)
-        sq = z_sq + self._m_sq.unsqueeze(-2) - 2.0 * (z @ self.whitened_means.transpose(-1, -2))
-        return self.log_weights.unsqueeze(-2) - 0.5 * sq.clamp_min(0.0)  # [*B, M, N]
+        self.means_p = means @ self.precision  # μ_j P  [*B, N, d]
+        if log_weights is None:
+            log_w = torch.full(means.shape[:-1], -math.log(n), dtype=means.dtype, device=means.device)
+        else:
+            log_w = torch.log_softmax(log_weights, dim=-1)
+        self.offset = (log_w - 0.5 * (self.means_p * means).sum(-1)).unsqueeze(-2)  # [*B, 1, N]
+        self.means_t = means.transpose(-1, -2).contiguous()  # [*B, d, N]
+        log_det = 2 * torch.log(torch.diagonal(self.scale_tril, dim1=-2, dim2=-1)).sum(-1)
+        self.log_norm = -0.5 * (log_det + d * math.log(2 * math.pi))  # [*B]
 
     def log_prob(self, x: Tensor) -> Tensor:
         """``log p̂(x)`` for ``x`` ``[*B, M, d]`` -> ``[*B, M]``."""
-        d = x.shape[-1]
-        z = self._whiten(x)
-        log_det = torch.log(torch.diagonal(self.scale_tril, dim1=-2, dim2=-1)).sum(-1)
-        return (torch.logsumexp(self._logits(z), dim=-1) - log_det.unsqueeze(-1)
-                - 0.5 * d * torch.log(torch.tensor(2 * torch.pi, dtype=x.dtype)))
+        xp = x @ self.precision
+        logits = self.offset + xp @ self.means_t - 0.5 * (xp * x).sum(-1, keepdim=True)
+        return torch.logsumexp(logits, dim=-1) + self.log_norm.unsqueeze(-1)
 
     def score(self, x: Tensor) -> Tensor:
-        """``∇ log p̂(x)`` for ``x`` ``[*B, M, d]`` -> ``[*B, M, d]``."""
-        z = self._whiten(x)
-        r = torch.softmax(self._logits(z), dim=-1)  # [*B, M, N]
-        diff = z - r @ self.whitened_means  # [*B, M, d]
-        return -torch.linalg.solve_triangular(self.scale_tril.transpose(-1, -2), diff.transpose(-1, -2),
-                                              upper=True).transpose(-1, -2)
+        """``∇ log p̂(x)`` for ``x`` ``[*B, M, d]`` -> ``[*B, M, d]``. (The softmax drops the
+        ``−½ xᵀPx`` term of ``ℓ_j``: it is the same for every ``j``.)"""
+        xp = x @ self.precision  # [*B, M, d]
+        r = torch.softmax(self.offset + xp @ self.means_t, dim=-1)  # [*B, M, N]
+        return r @ self.means_p - xp

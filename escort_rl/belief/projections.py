@@ -83,12 +83,18 @@ def correlation_projections(x: Tensor, y: Tensor, y_log_weights: Tensor, n_proj:
     return a, w
 
 
+def projector(projections: Tensor, weights: Tensor) -> Tensor:
+    """``Σ_k w_k A_k A_kᵀ``: ``[*B, K, d, p]``, ``[*B, K]`` -> ``[*B, d, d]`` (symmetric)."""
+    return (weights[..., None, None] * (projections @ projections.transpose(-1, -2))).sum(-3)
+
+
 def correlation_force(phi: Tensor, projections: Tensor, weights: Tensor, strength: float,
-                      form: str = "velocity", x: Tensor | None = None) -> Tensor:
+                      form: str = "velocity", x: Tensor | None = None, proj: Tensor | None = None) -> Tensor:
     """``F_corr = −λ Σ_k w_k A_k A_kᵀ (φ(x_i) − φ̄)`` (``form="velocity"``, the gradient of R_corr in φ),
     or the paper's appendix form with ``(x_i − x̄)`` in place of ``(φ(x_i) − φ̄)`` (``form="position"``).
 
-    ``phi`` ``[*B, N, d]``, ``projections`` ``[*B, K, d, p]``, ``weights`` ``[*B, K]``. Returns ``[*B, N, d]``.
+    ``phi`` ``[*B, N, d]``, ``projections`` ``[*B, K, d, p]``, ``weights`` ``[*B, K]``; ``proj`` may
+    pass a precomputed :func:`projector`. Returns ``[*B, N, d]``.
     """
     if form == "velocity":
         v = phi - phi.mean(-2, keepdim=True)
@@ -98,9 +104,9 @@ def correlation_force(phi: Tensor, projections: Tensor, weights: Tensor, strengt
         v = x - x.mean(-2, keepdim=True)
     else:
         raise ValueError(f"corr_form: must be 'velocity' or 'position', got '{form}'")
-    # P = Σ_k w_k A_k A_kᵀ  [*B, d, d]
-    proj = (weights[..., None, None] * (projections @ projections.transpose(-1, -2))).sum(-3)
-    return -strength * (v @ proj.transpose(-1, -2))
+    if proj is None:
+        proj = projector(projections, weights)
+    return (-strength) * (v @ proj)  # proj is symmetric
 
 
 def max_sliced_directions(x: Tensor, r: Tensor, n_dirs: int, generator=None, ascent_steps: int = 10,
@@ -145,15 +151,34 @@ def sorted_matching(x: Tensor, r: Tensor, theta: Tensor) -> Tensor:
     return sigma
 
 
-def temporal_force(x: Tensor, r: Tensor, theta: Tensor, weights: Tensor, strength: float | Tensor,
+class TemporalReference:
+    """The reference set ``r`` ``[*B, N, d]`` sorted once along each direction ``θ_j`` ``[*B, J, d]``,
+    so that each :meth:`force` call sorts only the moving particles."""
+
+    def __init__(self, r: Tensor, theta: Tensor, weights: Tensor) -> None:
+        d = r.shape[-1]
+        self.theta_t = theta.transpose(-1, -2).contiguous()  # [*B, d, J]
+        order = torch.argsort((r @ self.theta_t).transpose(-1, -2), dim=-1)  # [*B, J, N]: rank -> index
+        self.sorted_ref = torch.gather(r.unsqueeze(-3).expand(*order.shape, d), -2,
+                                       order.unsqueeze(-1).expand(*order.shape, d))  # [*B, J, N, d]
+        # the weights are folded in: the pull is Σ_j w_j r_{σ_j(i)} − x_i (Σ_j w_j = 1)
+        self.weighted_sorted_ref = weights[..., None, None] * self.sorted_ref
+        self.weights = weights
+
+    def force(self, x: Tensor, strength: float, clip: float = 10.0) -> Tensor:
+        """``F_temp(x_i) = λ Σ_j w_j (r_{σ_j(i)} − x_i)``, clipped elementwise to ``±clip``. ``[*B, N, d]``."""
+        rank_to_i = torch.argsort((x @ self.theta_t).transpose(-1, -2), dim=-1)  # [*B, J, N]
+        idx = rank_to_i.unsqueeze(-1).expand(self.sorted_ref.shape)
+        matched = torch.zeros_like(self.weighted_sorted_ref).scatter_(-2, idx, self.weighted_sorted_ref)
+        pull = matched.sum(-3) - self.weights.sum(-1)[..., None, None] * x
+        return (strength * pull).clamp(-clip, clip)
+
+
+def temporal_force(x: Tensor, r: Tensor, theta: Tensor, weights: Tensor, strength: float,
                    clip: float = 10.0) -> Tensor:
-    """``F_temp(x_i) = λ Σ_j w_j (r_{σ_j(i)} − x_i)``, clipped elementwise to ``±clip``.
+    """``F_temp(x_i) = λ Σ_j w_j (r_{σ_j(i)} − x_i)``, clipped elementwise to ``±clip``, where ``σ_j``
+    is the sorted 1-D OT matching along ``θ_j`` (:func:`sorted_matching`).
 
     ``x``, ``r`` ``[*B, N, d]``; ``theta`` ``[*B, J, d]``; ``weights`` ``[*B, J]``. Returns ``[*B, N, d]``.
     """
-    sigma = sorted_matching(x, r, theta)  # [*B, J, N]
-    d = x.shape[-1]
-    matched = torch.gather(r.unsqueeze(-3).expand(*sigma.shape, d), -2,
-                           sigma.unsqueeze(-1).expand(*sigma.shape, d))  # [*B, J, N, d]
-    pull = (weights[..., None, None] * (matched - x.unsqueeze(-3))).sum(-3)
-    return (strength * pull).clamp(-clip, clip)
+    return TemporalReference(r, theta, weights).force(x, strength, clip)

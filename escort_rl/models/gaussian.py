@@ -8,19 +8,41 @@ import torch
 from torch import Tensor
 
 
+class GaussianNoise:
+    """A zero-mean Gaussian ``N(0, L Lᵀ)`` with its factor and precision factor precomputed.
+
+    ``scale_tril``: ``[d, d]`` lower-triangular ``L``. :meth:`log_prob` evaluates
+    ``-½‖L⁻¹ε‖² - Σ log L_ii - (d/2) log 2π`` with one matmul by the stored ``L⁻¹`` (cheaper
+    under autograd than a triangular solve per call).
+    """
+
+    def __init__(self, scale_tril: Tensor) -> None:
+        self.scale_tril = scale_tril
+        eye = torch.eye(scale_tril.shape[-1], dtype=scale_tril.dtype, device=scale_tril.device)
+        self.inv_tril_t = torch.linalg.solve_triangular(scale_tril, eye, upper=False).T.contiguous()  # L⁻ᵀ
+        d = scale_tril.shape[-1]
+        self.log_norm = -torch.log(torch.diagonal(scale_tril)).sum() - 0.5 * d * math.log(2 * math.pi)
+
+    def log_prob(self, eps: Tensor) -> Tensor:
+        """``log N(ε; 0, L Lᵀ)`` for ``ε`` ``[*S, d]`` -> ``[*S]``."""
+        z = eps @ self.inv_tril_t
+        return self.log_norm - 0.5 * (z * z).sum(-1)
+
+    def sample(self, shape, generator=None) -> Tensor:
+        """``[*shape, d]`` draws."""
+        d = self.scale_tril.shape[-1]
+        e = torch.randn(*shape, d, generator=generator, device=self.scale_tril.device, dtype=self.scale_tril.dtype)
+        return e @ self.scale_tril.T
+
+
 def mvn_log_prob_tril(x: Tensor, mean: Tensor, scale_tril: Tensor) -> Tensor:
     """log N(x; mean, L Lᵀ) for a shared lower-triangular factor ``L``.
 
     Shapes: ``x`` and ``mean`` broadcast to ``[*S, d]``; ``scale_tril`` is ``[d, d]``.
-    Returns ``[*S]``:  -½‖L⁻¹(x-μ)‖² - Σ log L_ii - (d/2) log 2π.
+    Returns ``[*S]``:  -½‖L⁻¹(x-μ)‖² - Σ log L_ii - (d/2) log 2π. (Models that call it often keep a
+    :class:`GaussianNoise` instead.)
     """
-    diff = x - mean
-    d = diff.shape[-1]
-    flat = diff.reshape(-1, d).T  # [d, M]
-    z = torch.linalg.solve_triangular(scale_tril, flat, upper=False)  # [d, M]
-    maha = (z * z).sum(0).reshape(diff.shape[:-1])
-    half_log_det = torch.log(torch.diagonal(scale_tril)).sum()
-    return -0.5 * maha - half_log_det - 0.5 * d * math.log(2 * math.pi)
+    return GaussianNoise(scale_tril).log_prob(x - mean)
 
 
 def diag_normal_log_prob(x: Tensor, mean: Tensor, std: Tensor) -> Tensor:

@@ -30,7 +30,7 @@ from torch import Tensor
 
 from escort_rl.models.gaussian import (
     make_positive_definite,
-    mvn_log_prob_tril,
+    GaussianNoise,
     nearest_correlation_matrix,
 )
 
@@ -134,6 +134,7 @@ class LightDark10D:
         cov = self.correlation * stds[:, None] * stds[None, :]
         self.noise_covariance = cov.to(torch.float32).to(self.device)
         self._scale_tril = torch.linalg.cholesky(cov).to(torch.float32).to(self.device)
+        self._process = GaussianNoise(self._scale_tril)
 
         self.light_centres = torch.tensor([c for c, _, _ in LIGHT_REGIONS], device=self.device)
         self.light_radii = torch.tensor([r for _, r, _ in LIGHT_REGIONS], device=self.device)
@@ -197,7 +198,7 @@ class LightDark10D:
         return mean + eps @ self._scale_tril.T
 
     def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
-        return mvn_log_prob_tril(s_next, self.transition_mean(s, a), self._scale_tril)
+        return self._process.log_prob(s_next - self.transition_mean(s, a))
 
     def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """``o = P·x' + σ(x')·ε``. ``s_next``: ``[*S, 10]`` -> ``[*S, 5]``."""

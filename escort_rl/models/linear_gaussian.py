@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from escort_rl.models.gaussian import mvn_log_prob_tril
+from escort_rl.models.gaussian import GaussianNoise
 
 
 class LinearGaussian:
@@ -66,6 +66,10 @@ class LinearGaussian:
         self._q_tril = torch.linalg.cholesky(self.Q)
         self._r_tril = torch.linalg.cholesky(self.R)
         self._p0_tril = torch.linalg.cholesky(self.P0)
+        self._process = GaussianNoise(self._q_tril)
+        self._obs_noise = GaussianNoise(self._r_tril)
+        self._H_t = self.H.T.contiguous()
+        self._F_t = self.F.T.contiguous()
 
     def _noise(self, shape, tril: Tensor, generator) -> Tensor:
         eps = torch.randn(*shape, tril.shape[0], generator=generator, device=self.device)
@@ -78,7 +82,7 @@ class LinearGaussian:
         return self.initial_state((*shape, n), generator)
 
     def transition_mean(self, s: Tensor, a: Tensor) -> Tensor:
-        return s @ self.F.T + self.controls[a.long()]
+        return s @ self._F_t + self.controls[a.long()]
 
     def transition_scale_tril(self) -> Tensor:
         return self._q_tril
@@ -88,14 +92,14 @@ class LinearGaussian:
         return mean + self._noise(mean.shape[:-1], self._q_tril, generator)
 
     def transition_log_prob(self, s_next, s, a) -> Tensor:
-        return mvn_log_prob_tril(s_next, self.transition_mean(s, a), self._q_tril)
+        return self._process.log_prob(s_next - self.transition_mean(s, a))
 
     def observe(self, s_next, a, generator=None) -> Tensor:
-        mean = s_next @ self.H.T
+        mean = s_next @ self._H_t
         return mean + self._noise(mean.shape[:-1], self._r_tril, generator)
 
     def observation_log_prob(self, o, s_next, a) -> Tensor:
-        return mvn_log_prob_tril(o, s_next @ self.H.T, self._r_tril)
+        return self._obs_noise.log_prob(o - s_next @ self._H_t)
 
     def reward(self, s, a, s_next) -> Tensor:
         return -torch.linalg.vector_norm(s_next, dim=-1)
