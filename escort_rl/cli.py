@@ -172,15 +172,17 @@ def main(argv: list[str] | None = None) -> int:
                 kw = dict(targets=args.targets, methods=args.methods, seeds=args.seeds, n=args.particles,
                           num_steps=args.num_steps)
                 if args.quick:
-                    kw.update(targets=["gmm1d", "gmm2d"], seeds=2, n=100, num_steps=30)
-                result = syn.run_synthetic(**kw, progress=show)
+                    kw.update(targets=["gmm1d", "gmm2d", "gmm3d"], seeds=2, n=100, num_steps=30)
+                Path(args.output).mkdir(parents=True, exist_ok=True)
+                result = syn.run_synthetic(**kw, progress=show, plot_dir=args.output)
                 md = syn.synthetic_markdown(result)
             else:
                 kw = dict(dims=args.dims, structures=args.structures, seeds=args.seeds, n=args.particles,
                           num_steps=args.num_steps)
                 if args.quick:
                     kw.update(dims=[1, 5], structures=["block"], seeds=2, n=100, num_steps=30)
-                result = syn.run_scaling(**kw, progress=show)
+                Path(args.output).mkdir(parents=True, exist_ok=True)
+                result = syn.run_scaling(**kw, progress=show, plot_dir=args.output)
                 md = syn.scaling_markdown(result)
             out = Path(args.output)
             out.mkdir(parents=True, exist_ok=True)

@@ -56,3 +56,70 @@ def plot_belief_projection(particles: torch.Tensor, true_positions: torch.Tensor
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_particles_on_target(log_prob, particles: dict, path: Path, dims: tuple[int, int] = (0, 1),
+                             center: torch.Tensor | None = None, title: str = "") -> Path:
+    """Particles of several methods projected on two coordinates over the target's log-density
+    contours (the other coordinates held at ``center``, default 0). ``particles``: name -> ``[N, d]``.
+    One panel per method. For d = 1 a histogram over the density is drawn instead."""
+    names = list(particles)
+    d = next(iter(particles.values())).shape[-1]
+    fig, axes = plt.subplots(1, len(names), figsize=(3.2 * len(names), 3.2), squeeze=False)
+    allx = torch.cat([p.reshape(-1, d) for p in particles.values()]).double()
+    if d == 1:
+        grid = torch.linspace(float(allx.min()) - 1, float(allx.max()) + 1, 400, dtype=torch.float64)
+        dens = torch.exp(log_prob(grid[:, None]))
+        for ax, name in zip(axes[0], names):
+            ax.hist(particles[name][:, 0].double().numpy(), bins=60, density=True, alpha=0.6)
+            ax.plot(grid.numpy(), dens.numpy(), "k-", lw=1)
+            ax.set_title(name, fontsize=9)
+    else:
+        i, j = dims
+        lo, hi = allx.min(0).values - 1, allx.max(0).values + 1
+        gx = torch.linspace(float(lo[i]), float(hi[i]), 120, dtype=torch.float64)
+        gy = torch.linspace(float(lo[j]), float(hi[j]), 120, dtype=torch.float64)
+        xx, yy = torch.meshgrid(gx, gy, indexing="xy")
+        base = torch.zeros(d, dtype=torch.float64) if center is None else center.double()
+        pts = base.expand(xx.numel(), d).clone()
+        pts[:, i], pts[:, j] = xx.reshape(-1), yy.reshape(-1)
+        z = log_prob(pts).reshape(xx.shape)
+        for ax, name in zip(axes[0], names):
+            ax.contour(xx.numpy(), yy.numpy(), z.clamp_min(z.max() - 20).numpy(), levels=12, linewidths=0.6)
+            p = particles[name].double()
+            ax.scatter(p[:, i].numpy(), p[:, j].numpy(), s=2, alpha=0.4, color="tab:orange")
+            ax.set_title(name, fontsize=9)
+            ax.set_xlabel(f"x{i + 1}")
+            ax.set_ylabel(f"x{j + 1}")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def plot_metric_against_dimension(rows: list[dict], metric: str, path: Path, group_key: str = "method",
+                                  dim_key: str = "dim", ylabel: str | None = None) -> Path:
+    """Mean ± s.e. of ``metric`` against the dimension, one line per ``group_key`` value (averaged over
+    any other keys at the same dimension)."""
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    groups: dict = {}
+    for r in rows:
+        m, se = r["summary"][metric]
+        if m != m:  # NaN: the metric does not apply
+            continue
+        groups.setdefault(r[group_key], {}).setdefault(r[dim_key], []).append((m, se))
+    for name, by_dim in groups.items():
+        dims = sorted(by_dim)
+        means = [sum(v[0] for v in by_dim[k]) / len(by_dim[k]) for k in dims]
+        ses = [sum(v[1] for v in by_dim[k]) / len(by_dim[k]) for k in dims]
+        ax.errorbar(dims, means, yerr=ses, marker="o", ms=3, capsize=2, label=name)
+    ax.set_xscale("log")
+    ax.set_xlabel("dimension")
+    ax.set_ylabel(ylabel or metric)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
