@@ -35,6 +35,18 @@ from escort_rl.belief.projections import (
 MAX_SCORE = 1e6  # scores are clamped to ±MAX_SCORE; AdaGrad normalises the step anyway
 
 
+def autograd_score(log_density: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
+    """``∇_x Σ log_density(x)`` by autograd, whatever the caller's grad mode. Log-densities of
+    ``−inf`` (or NaN) are replaced by ``−1e30`` first, so they contribute a zero gradient, not NaN.
+    ``x`` ``[*B, N, d]`` -> ``[*B, N, d]``."""
+    with torch.enable_grad():
+        xg = x.detach().requires_grad_(True)
+        lp = log_density(xg)
+        lp = torch.where(torch.isfinite(lp), lp, torch.full_like(lp, -1e30))
+        (grad,) = torch.autograd.grad(lp.sum(), xg)
+    return grad
+
+
 def _finite(t: Tensor, bound: float = MAX_SCORE) -> Tensor:
     """NaN → 0 and ±inf → ±bound (finite values are left as they are)."""
     return torch.nan_to_num(t, nan=0.0, posinf=bound, neginf=-bound)
@@ -142,11 +154,7 @@ class ESCORTFilter(BeliefFilter):
         obs = observation.unsqueeze(-2)
 
         def score(x: Tensor) -> Tensor:
-            with torch.enable_grad():
-                xg = x.detach().requires_grad_(True)
-                log_lik = model.observation_log_prob(obs, xg, action)
-                log_lik = torch.where(torch.isfinite(log_lik), log_lik, torch.full_like(log_lik, -1e30))
-                (grad,) = torch.autograd.grad(log_lik.sum(), xg)
+            grad = autograd_score(lambda z: model.observation_log_prob(obs, z, action), x)
             return (grad + prior(x)).clamp(-MAX_SCORE, MAX_SCORE)
 
         return score
@@ -157,12 +165,12 @@ class ESCORTFilter(BeliefFilter):
         a = action.unsqueeze(-2)  # [*B, 1, N]
         log_w = torch.log_softmax(log_weights, dim=-1).unsqueeze(-2)
 
+        def mixture(z: Tensor) -> Tensor:
+            lp = model.transition_log_prob(z.unsqueeze(-2), src, a)  # [*B, N, N]
+            return torch.logsumexp(lp + log_w, dim=-1)
+
         def score(x: Tensor) -> Tensor:
-            with torch.enable_grad():
-                xg = x.detach().requires_grad_(True)
-                lp = model.transition_log_prob(xg.unsqueeze(-2), src, a)  # [*B, N, N]
-                (grad,) = torch.autograd.grad(torch.logsumexp(lp + log_w, dim=-1).sum(), xg)
-            return grad
+            return autograd_score(mixture, x)
 
         return score
 
@@ -268,12 +276,7 @@ class ESCORTFilter(BeliefFilter):
             raise ValueError(f"particles: expected [*B, N, d], got shape {tuple(particles.shape)}")
 
         def score(x: Tensor) -> Tensor:
-            with torch.enable_grad():
-                xg = x.detach().requires_grad_(True)
-                lp = log_prob(xg)
-                lp = torch.where(torch.isfinite(lp), lp, torch.full_like(lp, -1e30))
-                (grad,) = torch.autograd.grad(lp.sum(), xg)
-            return _finite(grad)
+            return autograd_score(log_prob, x).clamp(-MAX_SCORE, MAX_SCORE)
 
         with torch.no_grad():
             log_w = log_prob(particles).detach()
