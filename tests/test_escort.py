@@ -186,3 +186,15 @@ def test_fit_static_gaussian_target():
         torch.testing.assert_close(x.mean(-2)[0], target.mean, atol=0.15, rtol=0)
         corr = torch.corrcoef(x[0].T)[0, 1]
         assert abs(float(corr) - 0.8) < 0.1, float(corr)
+
+
+def test_subsampled_median_is_close_to_the_full_median():
+    g = torch.Generator().manual_seed(8)
+    x = torch.randn(2, 600, 3, generator=g)
+    sq = pairwise_sq_dists(x)
+    off = ~torch.eye(600, dtype=torch.bool)
+    for b in range(2):
+        full = sq[b][off].median() / math.log(600)
+        est = median_bandwidth(sq)[b]
+        assert abs(float(est / full) - 1) < 0.1
+    torch.testing.assert_close(median_bandwidth(sq, max_points=600), median_bandwidth(sq[:, :600, :600], max_points=10**6))

@@ -11,18 +11,26 @@ from torch import Tensor
 def pairwise_sq_dists(x: Tensor) -> Tensor:
     """``D_ij = ‖x_i − x_j‖²`` via ``‖x_i‖² + ‖x_j‖² − 2 x_i·x_j`` (one matmul). ``[*B, N, d] -> [*B, N, N]``."""
     sq = (x * x).sum(-1)
-    d = sq.unsqueeze(-1) + sq.unsqueeze(-2) - 2.0 * (x @ x.transpose(-1, -2))
-    return d.clamp_min(0.0)
+    lead, (n, dim) = x.shape[:-2], x.shape[-2:]
+    x3 = x.reshape(-1, n, dim)
+    d = torch.baddbmm((sq.unsqueeze(-1) + sq.unsqueeze(-2)).reshape(-1, n, n), x3, x3.transpose(-1, -2), alpha=-2.0)
+    return d.clamp_min_(0.0).reshape(*lead, n, n)
 
 
-def median_bandwidth(sq_dists: Tensor, min_bandwidth: float = 1e-6) -> Tensor:
+def median_bandwidth(sq_dists: Tensor, min_bandwidth: float = 1e-6, max_points: int = 256) -> Tensor:
     """The median heuristic of Liu & Wang (2016): ``h = med / log N``, where ``med`` is the median
     of the squared pairwise distances ``‖x_i − x_j‖²`` over the pairs ``i ≠ j``, for the kernel
     ``k(x, y) = exp(−‖x − y‖² / h)``.
 
-    The median is taken by selection (``kthvalue``), not a full sort. ``h`` is floored at
-    ``min_bandwidth`` so that coincident particles give a finite kernel. ``[*B, N, N] -> [*B]``.
+    The median is taken by selection (``kthvalue``), not a full sort. For ``N > max_points`` it is
+    taken over the pairs among the first ``max_points`` particles (particles are exchangeable, so
+    this is an unbiased estimate of the median over all pairs, at O(max_points²) instead of O(N²)
+    cost). ``h`` is floored at ``min_bandwidth`` so that coincident particles give a finite kernel;
+    ``log N`` uses the full ``N``. ``[*B, N, N] -> [*B]``.
     """
+    n_all = sq_dists.shape[-1]
+    if n_all > max_points:
+        sq_dists = sq_dists[..., :max_points, :max_points]
     n = sq_dists.shape[-1]
     if n < 2:
         return torch.ones(sq_dists.shape[:-2], dtype=sq_dists.dtype, device=sq_dists.device)
@@ -30,7 +38,7 @@ def median_bandwidth(sq_dists: Tensor, min_bandwidth: float = 1e-6) -> Tensor:
     # The N diagonal zeros sort first; the N(N-1) off-diagonal values come in symmetric pairs.
     k = n + (n * (n - 1)) // 2
     med = flat.kthvalue(k, dim=-1).values
-    return (med / math.log(max(n, 2))).clamp_min(min_bandwidth)
+    return (med / math.log(max(n_all, 2))).clamp_min(min_bandwidth)
 
 
 def svgd_direction(x: Tensor, score: Tensor, bandwidth: Tensor, repulsion: float = 1.0,
@@ -44,11 +52,12 @@ def svgd_direction(x: Tensor, score: Tensor, bandwidth: Tensor, repulsion: float
     ``x``, ``score``: ``[*B, N, d]``; ``bandwidth``: ``[*B]``. Returns ``[*B, N, d]``.
     Cost O(N² d) time and O(N²) memory: no ``[N, N, d]`` tensor is built.
     """
-    n = x.shape[-2]
+    n, d = x.shape[-2], x.shape[-1]
     if sq_dists is None:
         sq_dists = pairwise_sq_dists(x)
     h = bandwidth[..., None, None]
-    k = torch.exp(-sq_dists / h)  # [*B, N, N], symmetric
-    drive = k @ score
-    repulse = (2.0 / h) * (x * k.sum(-1, keepdim=True) - k @ x)
+    k = torch.div(sq_dists, -h).exp_()  # [*B, N, N], symmetric; one N×N temporary
+    both = k @ torch.cat([score, x], dim=-1)  # reads K once for K·score and K·x
+    drive, kx = both[..., :d], both[..., d:]
+    repulse = (2.0 / h) * (x * k.sum(-1, keepdim=True) - kx)
     return (drive + repulsion * repulse) / n

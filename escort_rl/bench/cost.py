@@ -86,19 +86,23 @@ def fit_exponent(ds: list[int], seconds: list[float]) -> float:
 
 
 def run_cost_benchmark(dims=(10, 20, 50, 100, 200), particles=(100, 1000), batches=(1, 32), repeats: int = 3,
-                       num_steps: int = 50, device: str = "cpu", progress=None) -> dict:
-    """Time ESCORT, SVGD and SIR for every (d, N, B); returns rows, exponents and machine GFLOP/s."""
+                       num_steps: int = 50, device: str = "cpu", progress=None, max_pairs: float = float("inf")) -> dict:
+    """Time ESCORT, SVGD and SIR for every (d, N, B) with ``B·N² ≤ max_pairs``; returns rows, the
+    skipped combinations, exponents and machine GFLOP/s."""
     filters = {
         "escort": ESCORTFilter(num_steps=num_steps),
         "svgd": SVGDFilter(num_steps=num_steps),
         "sir": SIRFilter(),
     }
     machine = matmul_gflops(device=device)
-    rows = []
+    rows, skipped = [], []
     for d in dims:
         model = cost_model(d, device)
         for n in particles:
             for b in batches:
+                if b * n * n > max_pairs:
+                    skipped.append({"d": d, "N": n, "B": b})
+                    continue
                 for name, filt in filters.items():
                     r = time_update(filt, model, b, n, repeats=repeats, device=device)
                     flops = svgd_flops(n, d, num_steps, b, corr=name == "escort") if name != "sir" else float("nan")
@@ -116,7 +120,8 @@ def run_cost_benchmark(dims=(10, 20, 50, 100, 200), particles=(100, 1000), batch
             if len(sel) >= 2:
                 exponents[f"{name}_N{n}"] = fit_exponent([r["d"] for r in sel], [r["seconds"] for r in sel])
     return {"device": device, "torch_threads": torch.get_num_threads(), "num_steps": num_steps,
-            "matmul_gflops": machine, "rows": rows, "exponents": exponents}
+            "matmul_gflops": machine, "rows": rows, "skipped": skipped, "max_pairs": max_pairs,
+            "exponents": exponents}
 
 
 def cost_markdown(result: dict) -> str:
@@ -143,6 +148,9 @@ def cost_markdown(result: dict) -> str:
             f"| {d} | {n} | {b} | {1e3 * e['seconds']:.1f} | {1e3 * s['seconds']:.1f} | {1e3 * p['seconds']:.2f} | "
             f"{e['seconds'] / s['seconds']:.2f} | {e['seconds'] / p['seconds']:.0f} | {e['gflops_per_s']:.2f} | {parts} |"
         )
+    if result.get("skipped"):
+        lines += ["", f"Not run (B·N² > {result['max_pairs']:.0e}): "
+                  + ", ".join(f"d={r['d']} N={r['N']} B={r['B']}" for r in result["skipped"])]
     lines += ["", "Fitted exponent of time in d (B = 1): "
               + ", ".join(f"{k} {v:.2f}" for k, v in result["exponents"].items()), ""]
     return "\n".join(lines)
