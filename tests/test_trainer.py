@@ -138,3 +138,23 @@ def test_evaluate_writes_reports(tmp_path):
 
     metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert metrics["trained"]["episodes"] == 3 and metrics["random"]["episodes"] == 3
+
+
+def test_episode_stats_by_hand():
+    from tensordict import TensorDict
+
+    from escort_rl.models import LightDark10D
+    from escort_rl.trainers.reinforce import episode_stats
+
+    done = torch.tensor([[False, True, False, True], [False, False, False, False]])
+    reward = torch.tensor([[1.0, 2.0, 3.0, 4.0], [5.0, 5.0, 5.0, 5.0]])
+    state = torch.zeros(2, 4, 10)
+    state[0, 1, :5] = 8.0  # at the goal
+    state[0, 3, :5] = 5.0
+    batch = TensorDict({"next": {"done": done.unsqueeze(-1), "terminated": done.unsqueeze(-1) & (state[..., :1] == 8.0),
+                                 "reward": reward.unsqueeze(-1), "true_state": state}}, [2, 4])
+    stats = episode_stats(batch, LightDark10D())
+    assert stats["episodes"] == 2
+    assert stats["episode_return"] == (3.0 + 7.0) / 2
+    assert abs(stats["final_distance"] - (0.0 + 3 * 5**0.5) / 2) < 1e-5
+    assert stats["success_rate"] == 0.5

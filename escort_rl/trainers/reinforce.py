@@ -154,26 +154,27 @@ def policy_gradient_loss(actor: DeepSetsActor, critic: DeepSetsActor | None, bat
 
 
 def episode_stats(batch: TensorDict, model) -> dict:
-    """Mean return, final distance to goal and success rate of the episodes that ended in ``batch``."""
+    """Mean return, final distance to goal and success rate of the episodes that ended in ``batch``
+    ``[E, T]`` (batched: episode returns by one ``index_add`` over episode ids)."""
     done = batch["next", "done"].squeeze(-1)
     reward = batch["next", "reward"].squeeze(-1)
-    episode_id = torch.cumsum(done.long(), dim=1) - done.long()  # episodes per env row
-    stats_return, final_dist, success = [], [], []
-    for e in range(done.shape[0]):
-        ends = done[e].nonzero().flatten()
-        for k, end in enumerate(ends.tolist()):
-            rows = episode_id[e] == k
-            stats_return.append(float(reward[e][rows].sum()))
-            s_final = batch["next", "true_state"][e, end]
-            final_dist.append(float(model.distance_to_goal(s_final)) if hasattr(model, "distance_to_goal") else float("nan"))
-            success.append(bool(batch["next", "terminated"][e, end].item()))
-    if not stats_return:
-        return {"episode_return": float("nan"), "final_distance": float("nan"), "success_rate": float("nan"), "episodes": 0}
+    e, t = done.shape
+    episode_in_row = torch.cumsum(done.long(), dim=1) - done.long()  # [E, T]
+    episode_id = torch.arange(e, device=done.device).unsqueeze(1) * t + episode_in_row
+    returns = torch.zeros(e * t, dtype=reward.dtype, device=reward.device).index_add_(
+        0, episode_id.flatten(), reward.flatten())
+    rows, steps = done.nonzero(as_tuple=True)  # the last step of every finished episode
+    if rows.numel() == 0:
+        return {"episode_return": float("nan"), "final_distance": float("nan"), "success_rate": float("nan"),
+                "episodes": 0}
+    final_state = batch["next", "true_state"][rows, steps]
+    distance = (model.distance_to_goal(final_state) if hasattr(model, "distance_to_goal")
+                else torch.full((rows.numel(),), float("nan")))
     return {
-        "episode_return": sum(stats_return) / len(stats_return),
-        "final_distance": sum(final_dist) / len(final_dist),
-        "success_rate": sum(success) / len(success),
-        "episodes": len(stats_return),
+        "episode_return": float(returns[episode_id[rows, steps]].mean()),
+        "final_distance": float(distance.mean()),
+        "success_rate": float(batch["next", "terminated"].squeeze(-1)[rows, steps].float().mean()),
+        "episodes": int(rows.numel()),
     }
 
 
