@@ -90,6 +90,11 @@ def _parser() -> argparse.ArgumentParser:
     sca.add_argument("--num-steps", type=int, default=500)
     sca.add_argument("--quick", action="store_true", help="smoke run: d 1 5, block, 2 seeds, N=100, 30 steps")
     sca.add_argument("--output", default="outputs/bench/scaling")
+    cal = bench_sub.add_parser("calibration", help="SVGD/ESCORT variants against the Kalman filter",
+                               description="Linear-Gaussian model (d=4), N=300, 12 steps, 4 episodes: mean "
+                               "Mahalanobis error and variance ratio against the exact Kalman posterior.")
+    cal.add_argument("--particles", type=int, default=300)
+    cal.add_argument("--steps", type=int, default=12)
     cfg = sub.add_parser("config", help="print the composed config", description="Print the config as YAML.")
     cfg.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     return parser
@@ -192,6 +197,20 @@ def main(argv: list[str] | None = None) -> int:
             (out / f"{args.bench}.md").write_text(md)
             print(md)
             print(f"results: {out.resolve()}")
+        elif args.command == "bench" and args.bench == "calibration":
+            from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
+            from escort_rl.bench.calibration import kalman_calibration
+
+            variants = [("sir", SIRFilter()), ("svgd", SVGDFilter()), ("escort", ESCORTFilter()),
+                        ("escort corr_form=position", ESCORTFilter(corr_form="position")),
+                        ("escort temp_schedule=constant", ESCORTFilter(temp_schedule="constant")),
+                        ("escort jitter=0", ESCORTFilter(jitter=0.0)),
+                        ("svgd repulsion=enhanced", SVGDFilter(repulsion="enhanced"))]
+            print("| filter | mean Mahalanobis error | variance ratio |")
+            print("| --- | --- | --- |")
+            for name, filt in variants:
+                m, r = kalman_calibration(filt, steps=args.steps, n=args.particles)
+                print(f"| {name} | {m:.3f} | {r:.3f} |", flush=True)
         elif args.command == "describe":
             from escort_rl.models.light_dark import describe_correlations
 

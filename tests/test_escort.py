@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from escort_rl.belief import ESCORTFilter, ParticleBelief, SVGDFilter
+from escort_rl.bench.calibration import kalman_calibration
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists, svgd_direction
 from escort_rl.belief.prior import SmoothedPrior, silverman_factor
 from escort_rl.belief.projections import (
@@ -95,25 +96,7 @@ def test_correlation_force_vanishes_for_a_uniform_velocity():
 
 
 def _episode_errors(filt, steps=12, n=300, batch=4, seed=0):
-    model = LinearGaussian(state_dim=4)
-    g = torch.Generator().manual_seed(seed)
-    belief = filt.init(model, (batch,), n, g)
-    s = model.initial_state((batch,), g)
-    mean = model.m0.expand(batch, 4).double()
-    cov = model.P0.expand(batch, 4, 4).double()
-    maha, ratio = [], []
-    for _ in range(steps):
-        a = torch.randint(0, model.n_actions, (batch,), generator=g)
-        s = model.transition(s, a, g)
-        o = model.observe(s, a, g)
-        belief = filt.update(model, belief, a, o, g)
-        mean, cov = model.kalman_step(mean, cov, a, o)
-        diff = (belief.mean().double() - mean).unsqueeze(-1)
-        maha.append(torch.sqrt((diff.transpose(-1, -2) @ torch.linalg.solve(cov, diff)).squeeze()).mean())
-        ratio.append((torch.diagonal(belief.covariance().double(), dim1=-2, dim2=-1).sum(-1)
-                      / torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1)).mean())
-        assert torch.isfinite(belief.particles).all()
-    return float(torch.stack(maha).mean()), float(torch.stack(ratio).mean())
+    return kalman_calibration(filt, steps=steps, n=n, batch=batch, seed=seed)
 
 
 @pytest.mark.parametrize("filt", [SVGDFilter(), ESCORTFilter()], ids=["svgd", "escort"])
