@@ -80,7 +80,7 @@ def _actor_params(run: Path) -> dict:
 
 @pytest.mark.slow
 def test_killed_run_resumes_to_the_same_parameters(tmp_path):
-    iterations = 8
+    iterations = 12
     args = [*TINY, f"trainer.iterations={iterations}", "trainer.keep_checkpoints=3"]
     reference = tmp_path / "reference"
     assert main(["train", "--quiet", *args, f"output_dir={reference}"]) == 0
