@@ -79,7 +79,7 @@ def _parser() -> argparse.ArgumentParser:
     syn.add_argument("--seeds", type=int, default=30)
     syn.add_argument("--particles", type=int, default=1000)
     syn.add_argument("--num-steps", type=int, default=500)
-    syn.add_argument("--quick", action="store_true", help="smoke run: 2 targets, 2 seeds, N=100, 30 steps")
+    syn.add_argument("--quick", action="store_true", help="smoke run: gmm1d, gmm2d, gmm3d, 2 seeds, N=100, 30 steps")
     syn.add_argument("--output", default="outputs/bench/synthetic")
     sca = bench_sub.add_parser("scaling", help="RMSE of ESCORT vs ESCORT-NoCorr vs SVGD on 5-mode GMMs, 1D-200D",
                                description="The paper's RMSE-vs-dimension table, with the NoCorr gap.")
