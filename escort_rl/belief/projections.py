@@ -46,9 +46,10 @@ def correlation_projections(x: Tensor, y: Tensor, y_log_weights: Tensor, n_proj:
     1. Start from the eigenvectors of ``ΔC = corr(x) − corr_w(y)``, in order of ``|eigenvalue|``:
        ``A_k`` takes eigenvectors ``k·p … k·p + p − 1`` (``p = proj_dim``); when ``n_proj · p > d``
        the projections that do not fit start from seeded random orthonormal matrices.
-    2. Refine each ``A_k`` by ``ascent_steps`` steps of autograd ascent on
+    2. Refine each ``A_k`` by ``ascent_steps`` steps of gradient ascent on
        ``D_k = E‖A_kᵀ(x − y)‖² = tr(A_kᵀ M A_k)`` (``M`` from :func:`pair_second_moment`; exact for
-       independent draws), re-orthonormalising by QR after each step.
+       independent draws), with the exact gradient ``∇_A D = 2 M A`` (what autograd computes; a test
+       checks it) and a step ``ascent_lr / ‖M‖_F``, re-orthonormalising by QR after each step.
     3. ``w_k = sqrt(D_k) / Σ_l sqrt(D_l)``.
 
     ``x`` ``[*B, N, d]`` (current particles), ``y`` ``[*B, N, d]`` with ``y_log_weights`` ``[*B, N]``
@@ -70,13 +71,10 @@ def correlation_projections(x: Tensor, y: Tensor, y_log_weights: Tensor, n_proj:
         a = torch.cat([a, extra], dim=-3)
     a = orthonormalise(a)
     m = pair_second_moment(x, y, y_log_weights).unsqueeze(-3)  # [*B, 1, d, d]
-    with torch.enable_grad():
-        for _ in range(ascent_steps):
-            a = a.detach().requires_grad_(True)
-            objective = torch.diagonal(a.transpose(-1, -2) @ m @ a, dim1=-2, dim2=-1).sum()
-            (grad,) = torch.autograd.grad(objective, a)
-            scale = torch.linalg.matrix_norm(m).clamp_min(1e-12)[..., None, None]
-            a = orthonormalise(a.detach() + ascent_lr * grad / scale)
+    scale = torch.linalg.matrix_norm(m).clamp_min(1e-12)[..., None, None]
+    for _ in range(ascent_steps):
+        # ∇_A tr(Aᵀ M A) = 2 M A (M symmetric): the gradient autograd gives, without a graph
+        a = orthonormalise(a + ascent_lr * 2.0 * (m @ a) / scale)
     a = a.detach()
     dist = torch.diagonal(a.transpose(-1, -2) @ m @ a, dim1=-2, dim2=-1).sum(-1).clamp_min(0.0).sqrt()
     w = dist / dist.sum(-1, keepdim=True).clamp_min(1e-12)
@@ -113,8 +111,9 @@ def max_sliced_directions(x: Tensor, r: Tensor, n_dirs: int, generator=None, asc
                           ascent_lr: float = 0.5) -> tuple[Tensor, Tensor]:
     """Directions ``θ_j`` that maximise the projected W1 between ``x`` and ``r`` (equal weights).
 
-    Starts from seeded random unit vectors and takes ``ascent_steps`` autograd ascent steps on
-    ``W1_θ = (1/N) Σ_k |sort(x θ)_k − sort(r θ)_k|``, renormalising θ after each step.
+    Starts from seeded random unit vectors and takes ``ascent_steps`` gradient ascent steps on
+    ``W1_θ = (1/N) Σ_k |sort(x θ)_k − sort(r θ)_k|`` (:func:`projected_w1_grad`), renormalising θ
+    after each step.
     ``x``, ``r`` ``[*B, N, d]``. Returns ``θ`` ``[*B, J, d]`` and weights ``w_j ∝ W1_θj`` ``[*B, J]``.
     """
     x, r = x.detach(), r.detach()
@@ -126,16 +125,28 @@ def max_sliced_directions(x: Tensor, r: Tensor, n_dirs: int, generator=None, asc
         pr = torch.sort(r @ t.transpose(-1, -2), dim=-2).values
         return (px - pr).abs().mean(-2)  # [*B, J]
 
-    with torch.enable_grad():
-        for _ in range(ascent_steps):
-            theta = theta.detach().requires_grad_(True)
-            (grad,) = torch.autograd.grad(projected_w1(theta).sum(), theta)
-            theta = theta.detach() + ascent_lr * grad
-            theta = theta / torch.linalg.vector_norm(theta, dim=-1, keepdim=True).clamp_min(1e-12)
+    for _ in range(ascent_steps):
+        theta = theta + ascent_lr * projected_w1_grad(x, r, theta)
+        theta = theta / torch.linalg.vector_norm(theta, dim=-1, keepdim=True).clamp_min(1e-12)
     theta = theta.detach()
     w1 = projected_w1(theta)
     weights = w1 / w1.sum(-1, keepdim=True).clamp_min(1e-12)
     return theta, weights
+
+
+def projected_w1_grad(x: Tensor, r: Tensor, theta: Tensor) -> Tensor:
+    """``∇_θ W1_θ`` for ``W1_θ = (1/N) Σ_k |θ·x_(k) − θ·r_(k)|``, where ``x_(k)`` and ``r_(k)`` are
+    the points of rank ``k`` along ``θ``: ``(1/N) Σ_k sign(θ·x_(k) − θ·r_(k)) (x_(k) − r_(k))``
+    (the gradient autograd gives through the sort; a test checks it).
+    ``x``, ``r`` ``[*B, N, d]``, ``theta`` ``[*B, J, d]``. Returns ``[*B, J, d]``."""
+    n = x.shape[-2]
+    px, ix = torch.sort(theta @ x.transpose(-1, -2), dim=-1)  # [*B, J, N]
+    pr, ir = torch.sort(theta @ r.transpose(-1, -2), dim=-1)
+    sign = torch.sign(px - pr)  # [*B, J, N]
+    # Σ_k s_k x_(k) = Σ_i s_{rank(i)} x_i: scatter the signs back to particle order, then one matmul
+    sx = torch.zeros_like(sign).scatter_(-1, ix, sign)
+    sr = torch.zeros_like(sign).scatter_(-1, ir, sign)
+    return (sx @ x - sr @ r) / n
 
 
 def sorted_matching(x: Tensor, r: Tensor, theta: Tensor) -> Tensor:
@@ -157,8 +168,8 @@ class TemporalReference:
 
     def __init__(self, r: Tensor, theta: Tensor, weights: Tensor) -> None:
         d = r.shape[-1]
-        self.theta_t = theta.transpose(-1, -2).contiguous()  # [*B, d, J]
-        order = torch.argsort((r @ self.theta_t).transpose(-1, -2), dim=-1)  # [*B, J, N]: rank -> index
+        self.theta = theta  # [*B, J, d]
+        order = torch.argsort(theta @ r.transpose(-1, -2), dim=-1)  # [*B, J, N]: rank -> index
         self.sorted_ref = torch.gather(r.unsqueeze(-3).expand(*order.shape, d), -2,
                                        order.unsqueeze(-1).expand(*order.shape, d))  # [*B, J, N, d]
         # the weights are folded in: the pull is Σ_j w_j r_{σ_j(i)} − x_i (Σ_j w_j = 1)
@@ -167,7 +178,7 @@ class TemporalReference:
 
     def force(self, x: Tensor, strength: float, clip: float = 10.0) -> Tensor:
         """``F_temp(x_i) = λ Σ_j w_j (r_{σ_j(i)} − x_i)``, clipped elementwise to ``±clip``. ``[*B, N, d]``."""
-        rank_to_i = torch.argsort((x @ self.theta_t).transpose(-1, -2), dim=-1)  # [*B, J, N]
+        rank_to_i = torch.argsort(self.theta @ x.transpose(-1, -2), dim=-1)  # [*B, J, N], sorted contiguously
         idx = rank_to_i.unsqueeze(-1).expand(self.sorted_ref.shape)
         matched = torch.zeros_like(self.weighted_sorted_ref).scatter_(-2, idx, self.weighted_sorted_ref)
         pull = matched.sum(-3) - self.weights.sum(-1)[..., None, None] * x
