@@ -68,6 +68,8 @@ def _parser() -> argparse.ArgumentParser:
     cost.add_argument("--num-steps", type=int, default=50, help="K for ESCORT and SVGD")
     cost.add_argument("--device", default="cpu")
     cost.add_argument("--quick", action="store_true", help="a small smoke grid: d 10 20, N 100, B 1 2")
+    cost.add_argument("--compile", action="store_true",
+                      help="also time ESCORT and SVGD with compile=True (each shape compiles once first)")
     cost.add_argument("--max-pairs", type=float, default=1e7,
                       help="skip (d, N, B) with B·N² above this (default 1e7 skips N=1000 at B=32 on a CPU)")
     cost.add_argument("--output", default="outputs/bench/cost", help="folder for cost.md and cost.json")
@@ -154,11 +156,12 @@ def main(argv: list[str] | None = None) -> int:
                 grid = dict(dims=[10, 20], particles=[100], batches=[1, 2])
 
             def show(row):
-                print(f"{row['filter']:>6} d={row['d']:<4} N={row['N']:<5} B={row['B']:<3} "
+                print(f"{row['filter']:>15} d={row['d']:<4} N={row['N']:<5} B={row['B']:<3} "
                       f"{1e3 * row['seconds']:9.2f} ms", flush=True)
 
             result = run_cost_benchmark(**grid, repeats=args.repeats, num_steps=args.num_steps,
-                                        device=args.device, progress=show, max_pairs=args.max_pairs)
+                                        device=args.device, progress=show, max_pairs=args.max_pairs,
+                                        compile=args.compile)
             out = Path(args.output)
             out.mkdir(parents=True, exist_ok=True)
             (out / "cost.json").write_text(json.dumps(result, indent=1))
@@ -205,7 +208,10 @@ def main(argv: list[str] | None = None) -> int:
                         ("escort corr_form=position", ESCORTFilter(corr_form="position")),
                         ("escort temp_schedule=constant", ESCORTFilter(temp_schedule="constant")),
                         ("escort jitter=0", ESCORTFilter(jitter=0.0)),
-                        ("svgd repulsion=enhanced", SVGDFilter(repulsion="enhanced"))]
+                        ("svgd repulsion=enhanced", SVGDFilter(repulsion="enhanced")),
+                        ("escort num_steps=15 step_size=0.15 (filter=escort_train)",
+                         ESCORTFilter(num_steps=15, step_size=0.15)),
+                        ("escort num_steps=10", ESCORTFilter(num_steps=10))]
             print("| filter | mean Mahalanobis error | variance ratio |")
             print("| --- | --- | --- |")
             for name, filt in variants:

@@ -26,6 +26,17 @@ def test_bench_cost_quick(tmp_path, capsys):
     assert "ESCORT/SVGD" in (tmp_path / "cost.md").read_text()
 
 
+def test_cost_benchmark_compiled_rows(tmp_path):
+    """``--compile`` adds compiled ESCORT and SVGD rows and their table (one small shape)."""
+    assert main(["bench", "cost", "--dims", "4", "--particles", "20", "--batches", "1", "--repeats", "1",
+                 "--num-steps", "2", "--compile", "--output", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "cost.json").read_text())
+    rows = {r["filter"]: r for r in result["rows"]}
+    assert set(rows) == {"escort", "svgd", "sir", "escort_compiled", "svgd_compiled"}
+    assert rows["escort_compiled"]["first_seconds"] > rows["escort_compiled"]["seconds"]  # the compile
+    assert "With `compile=True`" in (tmp_path / "cost.md").read_text()
+
+
 def test_bench_synthetic_quick(tmp_path):
     assert main(["bench", "synthetic", "--quick", "--output", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "synthetic.json").read_text())

@@ -29,6 +29,7 @@ from escort_rl.belief.projections import (
     correlation_projections,
     max_sliced_directions,
     projector,
+    random_directions,
     random_projections,
 )
 
@@ -146,11 +147,11 @@ class ESCORTFilter(BeliefFilter):
         self.temp_schedule, self.temp_clip = temp_schedule, temp_clip
         self.likelihood_pull, self.prior, self.jitter = likelihood_pull, prior, jitter
         self.compile = compile
-        self._compiled_step = None
+        self._compiled_fns: dict[str, Callable] = {}
 
     def __getstate__(self) -> dict:
-        # a compiled function does not pickle (filters travel to ParallelEnv/collector workers)
-        return {**self.__dict__, "_compiled_step": None}
+        # compiled functions do not pickle (filters travel to ParallelEnv/collector workers)
+        return {**self.__dict__, "_compiled_fns": {}}
 
     def __repr__(self) -> str:
         keys = ("num_steps", "step_size", "repulsion", "lambda_corr", "lambda_temp", "n_proj", "projection", "corr_form",
@@ -190,13 +191,13 @@ class ESCORTFilter(BeliefFilter):
         return score
 
     # ------------------------------------------------------------------ evolution
-    def _step_function(self):
-        """:func:`evolution_step`, compiled once per filter when ``compile=True``."""
+    def _compiled(self, fn: Callable) -> Callable:
+        """``fn`` itself, or ``torch.compile(fn)`` (once per filter) when ``compile=True``."""
         if not self.compile:
-            return evolution_step
-        if self._compiled_step is None:
-            self._compiled_step = torch.compile(evolution_step, dynamic=False)
-        return self._compiled_step
+            return fn
+        if fn.__name__ not in self._compiled_fns:
+            self._compiled_fns[fn.__name__] = torch.compile(fn, dynamic=False)
+        return self._compiled_fns[fn.__name__]
 
     def evolve(self, x: Tensor, score_fn: Callable[[Tensor], Tensor], *, target_samples: Tensor | None = None,
                target_log_weights: Tensor | None = None, reference: Tensor | None = None,
@@ -216,14 +217,17 @@ class ESCORTFilter(BeliefFilter):
         use_temp = self.lambda_temp > 0 and reference is not None
         repulsion = self.repulsion_scale(d)
         timer = _Timer(breakdown)
-        step = self._step_function()
+        step = self._compiled(evolution_step)
+        if self.compile and target_samples is x:
+            target_samples = x.clone()  # a compiled function is specialised on argument aliasing
         fused = self.compile
         proj = temporal = None
         full = dict(dtype=x.dtype, device=x.device)
         with torch.no_grad():
             if use_temp:
                 with timer("temporal"):
-                    theta, theta_w = max_sliced_directions(x, reference, self.n_proj, generator)
+                    theta0 = random_directions(x, self.n_proj, generator)
+                    theta, theta_w = self._compiled(max_sliced_directions)(x, reference, theta0)
                     temporal = TemporalReference(reference, theta, theta_w)
             hist = torch.zeros_like(x)
             for k in range(k_total):
@@ -233,9 +237,13 @@ class ESCORTFilter(BeliefFilter):
                 if use_corr and (proj is None or (self.projection == "learned" and k % self.projection_every == 0)):
                     with timer("correlation"):
                         if self.projection == "learned":
-                            projections, proj_weights = correlation_projections(
-                                x, target_samples, target_log_weights, self.n_proj, self.proj_dim,
-                                generator=generator)
+                            p = min(self.proj_dim, d)
+                            # random starts for projections beyond the eigenvectors, drawn outside
+                            # the (possibly compiled) function
+                            fill = (random_projections(x.shape[:-2], d, self.n_proj, p, generator, x.device, x.dtype)
+                                    if self.n_proj * p > d else None)
+                            projections, proj_weights = self._compiled(correlation_projections)(
+                                x, target_samples, target_log_weights, self.n_proj, self.proj_dim, fill=fill)
                         else:
                             projections = random_projections(x.shape[:-2], d, self.n_proj, min(self.proj_dim, d),
                                                              generator, x.device, x.dtype)

@@ -40,12 +40,14 @@ def pair_second_moment(x: Tensor, y: Tensor, y_log_weights: Tensor) -> Tensor:
 
 def correlation_projections(x: Tensor, y: Tensor, y_log_weights: Tensor, n_proj: int, proj_dim: int,
                             ascent_steps: int = 5, ascent_lr: float = 0.1,
-                            generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+                            generator: torch.Generator | None = None,
+                            fill: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """ESCORT's correlation projections ``A_k`` and their weights ``w_k``.
 
     1. Start from the eigenvectors of ``ΔC = corr(x) − corr_w(y)``, in order of ``|eigenvalue|``:
        ``A_k`` takes eigenvectors ``k·p … k·p + p − 1`` (``p = proj_dim``); when ``n_proj · p > d``
-       the projections that do not fit start from seeded random orthonormal matrices.
+       the projections that do not fit start from seeded random orthonormal matrices (drawn with
+       ``generator``, or taken from ``fill`` ``[*B, n_proj, d, p]`` if given).
     2. Refine each ``A_k`` by ``ascent_steps`` steps of gradient ascent on
        ``D_k = E‖A_kᵀ(x − y)‖² = tr(A_kᵀ M A_k)`` (``M`` from :func:`pair_second_moment`; exact for
        independent draws), with the exact gradient ``∇_A D = 2 M A`` (what autograd computes; a test
@@ -67,7 +69,8 @@ def correlation_projections(x: Tensor, y: Tensor, y_log_weights: Tensor, n_proj:
     n_eig = min(n_proj, d // p)  # blocks of eigenvectors that fit; the rest start at random
     a = evecs[..., : n_eig * p].reshape(*evecs.shape[:-1], n_eig, p).movedim(-2, -3)  # [*B, n_eig, d, p]
     if n_eig < n_proj:
-        extra = random_projections(x.shape[:-2], d, n_proj - n_eig, p, generator, x.device, x.dtype)
+        extra = (random_projections(x.shape[:-2], d, n_proj - n_eig, p, generator, x.device, x.dtype)
+                 if fill is None else fill[..., n_eig:, :, :p])
         a = torch.cat([a, extra], dim=-3)
     a = orthonormalise(a)
     m = pair_second_moment(x, y, y_log_weights).unsqueeze(-3)  # [*B, 1, d, d]
@@ -107,18 +110,22 @@ def correlation_force(phi: Tensor, projections: Tensor, weights: Tensor, strengt
     return (-strength) * (v @ proj)  # proj is symmetric
 
 
-def max_sliced_directions(x: Tensor, r: Tensor, n_dirs: int, generator=None, ascent_steps: int = 10,
+def random_directions(x: Tensor, n_dirs: int, generator=None) -> Tensor:
+    """``n_dirs`` seeded random unit vectors per belief of ``x`` ``[*B, N, d]``: ``[*B, n_dirs, d]``."""
+    theta = torch.randn(*x.shape[:-2], n_dirs, x.shape[-1], generator=generator, device=x.device, dtype=x.dtype)
+    return theta / torch.linalg.vector_norm(theta, dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def max_sliced_directions(x: Tensor, r: Tensor, theta: Tensor, ascent_steps: int = 10,
                           ascent_lr: float = 0.5) -> tuple[Tensor, Tensor]:
     """Directions ``θ_j`` that maximise the projected W1 between ``x`` and ``r`` (equal weights).
 
-    Starts from seeded random unit vectors and takes ``ascent_steps`` gradient ascent steps on
-    ``W1_θ = (1/N) Σ_k |sort(x θ)_k − sort(r θ)_k|`` (:func:`projected_w1_grad`), renormalising θ
-    after each step.
+    Starts from the unit vectors ``theta`` ``[*B, J, d]`` (e.g. :func:`random_directions`) and takes
+    ``ascent_steps`` gradient ascent steps on ``W1_θ = (1/N) Σ_k |sort(x θ)_k − sort(r θ)_k|``
+    (:func:`projected_w1_grad`), renormalising θ after each step.
     ``x``, ``r`` ``[*B, N, d]``. Returns ``θ`` ``[*B, J, d]`` and weights ``w_j ∝ W1_θj`` ``[*B, J]``.
     """
     x, r = x.detach(), r.detach()
-    theta = torch.randn(*x.shape[:-2], n_dirs, x.shape[-1], generator=generator, device=x.device, dtype=x.dtype)
-    theta = theta / torch.linalg.vector_norm(theta, dim=-1, keepdim=True).clamp_min(1e-12)
 
     def projected_w1(t: Tensor) -> Tensor:
         px = torch.sort(x @ t.transpose(-1, -2), dim=-2).values  # [*B, N, J]

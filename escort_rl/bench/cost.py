@@ -53,13 +53,14 @@ def cost_model(d: int, device: str = "cpu"):
 def time_update(filt, model, batch: int, n: int, repeats: int = 5, warmup: int = 1, device: str = "cpu",
                 seed: int = 0) -> dict:
     """Median seconds of one ``filt.update`` on ``batch`` beliefs of ``n`` particles, with the
-    ESCORT/SVGD breakdown (kernel / score / correlation / temporal) of the median run."""
+    ESCORT/SVGD breakdown (kernel / score / correlation / temporal) of the median run, and the
+    seconds of the first warm-up update (which includes compiling, for ``compile=True``)."""
     g = torch.Generator(device=device).manual_seed(seed)
     belief = filt.init(model, (batch,), n, g)
     s = model.initial_state((batch,), g)
     a = torch.randint(0, model.n_actions, (batch,), generator=g, device=device)
     o = model.observe(model.transition(s, a, g), a, g)
-    runs = []
+    runs, first = [], None
     for i in range(warmup + repeats):
         breakdown: dict = {}
         _sync(device)
@@ -71,9 +72,11 @@ def time_update(filt, model, batch: int, n: int, repeats: int = 5, warmup: int =
         _sync(device)
         if i >= warmup:
             runs.append((time.perf_counter() - t0, breakdown))
+        elif first is None:
+            first = time.perf_counter() - t0
     runs.sort(key=lambda r: r[0])
     seconds, breakdown = runs[len(runs) // 2]
-    return {"seconds": seconds, "breakdown": breakdown}
+    return {"seconds": seconds, "breakdown": breakdown, "first_seconds": first}
 
 
 def fit_exponent(ds: list[int], seconds: list[float]) -> float:
@@ -86,14 +89,19 @@ def fit_exponent(ds: list[int], seconds: list[float]) -> float:
 
 
 def run_cost_benchmark(dims=(10, 20, 50, 100, 200), particles=(100, 1000), batches=(1, 32), repeats: int = 3,
-                       num_steps: int = 50, device: str = "cpu", progress=None, max_pairs: float = float("inf")) -> dict:
+                       num_steps: int = 50, device: str = "cpu", progress=None, max_pairs: float = float("inf"),
+                       compile: bool = False) -> dict:
     """Time ESCORT, SVGD and SIR for every (d, N, B) with ``B·N² ≤ max_pairs``; returns rows, the
-    skipped combinations, exponents and machine GFLOP/s."""
+    skipped combinations, exponents and machine GFLOP/s. With ``compile``, ESCORT and SVGD are also
+    timed with ``compile=True`` (rows ``escort_compiled``, ``svgd_compiled``)."""
     filters = {
         "escort": ESCORTFilter(num_steps=num_steps),
         "svgd": SVGDFilter(num_steps=num_steps),
         "sir": SIRFilter(),
     }
+    if compile:
+        filters["escort_compiled"] = ESCORTFilter(num_steps=num_steps, compile=True)
+        filters["svgd_compiled"] = SVGDFilter(num_steps=num_steps, compile=True)
     machine = matmul_gflops(device=device)
     rows, skipped = [], []
     for d in dims:
@@ -105,9 +113,10 @@ def run_cost_benchmark(dims=(10, 20, 50, 100, 200), particles=(100, 1000), batch
                     continue
                 for name, filt in filters.items():
                     r = time_update(filt, model, b, n, repeats=repeats, device=device)
-                    flops = svgd_flops(n, d, num_steps, b, corr=name == "escort") if name != "sir" else float("nan")
+                    flops = (svgd_flops(n, d, num_steps, b, corr=name.startswith("escort")) if name != "sir"
+                             else float("nan"))
                     row = {"filter": name, "d": d, "N": n, "B": b, "model": type(model).__name__,
-                           "seconds": r["seconds"], "gflop": flops / 1e9,
+                           "seconds": r["seconds"], "first_seconds": r["first_seconds"], "gflop": flops / 1e9,
                            "gflops_per_s": flops / r["seconds"] / 1e9 if name != "sir" else float("nan"),
                            "breakdown": r["breakdown"]}
                     rows.append(row)
@@ -138,6 +147,7 @@ def cost_markdown(result: dict) -> str:
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     rows = result["rows"]
+    compiled = any(r["filter"] == "escort_compiled" for r in rows)
     keys = sorted({(r["d"], r["N"], r["B"]) for r in rows})
     for d, n, b in keys:
         by = {r["filter"]: r for r in rows if (r["d"], r["N"], r["B"]) == (d, n, b)}
@@ -148,6 +158,20 @@ def cost_markdown(result: dict) -> str:
             f"| {d} | {n} | {b} | {1e3 * e['seconds']:.1f} | {1e3 * s['seconds']:.1f} | {1e3 * p['seconds']:.2f} | "
             f"{e['seconds'] / s['seconds']:.2f} | {e['seconds'] / p['seconds']:.0f} | {e['gflops_per_s']:.2f} | {parts} |"
         )
+    if compiled:
+        lines += ["", "With `compile=True` (each iteration through torch.compile; the first update of a shape "
+                  "compiles, and its time is the last column):", "",
+                  "| d | N | B | ESCORT ms | SVGD ms | ESCORT/SVGD | speed-up over eager (ESCORT, SVGD) | "
+                  "ESCORT GFLOP/s | first update incl. compile (ESCORT, SVGD, s) |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for d, n, b in keys:
+            by = {r["filter"]: r for r in rows if (r["d"], r["N"], r["B"]) == (d, n, b)}
+            e, s_, ec, sc = by["escort"], by["svgd"], by["escort_compiled"], by["svgd_compiled"]
+            lines.append(
+                f"| {d} | {n} | {b} | {1e3 * ec['seconds']:.1f} | {1e3 * sc['seconds']:.1f} | "
+                f"{ec['seconds'] / sc['seconds']:.2f} | {e['seconds'] / ec['seconds']:.1f}×, "
+                f"{s_['seconds'] / sc['seconds']:.1f}× | {ec['gflops_per_s']:.2f} | "
+                f"{ec['first_seconds']:.1f}, {sc['first_seconds']:.1f} |")
     if result.get("skipped"):
         lines += ["", f"Not run (B·N² > {result['max_pairs']:.0e}): "
                   + ", ".join(f"d={r['d']} N={r['N']} B={r['B']}" for r in result["skipped"])]

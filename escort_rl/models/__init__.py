@@ -1,7 +1,10 @@
 """POMDP models: the protocol, the paper's domains and a linear-Gaussian test model."""
 
+from escort_rl.models.kidnapped_robot import KidnappedRobot20D
 from escort_rl.models.light_dark import LightDark10D
 from escort_rl.models.linear_gaussian import LinearGaussian
+from escort_rl.models.multi_target import MultiTargetTracking20D
 from escort_rl.models.protocol import POMDPModel, check_model
 
-__all__ = ["LightDark10D", "LinearGaussian", "POMDPModel", "check_model"]
+__all__ = ["KidnappedRobot20D", "LightDark10D", "LinearGaussian", "MultiTargetTracking20D", "POMDPModel",
+           "check_model"]

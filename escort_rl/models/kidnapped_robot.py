@@ -1,0 +1,501 @@
+"""Kidnapped Robot 20D (paper, Appendix "Domains: Kidnapped Robot Problem").
+
+State ``s`` (``state_dim = 20``), in the paper's order:
+
+    index  0, 1    position (x, y) in the map [0, map_size]²   (``position_dims = (0, 1)``)
+    index  2       heading θ (radians; kept unwrapped, see below)
+    index  3, 4    speed v and steering s
+    index  5..9    sensor calibration c = (range bias, range scale error, boresight offset,
+                   similarity gain error, similarity bias)
+    index 10..19   feature descriptor f (unit norm in the noise-free dynamics)
+
+Actions ``a ∈ {0, 1, 2, 3}`` (``n_actions = 4``): 0 turns by ``+turn_rate``, 1 by ``-turn_rate``
+(paper: ±0.1), 2 keeps the heading, 3 stays in place (no displacement). The paper lists "actions
+modify orientation (Δθ = ±0.1) or maintain position"; we read "maintain" both ways (keep the heading
+and move, or stay put) and keep both.
+
+Dynamics (additive correlated Gaussian noise ``η ~ N(0, Σ)``, ``Σ`` from the paper's correlations):
+
+    x' = clip(x + m_a·v cos θ Δt, 0, map_size) + η_x      (m_a = 0 for "stay", else 1)
+    y' = clip(y + m_a·v sin θ Δt, 0, map_size) + η_y
+    θ' = θ + Δθ_a + η_θ                                  (paper, as written)
+    v' = v + κ (v_nom − v) + η_v,   s' = (1 − κ) s + η_s (our choice: mean-reverting)
+    c' = c + η_c                                         (sensor drift: a random walk)
+    f' = f / ‖f‖ + η_f                                   (the unit-norm constraint, in the mean)
+
+θ is not wrapped to [0, 2π): the model only uses cos θ and sin θ, and wrapping would make the
+additive-Gaussian transition density jump by 2π. ``f`` lies on the unit sphere up to one step of
+noise; the observation uses ``f / ‖f‖``.
+
+Map: ``C`` clusters (default 4, a 2×2 grid 10 apart) that repeat one template of ``K`` landmarks
+(default 4: two houses, a shop, a warehouse). Landmark ``(k, c)`` (slot ``k`` of cluster ``c``) sits
+at ``centre_c + offset_k`` and has the descriptor ``d_kc = normalize(prototype[type_k] + σ_d ε)``
+(paper: σ = 0.1), drawn once from ``map_seed``, so copies look alike but not identical.
+
+Observation (``obs_dim = 3K``): for each template slot ``k``, ``[visible, distance, similarity]``;
+an invisible slot is ``[0, 0, 0]``. Slots are per *template* landmark, not per landmark: the sensor
+reports "a house of this kind at distance r", never which cluster it belongs to, which is the
+perceptual aliasing the domain is about (one slot per landmark would hand the filter the landmark's
+identity). Generative law, per slot:
+
+- each copy ``c`` is detected independently with probability
+  ``p_kc = p_det · σ((R − r_kc)/τ_r) · σ((cos Δ_kc − cos(fov/2)) / (sin(fov/2) τ_θ))``:
+  a smooth version of "within range R (paper: 5) and inside the field of view (paper: 90°)", with
+  ``r_kc`` the distance and ``Δ_kc`` the bearing relative to the boresight ``θ + c_2``;
+- the slot reports the first detected copy in cluster order (at the default spacing at most one
+  copy is ever in range, so the order does not matter); if none is detected it is invisible;
+- the reported copy gives ``distance = (1 + c_1) r_kc + c_0 + σ_r ε`` and
+  ``similarity = (1 + c_3) ⟨f/‖f‖, d_kc⟩ + c_4 + σ_s ε``.
+
+``observation_log_prob`` is the exact log-density of this law (w.r.t. counting measure on the mask
+times Lebesgue measure on the visible entries; the zeros of an invisible slot are ignored):
+``Σ_k [visible_k] logsumexp_c(log p_kc + Σ_{c'<c} log(1 − p_kc') + log N(dist) + log N(sim))
++ [not visible_k] Σ_c log(1 − p_kc)``. Every term is finite (``p_det < 1``), so it never returns
+NaN or -inf, and it is differentiable in the whole state (visibility included, through the sigmoids).
+A slot counts as visible when its first entry is > 0.5.
+
+Reward −1 per step (paper). ``is_terminal`` is always False: the paper ends an episode on a
+belief-convergence criterion or a step limit, and a belief is not a function of the state; the
+step limit (``max_steps``) lives in ``configs/env/kidnapped20d.yaml``.
+
+The paper's correlations are not positive semi-definite (smallest eigenvalue −0.414 in the pose block
+and −0.467 in the calibration/feature block); the model uses the nearest correlation matrix (Higham
+2002), raised to a positive-definite one. :func:`describe_correlations` prints both.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from escort_rl.models.gaussian import GaussianNoise, make_positive_definite, nearest_correlation_matrix
+
+N_CALIBRATION = 5
+N_FEATURES = 10
+STATE_NAMES: tuple[str, ...] = (
+    ("x", "y", "theta", "v", "steer")
+    + tuple(f"c{i + 1}" for i in range(N_CALIBRATION))
+    + tuple(f"f{i + 1}" for i in range(N_FEATURES))
+)
+
+# Defaults: identical to configs/env/kidnapped20d.yaml (a test checks it).
+DEFAULT_CLUSTER_CENTRES: tuple[tuple[float, float], ...] = ((5.0, 5.0), (15.0, 5.0), (5.0, 15.0), (15.0, 15.0))
+DEFAULT_CLUSTER_OFFSETS: tuple[tuple[float, float], ...] = ((-2.0, -1.0), (0.5, -1.5), (1.5, 1.0), (-1.0, 1.5))
+DEFAULT_CLUSTER_TYPES: tuple[str, ...] = ("house", "house", "shop", "warehouse")
+DEFAULT_TYPE_PROTOTYPES: Mapping[str, tuple[float, ...]] = MappingProxyType({
+    "house": (0.8, 0.6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    "shop": (0.5, 0.3, 0.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    "warehouse": (0.2, 0.3, 0.4, 0.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+})
+DEFAULT_REFERENCE_DESCRIPTOR: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+# state indices
+X, Y, THETA, V, STEER = 0, 1, 2, 3, 4
+CAL = slice(5, 5 + N_CALIBRATION)
+FEAT = slice(10, 10 + N_FEATURES)
+_EPS = 1e-6  # smooths ‖·‖ at 0 so that norms and their gradients stay finite
+
+
+def paper_correlations(
+    rho_position_heading: float = 0.6,
+    rho_position_velocity: float = 0.8,
+    rho_calibration: float = 0.4,
+    rho_calibration_feature: float = 0.3,
+) -> Tensor:
+    """The process-noise correlation matrix as the paper states it (``[20, 20]`` float64).
+
+    ρ(x, θ) = ρ(y, θ) = 0.6 ("position and orientation"), ρ(x, v) = ρ(y, v) = 0.8
+    ("position-velocity"), ρ(c_i, c_j) = 0.4 for i ≠ j ("calibration internal"), ρ(c_i, f_k) = 0.3
+    for all i, k ("calibration influences feature descriptors"); every other pair 0. Not PSD at the
+    paper's values (smallest eigenvalue −0.414 in the pose block, −0.467 in the calibration/feature
+    block).
+    """
+    c = torch.eye(20, dtype=torch.float64)
+
+    def put(i: int, j: int, r: float) -> None:
+        c[i, j] = c[j, i] = r
+
+    for p in (X, Y):
+        put(p, THETA, rho_position_heading)
+        put(p, V, rho_position_velocity)
+    cal = range(CAL.start, CAL.stop)
+    for i in cal:
+        for j in cal:
+            if i < j:
+                put(i, j, rho_calibration)
+        for k in range(FEAT.start, FEAT.stop):
+            put(i, k, rho_calibration_feature)
+    return c
+
+
+def _positive(name: str, value: float) -> float:
+    value = float(value)
+    if not value > 0 or not math.isfinite(value):
+        raise ValueError(f"KidnappedRobot20D.{name}: must be a finite number > 0, got {value}")
+    return value
+
+
+def _points(name: str, value: Sequence[Sequence[float]]) -> Tensor:
+    try:
+        t = torch.tensor([[float(v) for v in row] for row in value], dtype=torch.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"KidnappedRobot20D.{name}: expected a list of (x, y) pairs ({err})") from None
+    if t.ndim != 2 or t.shape[0] == 0 or t.shape[1] != 2 or not torch.isfinite(t).all():
+        raise ValueError(f"KidnappedRobot20D.{name}: expected a non-empty list of finite (x, y) pairs, "
+                         f"got shape {tuple(t.shape)}")
+    return t
+
+
+def _descriptor(name: str, value: Sequence[float]) -> Tensor:
+    try:
+        t = torch.tensor([float(v) for v in value], dtype=torch.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"KidnappedRobot20D.{name}: expected {N_FEATURES} numbers ({err})") from None
+    if t.shape != (N_FEATURES,) or not torch.isfinite(t).all() or t.norm() < 1e-8:
+        raise ValueError(f"KidnappedRobot20D.{name}: expected {N_FEATURES} finite numbers, not all zero, "
+                         f"got {value!r}")
+    return t / t.norm()
+
+
+class KidnappedRobot20D:
+    """The 20-D Kidnapped Robot localisation POMDP. All tensors are float32 on ``device``.
+
+    Paper values are marked (paper); the others are open choices, documented with their reason in
+    ``configs/env/kidnapped20d.yaml`` (whose values are the defaults here).
+
+    Args:
+        map_size: side of the square map (paper: 20).
+        cluster_centres: ``C`` cluster centres ``(x, y)``.
+        cluster_offsets: ``K`` landmark offsets ``(dx, dy)`` of the repeated cluster template.
+        cluster_types: the type of each template landmark (``K`` names, keys of ``type_prototypes``).
+        type_prototypes: type name -> 10-D descriptor prototype (normalised here).
+        descriptor_perturbation_std: std of the per-landmark descriptor perturbation (paper: 0.1).
+        map_seed: seed of the descriptor perturbations.
+        reference_descriptor: the centre of the start distribution of ``f`` (normalised here).
+        sensor_range: (paper: 5). field_of_view_deg: (paper: 90).
+        range_softness: τ_r, width of the soft range edge. fov_softness: τ_θ (radians), width of the
+            soft field-of-view edge. detection_prob: p_det < 1, detection probability well inside.
+        distance_noise_std, similarity_noise_std: σ_r and σ_s of the two measurements.
+        turn_rate: heading change of the turn actions (paper: 0.1). dt: time step Δt.
+        nominal_speed: v_nom. velocity_reversion: κ, the pull of v to v_nom and of s to 0 per step.
+        position_noise_std, heading_noise_std, velocity_noise_std, steering_noise_std,
+            calibration_noise_std, feature_noise_std: per-step process-noise stds.
+        rho_position_heading, rho_position_velocity, rho_calibration, rho_calibration_feature:
+            the paper's correlations (0.6, 0.8, 0.4, 0.3), made PSD.
+        start_speed_std, start_steering_std, start_calibration_std, start_feature_std: spread of
+            the start distribution around (v_nom, 0, 0, reference_descriptor).
+        device: where the model's constant tensors live.
+
+    Attributes a filter or benchmark uses: ``position_dims = (0, 1)`` (the position error is
+    ``‖E_b[s[..., 0:2]] − s_true[..., 0:2]‖``), ``n_pos = 2``, :meth:`position`,
+    ``landmark_positions`` ``[K, C, 2]``, ``landmark_descriptors`` ``[K, C, 10]``, ``n_slots = K``,
+    ``n_clusters = C``, ``correlation`` (float64, used) and ``noise_covariance``.
+    """
+
+    state_dim = 20
+    n_actions = 4
+    n_pos = 2
+    position_dims: tuple[int, ...] = (0, 1)
+    state_names = STATE_NAMES
+
+    def __init__(
+        self,
+        map_size: float = 20.0,
+        cluster_centres: Sequence[Sequence[float]] = DEFAULT_CLUSTER_CENTRES,
+        cluster_offsets: Sequence[Sequence[float]] = DEFAULT_CLUSTER_OFFSETS,
+        cluster_types: Sequence[str] = DEFAULT_CLUSTER_TYPES,
+        type_prototypes: Mapping[str, Sequence[float]] = DEFAULT_TYPE_PROTOTYPES,
+        descriptor_perturbation_std: float = 0.1,
+        map_seed: int = 0,
+        reference_descriptor: Sequence[float] = DEFAULT_REFERENCE_DESCRIPTOR,
+        sensor_range: float = 5.0,
+        field_of_view_deg: float = 90.0,
+        range_softness: float = 0.2,
+        fov_softness: float = 0.05,
+        detection_prob: float = 0.95,
+        distance_noise_std: float = 0.2,
+        similarity_noise_std: float = 0.05,
+        turn_rate: float = 0.1,
+        dt: float = 0.1,
+        nominal_speed: float = 2.0,
+        velocity_reversion: float = 0.1,
+        position_noise_std: float = 0.02,
+        heading_noise_std: float = 0.02,
+        velocity_noise_std: float = 0.05,
+        steering_noise_std: float = 0.02,
+        calibration_noise_std: float = 0.005,
+        feature_noise_std: float = 0.01,
+        rho_position_heading: float = 0.6,
+        rho_position_velocity: float = 0.8,
+        rho_calibration: float = 0.4,
+        rho_calibration_feature: float = 0.3,
+        start_speed_std: float = 0.1,
+        start_steering_std: float = 0.05,
+        start_calibration_std: float = 0.05,
+        start_feature_std: float = 0.1,
+        device: torch.device | str | None = None,
+    ) -> None:
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        self.map_size = _positive("map_size", map_size)
+        for name, value in (
+            ("sensor_range", sensor_range), ("range_softness", range_softness),
+            ("fov_softness", fov_softness), ("distance_noise_std", distance_noise_std),
+            ("similarity_noise_std", similarity_noise_std), ("dt", dt),
+            ("position_noise_std", position_noise_std), ("heading_noise_std", heading_noise_std),
+            ("velocity_noise_std", velocity_noise_std), ("steering_noise_std", steering_noise_std),
+            ("calibration_noise_std", calibration_noise_std), ("feature_noise_std", feature_noise_std),
+        ):
+            _positive(name, value)
+        for name, value in (
+            ("descriptor_perturbation_std", descriptor_perturbation_std), ("turn_rate", turn_rate),
+            ("nominal_speed", nominal_speed), ("start_speed_std", start_speed_std),
+            ("start_steering_std", start_steering_std), ("start_calibration_std", start_calibration_std),
+            ("start_feature_std", start_feature_std),
+        ):
+            if not (math.isfinite(float(value)) and float(value) >= 0):
+                raise ValueError(f"KidnappedRobot20D.{name}: must be a finite number >= 0, got {value}")
+        if not 0.0 < float(field_of_view_deg) < 360.0:
+            raise ValueError(f"KidnappedRobot20D.field_of_view_deg: must be in (0, 360), got {field_of_view_deg}")
+        if not 0.0 < float(detection_prob) < 1.0:
+            raise ValueError(f"KidnappedRobot20D.detection_prob: must be in (0, 1) (1 would make a missed "
+                             f"detection impossible, log 0), got {detection_prob}")
+        if not 0.0 <= float(velocity_reversion) <= 1.0:
+            raise ValueError(f"KidnappedRobot20D.velocity_reversion: must be in [0, 1], got {velocity_reversion}")
+        for name, value in (
+            ("rho_position_heading", rho_position_heading), ("rho_position_velocity", rho_position_velocity),
+            ("rho_calibration", rho_calibration), ("rho_calibration_feature", rho_calibration_feature),
+        ):
+            if not -1.0 < float(value) < 1.0:
+                raise ValueError(f"KidnappedRobot20D.{name}: a correlation must be in (-1, 1), got {value}")
+
+        centres = _points("cluster_centres", cluster_centres)  # [C, 2]
+        offsets = _points("cluster_offsets", cluster_offsets)  # [K, 2]
+        types = [str(t) for t in cluster_types] if not isinstance(cluster_types, str) else None
+        if types is None or len(types) != offsets.shape[0]:
+            raise ValueError(f"KidnappedRobot20D.cluster_types: expected one type name per cluster offset "
+                             f"({offsets.shape[0]}), got {cluster_types!r}")
+        if not isinstance(type_prototypes, Mapping) or not type_prototypes:
+            raise ValueError(f"KidnappedRobot20D.type_prototypes: expected a mapping type name -> "
+                             f"{N_FEATURES} numbers, got {type_prototypes!r}")
+        protos = {str(k): _descriptor(f"type_prototypes[{k}]", v) for k, v in type_prototypes.items()}
+        for t in types:
+            if t not in protos:
+                raise ValueError(f"KidnappedRobot20D.cluster_types: unknown type '{t}'; "
+                                 f"type_prototypes has {sorted(protos)}")
+        reference = _descriptor("reference_descriptor", reference_descriptor)
+
+        self.n_slots, self.n_clusters = offsets.shape[0], centres.shape[0]
+        self.obs_dim = 3 * self.n_slots
+        self.cluster_types = tuple(types)
+        self.sensor_range, self.field_of_view_deg = float(sensor_range), float(field_of_view_deg)
+        self.range_softness, self.fov_softness = float(range_softness), float(fov_softness)
+        self.detection_prob = float(detection_prob)
+        self.distance_noise_std, self.similarity_noise_std = float(distance_noise_std), float(similarity_noise_std)
+        self.turn_rate, self.dt = float(turn_rate), float(dt)
+        self.nominal_speed, self.velocity_reversion = float(nominal_speed), float(velocity_reversion)
+        self.start_speed_std, self.start_steering_std = float(start_speed_std), float(start_steering_std)
+        self.start_calibration_std, self.start_feature_std = float(start_calibration_std), float(start_feature_std)
+        half = math.radians(self.field_of_view_deg) / 2
+        self._cos_half_fov = math.cos(half)
+        self._fov_scale = math.sin(half) * self.fov_softness  # cos Δ − cos(fov/2) ≈ sin(fov/2)·(fov/2 − |Δ|)
+        self._log_p_det = math.log(self.detection_prob)
+
+        # map: landmark (k, c) at centre_c + offset_k, descriptor normalize(prototype + σ ε)
+        g = torch.Generator().manual_seed(int(map_seed))
+        positions = offsets[:, None, :] + centres[None, :, :]  # [K, C, 2]
+        proto = torch.stack([protos[t] for t in types])  # [K, 10]
+        noise = torch.randn(self.n_slots, self.n_clusters, N_FEATURES, generator=g, dtype=torch.float64)
+        desc = proto[:, None, :] + float(descriptor_perturbation_std) * noise
+        desc = desc / desc.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        self.landmark_positions = positions.to(torch.float32).to(self.device)
+        self.landmark_descriptors = desc.to(torch.float32).to(self.device)
+        self.reference_descriptor = reference.to(torch.float32).to(self.device)
+
+        # process noise
+        self.paper_correlation = paper_correlations(
+            rho_position_heading, rho_position_velocity, rho_calibration, rho_calibration_feature)
+        self.correlation = make_positive_definite(nearest_correlation_matrix(self.paper_correlation))
+        stds = torch.tensor(
+            [position_noise_std] * 2 + [heading_noise_std, velocity_noise_std, steering_noise_std]
+            + [calibration_noise_std] * N_CALIBRATION + [feature_noise_std] * N_FEATURES,
+            dtype=torch.float64,
+        )
+        cov = self.correlation * stds[:, None] * stds[None, :]
+        self.noise_covariance = cov.to(torch.float32).to(self.device)
+        self._scale_tril = torch.linalg.cholesky(cov).to(torch.float32).to(self.device)
+        self._process = GaussianNoise(self._scale_tril)
+
+        # actions: heading change and whether the robot moves
+        self._dtheta = torch.tensor([self.turn_rate, -self.turn_rate, 0.0, 0.0], device=self.device)
+        self._moves = torch.tensor([1.0, 1.0, 1.0, 0.0], device=self.device)
+
+    # ------------------------------------------------------------------ helpers
+    def position(self, s: Tensor) -> Tensor:
+        """The position part of a state: ``[*S, 20]`` -> ``[*S, 2]``."""
+        return s[..., : self.n_pos]
+
+    @staticmethod
+    def unit_features(s: Tensor) -> Tensor:
+        """``f / ‖f‖`` (smoothed at 0): ``[*S, 20]`` -> ``[*S, 10]``."""
+        f = s[..., FEAT]
+        return f * torch.rsqrt((f * f).sum(-1, keepdim=True) + _EPS**2)
+
+    def observation_components(self, s: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Per landmark ``(k, c)``: ``log p_kc``, ``log(1 − p_kc)``, the mean distance and the mean
+        similarity it would report. ``s``: ``[*S, 20]`` -> four ``[*S, K, C]`` tensors."""
+        lm = self.landmark_positions.to(s.dtype)
+        diff = lm - s[..., None, None, : self.n_pos]  # [*S, K, C, 2]
+        r = torch.sqrt((diff * diff).sum(-1) + _EPS**2)  # [*S, K, C]
+        bore = s[..., THETA] + s[..., CAL.start + 2]  # θ + c_2
+        cos_b, sin_b = torch.cos(bore)[..., None, None], torch.sin(bore)[..., None, None]
+        cos_delta = (diff[..., 0] * cos_b + diff[..., 1] * sin_b) / r
+        log_p = (
+            self._log_p_det
+            + F.logsigmoid((self.sensor_range - r) / self.range_softness)
+            + F.logsigmoid((cos_delta - self._cos_half_fov) / self._fov_scale)
+        )
+        log_1mp = torch.log1p(-torch.exp(log_p))  # finite: p ≤ p_det < 1
+        cal = s[..., CAL]
+        mean_dist = (1.0 + cal[..., 1, None, None]) * r + cal[..., 0, None, None]
+        desc = self.landmark_descriptors.to(s.dtype).reshape(-1, N_FEATURES)  # [K·C, 10]
+        cos_sim = (self.unit_features(s) @ desc.T).unflatten(-1, (self.n_slots, self.n_clusters))
+        mean_sim = (1.0 + cal[..., 3, None, None]) * cos_sim + cal[..., 4, None, None]
+        return log_p, log_1mp, mean_dist, mean_sim
+
+    def visibility_log_prob(self, s: Tensor) -> Tensor:
+        """``log P(slot k visible | s)`` ``[*S, K]`` (``log(1 − Π_c (1 − p_kc))``, computed stably as
+        the log-sum over "copy c is the first detected")."""
+        log_p, log_1mp, _, _ = self.observation_components(s)
+        return torch.logsumexp(log_p + torch.cumsum(log_1mp, -1) - log_1mp, dim=-1)
+
+    # ------------------------------------------------------------------ protocol
+    def initial_state(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor:
+        """The kidnapped start: position uniform over the map, heading uniform in [0, 2π), speed
+        ``N(v_nom, ·)``, steering and calibration near 0, ``f = normalize(f_ref + ·)``. ``[*shape, 20]``."""
+        kw = dict(generator=generator, device=self.device)
+        pos = self.map_size * torch.rand(*shape, 2, **kw)
+        theta = 2 * math.pi * torch.rand(*shape, 1, **kw)
+        v = self.nominal_speed + self.start_speed_std * torch.randn(*shape, 1, **kw)
+        steer = self.start_steering_std * torch.randn(*shape, 1, **kw)
+        cal = self.start_calibration_std * torch.randn(*shape, N_CALIBRATION, **kw)
+        f = self.reference_descriptor + self.start_feature_std * torch.randn(*shape, N_FEATURES, **kw)
+        f = f / torch.linalg.vector_norm(f, dim=-1, keepdim=True).clamp_min(1e-12)
+        return torch.cat([pos, theta, v, steer, cal, f], dim=-1)
+
+    def initial_belief(
+        self, shape: tuple[int, ...], n: int, generator: torch.Generator | None = None
+    ) -> Tensor:
+        """``n`` draws of the start distribution (spread over the whole map): ``[*shape, n, 20]``."""
+        return self.initial_state((*shape, n), generator)
+
+    def transition_mean(self, s: Tensor, a: Tensor) -> Tensor:
+        """Noise-free dynamics. ``s``: ``[*S, 20]``, ``a``: ``[*S]`` (broadcast) -> ``[*S, 20]``."""
+        a = a.long()
+        theta, v, steer = s[..., THETA], s[..., V], s[..., STEER]
+        step = self._moves.to(s.dtype)[a] * v * self.dt
+        x = (s[..., X] + step * torch.cos(theta)).clamp(0.0, self.map_size)
+        y = (s[..., Y] + step * torch.sin(theta)).clamp(0.0, self.map_size)
+        theta = theta + self._dtheta.to(s.dtype)[a]
+        k = self.velocity_reversion
+        v = v + k * (self.nominal_speed - v)
+        steer = (1.0 - k) * steer
+        shape = torch.broadcast_shapes(x.shape, theta.shape)
+        head = torch.stack([t.expand(shape) for t in (x, y, theta, v, steer)], dim=-1)
+        rest = torch.cat([s[..., CAL], self.unit_features(s)], dim=-1)
+        return torch.cat([head, rest.expand(*shape, rest.shape[-1])], dim=-1)
+
+    def transition_scale_tril(self) -> Tensor:
+        """``[20, 20]`` Cholesky factor of the process-noise covariance."""
+        return self._scale_tril
+
+    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        mean = self.transition_mean(s, a)
+        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
+        return mean + eps @ self._scale_tril.to(mean.dtype).T
+
+    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
+        eps = s_next - self.transition_mean(s, a)
+        if eps.dtype == torch.float32:
+            return self._process.log_prob(eps)
+        z = eps @ self._process.inv_tril_t.to(eps.dtype)
+        return self._process.log_norm.to(eps.dtype) - 0.5 * (z * z).sum(-1)
+
+    def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Sample ``[visible, distance, similarity]`` per slot. ``s_next``: ``[*S, 20]`` -> ``[*S, 3K]``."""
+        log_p, _, mean_dist, mean_sim = self.observation_components(s_next)
+        u = torch.rand(log_p.shape, generator=generator, device=log_p.device, dtype=log_p.dtype)
+        detected = u < torch.exp(log_p)  # [*S, K, C]
+        visible = detected.any(-1)  # [*S, K]
+        first = torch.argmax(detected.to(torch.uint8), dim=-1, keepdim=True)  # first True (first max)
+        dist = torch.gather(mean_dist, -1, first).squeeze(-1)
+        sim = torch.gather(mean_sim, -1, first).squeeze(-1)
+        noise = torch.randn((*visible.shape, 2), generator=generator, device=log_p.device, dtype=log_p.dtype)
+        dist = dist + self.distance_noise_std * noise[..., 0]
+        sim = sim + self.similarity_noise_std * noise[..., 1]
+        m = visible.to(log_p.dtype)
+        return torch.stack([m, m * dist, m * sim], dim=-1).flatten(-2)
+
+    def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
+        """``log O(o | s')`` (the exact law in the module docstring). ``o``: ``[*S, 3K]``,
+        ``s_next``: ``[*S, 20]`` (broadcast) -> ``[*S]``. Finite everywhere, never NaN."""
+        log_p, log_1mp, mean_dist, mean_sim = self.observation_components(s_next)
+        o3 = o.unflatten(-1, (self.n_slots, 3))
+        visible = o3[..., 0] > 0.5  # [*S, K]
+        zd = (o3[..., 1, None] - mean_dist) / self.distance_noise_std  # [*S, K, C]
+        zs = (o3[..., 2, None] - mean_sim) / self.similarity_noise_std
+        log_norm = -math.log(self.distance_noise_std * self.similarity_noise_std) - math.log(2 * math.pi)
+        log_first = log_p + torch.cumsum(log_1mp, -1) - log_1mp  # copy c detected, none before it
+        lp_visible = torch.logsumexp(log_first - 0.5 * (zd * zd + zs * zs), dim=-1) + log_norm
+        lp_invisible = log_1mp.sum(-1)
+        return torch.where(visible, lp_visible, lp_invisible).sum(-1)
+
+    def reward(self, s: Tensor, a: Tensor, s_next: Tensor) -> Tensor:
+        """−1 per step (paper)."""
+        shape = torch.broadcast_shapes(s.shape[:-1], a.shape, s_next.shape[:-1])
+        return torch.full(shape, -1.0, dtype=s_next.dtype, device=s_next.device)
+
+    def is_terminal(self, s: Tensor) -> Tensor:
+        """Always False: episodes end at ``max_steps`` (config)."""
+        return torch.zeros(s.shape[:-1], dtype=torch.bool, device=s.device)
+
+
+def describe_correlations(model: KidnappedRobot20D | None = None) -> str:
+    """A Markdown report of the paper's process-noise correlations and the nearest correlation
+    matrix (Higham 2002) that :class:`KidnappedRobot20D` uses instead, one row per group of pairs
+    the paper gives one value for (with the range of the used values over the group)."""
+    model = KidnappedRobot20D() if model is None else model
+    paper, used = model.paper_correlation, model.correlation
+    paper_min = torch.linalg.eigvalsh(paper).min().item()
+    cal, feat = list(range(CAL.start, CAL.stop)), list(range(FEAT.start, FEAT.stop))
+    groups = {
+        "rho(x, theta), rho(y, theta)": [(X, THETA), (Y, THETA)],
+        "rho(x, v), rho(y, v)": [(X, V), (Y, V)],
+        "rho(c_i, c_j), i != j": [(i, j) for i in cal for j in cal if i < j],
+        "rho(c_i, f_k)": [(i, k) for i in cal for k in feat],
+        "rho(x, y) (not given)": [(X, Y)],
+        "rho(theta, v) (not given)": [(THETA, V)],
+        "rho(f_k, f_l), k != l (not given)": [(k, l) for k in feat for l in feat if k < l],
+    }
+    lines = [
+        "Kidnapped Robot 20D process-noise correlations",
+        "",
+        f"smallest eigenvalue: paper {paper_min:.4f} ({'not PSD' if paper_min < 0 else 'PSD'}), "
+        f"used {torch.linalg.eigvalsh(used).min().item():.4f}",
+        "",
+        "| pairs | paper | used |",
+        "| --- | --- | --- |",
+    ]
+    for label, pairs in groups.items():
+        p = torch.stack([paper[i, j] for i, j in pairs])
+        u = torch.stack([used[i, j] for i, j in pairs])
+        used_txt = f"{u.min().item():.3f}" if torch.allclose(u.min(), u.max(), atol=5e-4) else \
+            f"{u.min().item():.3f} .. {u.max().item():.3f}"
+        lines.append(f"| {label} | {p.max().item():.2f} | {used_txt} |")
+    off = (used * (paper == 0)).abs().max().item()
+    lines += ["", f"largest |correlation| the used matrix adds where the paper has none: {off:.3f}"]
+    return "\n".join(lines)
