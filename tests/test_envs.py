@@ -286,3 +286,36 @@ def test_gymnasium_rejects_bad_actions():
         with pytest.raises(ValueError) as info:
             env.step(bad)
         assert str(info.value).startswith("action:")
+
+
+# ---------------------------------------------------------------------------------------------
+# the three domains
+# ---------------------------------------------------------------------------------------------
+
+DOMAIN_IDS = ["escort_rl/LightDark10D-v0", "escort_rl/KidnappedRobot20D-v0", "escort_rl/MultiTargetTracking20D-v0"]
+
+
+@pytest.mark.parametrize("env_id", DOMAIN_IDS)
+def test_every_domain_passes_the_gymnasium_checker(env_id):
+    from gymnasium.utils.env_checker import check_env
+
+    from escort_rl.envs.gym_adapter import GYM_IDS, domain_config
+
+    env = gymnasium.make(env_id)
+    check_env(env.unwrapped, skip_render_check=True)
+    assert env.spec.max_episode_steps == domain_config(GYM_IDS[env_id]).max_steps
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (env.unwrapped.model.obs_dim,) and np.isfinite(obs).all()
+    env.close()
+
+
+@pytest.mark.parametrize("domain", ["kidnapped20d", "mtt20d"])
+def test_every_domain_passes_torchrl_check_env_specs(domain):
+    from escort_rl.models import DOMAINS
+
+    model = DOMAINS[domain]()
+    env = POMDPEnv(model, batch_size=(3,), seed=0, max_steps=6)
+    check_env_specs(env)
+    td = env.rollout(6, cyclic_policy(model.n_actions))
+    assert td["next", "observation"].shape == (3, 6, model.obs_dim)
+    assert torch.isfinite(td["next", "observation"]).all()

@@ -8,8 +8,13 @@ import torch
 
 from escort_rl.models.protocol import check_model
 
-LIGHT_DARK_ID = "escort_rl/LightDark10D-v0"
-LIGHT_DARK_MAX_STEPS = 500  # see configs/env/lightdark10d.yaml for why
+# gymnasium id -> domain (its model class is escort_rl.models.DOMAINS[domain]; its episode length is
+# max_steps in configs/env/<domain>.yaml, which says why)
+GYM_IDS = {
+    "escort_rl/LightDark10D-v0": "lightdark10d",
+    "escort_rl/KidnappedRobot20D-v0": "kidnapped20d",
+    "escort_rl/MultiTargetTracking20D-v0": "mtt20d",
+}
 
 
 class POMDPGymEnv(gym.Env):
@@ -52,18 +57,34 @@ class POMDPGymEnv(gym.Env):
         return obs.numpy().astype(np.float32), reward, terminated, False, {"true_state": s_next.numpy().copy()}
 
 
-def make_light_dark_gym(**model_kwargs) -> POMDPGymEnv:
-    """Entry point of ``escort_rl/LightDark10D-v0``; keyword arguments go to ``LightDark10D``."""
-    from escort_rl.models.light_dark import LightDark10D
+def domain_config(domain: str):
+    """``configs/env/<domain>.yaml`` as a DictConfig (``name``, ``max_steps``, ``model``)."""
+    from omegaconf import OmegaConf
 
-    return POMDPGymEnv(LightDark10D(**model_kwargs))
+    from escort_rl.config import config_dir
+
+    return OmegaConf.load(config_dir() / "env" / f"{domain}.yaml")
+
+
+def make_domain_gym(domain: str, **model_kwargs) -> POMDPGymEnv:
+    """Entry point of the registered ids: the domain's model with the config's arguments, updated
+    by ``model_kwargs``."""
+    from omegaconf import OmegaConf
+
+    from escort_rl.models import DOMAINS
+
+    kwargs = OmegaConf.to_container(domain_config(domain).model, resolve=True)
+    kwargs.update(model_kwargs)
+    return POMDPGymEnv(DOMAINS[domain](**kwargs))
 
 
 def register_gymnasium_envs() -> None:
     """Register the package's gymnasium ids (idempotent)."""
-    if LIGHT_DARK_ID not in gym.registry:
-        gym.register(
-            id=LIGHT_DARK_ID,
-            entry_point="escort_rl.envs.gym_adapter:make_light_dark_gym",
-            max_episode_steps=LIGHT_DARK_MAX_STEPS,
-        )
+    for env_id, domain in GYM_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(
+                id=env_id,
+                entry_point="escort_rl.envs.gym_adapter:make_domain_gym",
+                max_episode_steps=int(domain_config(domain).max_steps),
+                kwargs={"domain": domain},
+            )

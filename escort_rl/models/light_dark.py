@@ -89,6 +89,7 @@ class LightDark10D:
     """
 
     n_pos = 5
+    position_dims = (0, 1, 2, 3, 4)
     state_dim = 10
     obs_dim = 5
     n_actions = 10

@@ -382,6 +382,10 @@ class MultiTargetTracking20D:
         """``[*S, 20]`` -> ``[*S, 4, 2]``."""
         return s[..., ENTITY_DIM:].unflatten(-1, (N_TARGETS, ENTITY_DIM))[..., 2:4]
 
+    def position_error(self, estimate: Tensor, truth: Tensor) -> Tensor:
+        """The domain's position error (the protocol's optional hook): :meth:`target_position_error`."""
+        return self.target_position_error(estimate, truth)
+
     def target_position_error(self, mean_state: Tensor, true_state: Tensor) -> Tensor:
         """The benchmark's tracking error: ``(1/4) Σ_i ‖p̂_i - p_i‖₂`` over the four targets, with
         ``p̂_i`` the target positions of ``mean_state`` (e.g. the belief mean). Shapes broadcast:

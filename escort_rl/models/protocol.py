@@ -33,6 +33,10 @@ class POMDPModel(Protocol):
     - ``observation_log_prob(o [*S, obs_dim], s_next [*S, d], a [*S])`` -> ``[*S]``.
     - ``reward(s, a, s_next)`` -> ``[*S]``.
     - ``is_terminal(s [*S, d])`` -> ``[*S]`` (bool).
+
+    Optional, used by evaluation and benchmarks (see :func:`position_error`): ``position_dims``
+    (the state indices of the position), ``position_error(estimate, truth)`` (a domain's own error,
+    e.g. the mean over several targets), ``distance_to_goal(s)``.
     """
 
     state_dim: int
@@ -87,3 +91,23 @@ def check_model(model: object) -> None:
                 f"model.{name}: {type(model).__name__} has no method {name}(); "
                 "a model must follow escort_rl.models.POMDPModel"
             )
+
+
+def position_dims(model) -> tuple[int, ...]:
+    """The state indices of the position: ``model.position_dims``, else the first ``model.n_pos``
+    coordinates, else all of them."""
+    dims = getattr(model, "position_dims", None)
+    if dims is None:
+        dims = range(getattr(model, "n_pos", model.state_dim))
+    return tuple(int(i) for i in dims)
+
+
+def position_error(model, estimate: Tensor, truth: Tensor) -> Tensor:
+    """The domain's position error (SPEC §6): ``model.position_error(estimate, truth)`` when the model
+    defines one, else ``‖estimate[pos] − truth[pos]‖₂`` over :func:`position_dims`.
+    ``estimate``, ``truth`` ``[*S, d]`` -> ``[*S]``."""
+    own = getattr(model, "position_error", None)
+    if callable(own):
+        return own(estimate, truth)
+    idx = list(position_dims(model))
+    return torch.linalg.vector_norm(estimate[..., idx] - truth[..., idx], dim=-1)

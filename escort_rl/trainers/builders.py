@@ -12,11 +12,11 @@ from torchrl.envs import TransformedEnv
 from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
 from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
-from escort_rl.models import KidnappedRobot20D, LightDark10D, MultiTargetTracking20D
+from escort_rl.models import DOMAINS
 from escort_rl.modules import DeepSetsActor
 from escort_rl.transforms import BeliefTransform
 
-MODELS = {"lightdark10d": LightDark10D, "kidnapped20d": KidnappedRobot20D, "mtt20d": MultiTargetTracking20D}
+MODELS = dict(DOMAINS)
 FILTERS = {"sir": SIRFilter, "svgd": SVGDFilter, "escort": ESCORTFilter}
 
 

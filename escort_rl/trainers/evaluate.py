@@ -12,6 +12,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from escort_rl.bench.plots import plot_belief_projection, plot_learning_curve
+from escort_rl.models import position_dims, position_error
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import build_actor, build_model, make_env
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
@@ -35,10 +36,10 @@ def first_episode_metrics(rollout: TensorDict, model) -> dict:
     final_state = true_state[torch.arange(e), end]
     belief_w = torch.softmax(rollout["next", "particle_log_weights"], -1).unsqueeze(-1)
     belief_mean = (belief_w * rollout["next", "particles"]).sum(-2)  # [E, T, d]
-    pos_dim = getattr(model, "n_pos", model.obs_dim)
-    pos_err = torch.linalg.vector_norm(belief_mean[..., :pos_dim] - true_state[..., :pos_dim], dim=-1)
+    pos_err = position_error(model, belief_mean, true_state)
     return {
-        "final_distance": model.distance_to_goal(final_state),
+        "final_distance": (model.distance_to_goal(final_state) if hasattr(model, "distance_to_goal")
+                           else torch.full((e,), float("nan"))),
         "success": rollout["next", "terminated"].squeeze(-1)[torch.arange(e), end],
         "episode_return": (rewards * inside).sum(1),
         "length": end + 1,
@@ -129,8 +130,8 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     history = meta["trainer_state"].get("history", [])
     if history:
         plot_learning_curve(history, out / "learning_curve.png")
-    pos_dim = getattr(model, "n_pos", model.obs_dim)
-    plot_belief_projection(trained["next", "particles"][0], trained["next", "true_state"][0, :, :pos_dim],
+    pos = list(position_dims(model))
+    plot_belief_projection(trained["next", "particles"][0][..., pos], trained["next", "true_state"][0, :, pos],
                            out / "belief_projection.png",
                            position_error=torch.nanmean(m_trained["position_error"], 0))
     (out / "summary.md").write_text(_markdown(result))
