@@ -9,6 +9,7 @@
     escort-rl bench cost                 time per belief update, ESCORT vs SVGD vs SIR
     escort-rl bench synthetic            the paper's GMM targets (Table 2 layout)
     escort-rl bench scaling              RMSE against dimension, ESCORT vs NoCorr vs SVGD
+    escort-rl bench domains              the paper's domains, protocol (a) shared trajectories (Table 1)
 """
 
 from __future__ import annotations
@@ -92,6 +93,31 @@ def _parser() -> argparse.ArgumentParser:
     sca.add_argument("--num-steps", type=int, default=500)
     sca.add_argument("--quick", action="store_true", help="smoke run: d 1 5, block, 2 seeds, N=100, 30 steps")
     sca.add_argument("--output", default="outputs/bench/scaling")
+    dom = bench_sub.add_parser("domains", help="filters on Light-Dark, Kidnapped Robot, MTT: shared trajectories",
+                               description="Protocol (a) of SPEC §6 (paper Table 1 layout): every method filters the "
+                               "same seeded trajectories (uniform random actions) from the same seeded priors; "
+                               "final and time-averaged position error (mean ± s.e. over seeds), ms per step, "
+                               "and a table at equal wall-clock per step. Methods are filter config names.")
+    dom.add_argument("--domains", nargs="+", default=None,
+                     help="env configs (default: lightdark10d kidnapped20d mtt20d)")
+    dom.add_argument("--methods", nargs="+", default=None, help="filter configs (default: escort escort_nocorr "
+                     "escort_notemp escort_noproj svgd sir)")
+    dom.add_argument("--seeds", type=int, default=None, help="seeds 0..S-1, run as one batch (default 30)")
+    dom.add_argument("--particles", type=int, default=None, help="N for every method (default 100)")
+    dom.add_argument("--steps", type=int, default=None, help="steps per trajectory (default: env.max_steps)")
+    dom.add_argument("--workers", type=int, default=1, help="split the seeds over K processes (default 1)")
+    dom.add_argument("--max-particles", type=int, default=None,
+                     help="largest N' for the equal wall-clock table (default 2000)")
+    dom.add_argument("--threads", type=int, default=None,
+                     help="torch threads here and in each worker (default: torch's; small updates are often "
+                     "fastest with 1)")
+    dom.add_argument("--no-equal-time", action="store_true", help="skip the equal wall-clock table")
+    dom.add_argument("--filter-set", nargs="+", default=None, metavar="KEY=VALUE",
+                     help="set a filter key on every method that has it, e.g. num_steps=10 or compile=true")
+    dom.add_argument("--quick", action="store_true",
+                     help="smoke run (flags given explicitly win): all three domains, escort svgd sir, 2 seeds, "
+                     "20 steps, N=30, 1 torch thread, equal-time grid up to N'=60 with 1 timed step")
+    dom.add_argument("--output", default="outputs/bench/domains", help="folder for domains.json, domains.md, PNGs")
     cal = bench_sub.add_parser("calibration", help="SVGD/ESCORT variants against the Kalman filter",
                                description="Linear-Gaussian model (d=4), N=300, 12 steps, 4 episodes: mean "
                                "Mahalanobis error and variance ratio against the exact Kalman posterior.")
@@ -120,6 +146,43 @@ def _train(overrides: list[str], quiet: bool = False) -> Path:
         return train(cfg, resume_state=saved, progress=not quiet)
     cfg = compose(rest)
     return train(cfg, progress=not quiet)
+
+
+def _bench_domains(args) -> None:
+    import time
+
+    from escort_rl.bench import domains as dom
+
+    quick = dict(domains=["lightdark10d", "kidnapped20d", "mtt20d"], methods=["escort", "svgd", "sir"], seeds=2,
+                 particles=30, steps=20, max_particles=60, filter_set=[], threads=1)
+    full = dict(domains=list(dom.DEFAULT_DOMAINS), methods=list(dom.DEFAULT_METHODS), seeds=30, particles=100,
+                steps=None, max_particles=2000, filter_set=[], threads=None)
+    kw = {k: getattr(args, k) if getattr(args, k) is not None else (quick if args.quick else full)[k] for k in full}
+
+    def show(kind, payload):
+        if kind == "row":
+            s = payload["summary"]
+            print(f"{payload['domain']:>13} {payload['method']:>14} N={payload['particles']:<5} final error "
+                  f"{dom._fmt(s['final_error'])}  mean error {dom._fmt(s['mean_error'])}  "
+                  f"{1e3 * payload['seconds_per_step']:.1f} ms/step", flush=True)
+        else:
+            times = ", ".join(f"N'={k}: {1e3 * v:.1f} ms" for k, v in payload["times"].items())
+            print(f"{payload['domain']:>13} {payload['method']:>14} equal-time: budget "
+                  f"{1e3 * payload['budget']:.1f} ms; {times} -> N'={payload['chosen']}", flush=True)
+
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    result = dom.run_domains(kw["domains"], kw["methods"], seeds=kw["seeds"], n=kw["particles"], steps=kw["steps"],
+                             workers=args.workers, equal_time=not args.no_equal_time,
+                             max_particles=kw["max_particles"], calibration_steps=1 if args.quick else 3,
+                             filter_set=dom.parse_filter_set(kw["filter_set"]), threads=kw["threads"],
+                             progress=show, plot_dir=out)
+    md = dom.domains_markdown(result)
+    (out / "domains.json").write_text(json.dumps(result, indent=1))
+    (out / "domains.md").write_text(md)
+    print(md)
+    print(f"results: {out.resolve()} ({time.perf_counter() - t0:.1f} s)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -200,6 +263,8 @@ def main(argv: list[str] | None = None) -> int:
             (out / f"{args.bench}.md").write_text(md)
             print(md)
             print(f"results: {out.resolve()}")
+        elif args.command == "bench" and args.bench == "domains":
+            _bench_domains(args)
         elif args.command == "bench" and args.bench == "calibration":
             from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
             from escort_rl.bench.calibration import kalman_calibration

@@ -1,0 +1,90 @@
+"""`escort-rl bench domains`, protocol (a) shared trajectories (SPEC §6): tiny runs only."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from escort_rl.belief import ParticleBelief
+from escort_rl.bench import domains as dom
+from escort_rl.cli import main
+
+
+def test_quick_cli_writes_tables_and_plots(tmp_path, capsys):
+    """The quick run (3 steps here) writes JSON, markdown and one PNG per domain; every method saw
+    the same trajectories and priors; errors are finite and non-negative."""
+    assert main(["bench", "domains", "--quick", "--steps", "3", "--output", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "domains.json").read_text())
+    assert result["domains"] == ["lightdark10d", "kidnapped20d", "mtt20d"]
+    assert result["methods"] == ["escort", "svgd", "sir"]
+    assert {(r["domain"], r["method"]) for r in result["rows"]} == {
+        (d, m) for d in result["domains"] for m in result["methods"]}
+    for d in result["domains"]:
+        rows = [r for r in result["rows"] if r["domain"] == d]
+        assert all(r["input_hashes"] == result["domain_info"][d]["trajectory_hashes"] for r in rows)
+        assert len({tuple(r["initial_belief_hashes"]) for r in rows}) == 1
+        assert len(set(result["domain_info"][d]["trajectory_hashes"])) == 2  # two seeds, two trajectories
+        assert (tmp_path / f"error_over_time_{d}.png").stat().st_size > 0
+    for r in result["rows"] + result["equal_time"]["rows"]:
+        assert r["steps"] == 3 and len(r["error_over_time"]["mean"]) == 4
+        values = r["per_seed"]["final_error"] + r["per_seed"]["mean_error"] + r["error_over_time"]["mean"]
+        assert all(math.isfinite(v) and v >= 0 for v in values)
+        assert r["seconds_per_step"] > 0
+    assert result["equal_time"]["domains"]["mtt20d"]["chosen"]["escort"] == 30
+    md = (tmp_path / "domains.md").read_text()
+    for heading in ("## Final position error", "## Time-averaged position error", "## Wall-clock per filter update",
+                    "## Equal wall-clock per step", "protocol (b)"):
+        assert heading in md
+    assert "| escort | " in md and "| lightdark10d | kidnapped20d | mtt20d |" in md
+    assert "final error" in capsys.readouterr().out
+
+
+def test_trajectories_are_seeded_per_seed():
+    model, _ = dom.build_domain("mtt20d")
+    a = dom.generate_trajectories(model, 4, [0, 1, 2])
+    b = dom.generate_trajectories(model, 4, [0, 1, 2])
+    c = dom.generate_trajectories(model, 4, [2])
+    for k in ("states", "actions", "observations"):
+        assert torch.equal(a[k], b[k])
+        assert torch.equal(a[k][2], c[k][0])  # a seed's trajectory does not depend on the others
+    assert a["hashes"] == b["hashes"] and a["hashes"][2] == c["hashes"][0]
+    assert a["states"].shape == (3, 5, 20) and a["actions"].shape == (3, 4) and a["observations"].shape[:2] == (3, 4)
+    filt = dom.build_method("mtt20d", "sir")
+    prior, hashes = dom.initial_beliefs(filt, model, [0, 1, 2], 8)
+    assert prior.particles.shape == (3, 8, 20) and len(set(hashes)) == 3
+    assert not torch.isclose(prior.particles[:, 0], a["states"][:, 0]).all()  # independent of the true start
+
+
+def test_unknown_method_is_one_line_naming_the_flag(tmp_path, capsys):
+    assert main(["bench", "domains", "--methods", "sir", "nosuchfilter", "--output", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--methods" in err and "nosuchfilter" in err
+    assert main(["bench", "domains", "--domains", "nowhere", "--output", str(tmp_path)]) == 2
+    assert "--domains" in capsys.readouterr().err
+
+
+def test_non_finite_belief_names_method_and_domain():
+    x = torch.zeros(2, 3, 4)
+    x[1, 0, 0] = float("nan")
+    with pytest.raises(dom.NonFiniteBeliefError, match="method 'svgd' on domain 'mtt20d'.*step 5.*seeds \\[7\\]"):
+        dom._check_finite(ParticleBelief.uniform(x), "svgd", "mtt20d", 5, [6, 7])
+
+
+def test_workers_share_trajectories_and_priors():
+    """Two worker processes see the same trajectories and priors as one; SIR is deterministic for a
+    fixed worker count, and its errors stay finite with either count."""
+    kw = dict(domains=["lightdark10d", "kidnapped20d"], methods=["sir"], seeds=3, n=20, steps=4, equal_time=False,
+              threads=1)
+    one = dom.run_domains(workers=1, **kw)
+    again = dom.run_domains(workers=1, **kw)
+    two = dom.run_domains(workers=2, **kw)
+    assert two["worker_threads"] == 1
+    for r1, r1b, r2 in zip(one["rows"], again["rows"], two["rows"]):
+        assert r1["input_hashes"] == r2["input_hashes"] == one["domain_info"][r1["domain"]]["trajectory_hashes"]
+        assert r1["initial_belief_hashes"] == r2["initial_belief_hashes"]
+        assert r1["per_seed"] == r1b["per_seed"]
+        assert len(r2["per_seed"]["final_error"]) == 3
+        assert all(math.isfinite(v) and v >= 0 for v in r2["per_seed"]["final_error"])
+        # the prior (step 0) is shared, so its error is identical whatever the split
+        assert r1["error_over_time"]["mean"][0] == pytest.approx(r2["error_over_time"]["mean"][0], abs=1e-12)
