@@ -18,8 +18,10 @@ from escort_rl.modules import DeepSetsActor
 from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint
 from escort_rl.trainers.reinforce import complete_episode_mask, returns_to_go, train
 
+# The default job's filter (ESCORT) at a tiny size; eager, because compiling in every test process
+# would dominate the test time (tests/test_escort.py checks that compiled and eager updates agree).
 TINY = ["trainer.num_envs=4", "env.max_steps=12", "num_particles=16", "actor.hidden=16",
-        "trainer.minibatch_size=64", "trainer.checkpoint_every=1"]
+        "trainer.minibatch_size=64", "trainer.checkpoint_every=1", "filter.compile=false"]
 
 
 def test_returns_to_go_closed_form():
