@@ -185,8 +185,19 @@ def _bench_domains(args) -> None:
     print(f"results: {out.resolve()} ({time.perf_counter() - t0:.1f} s)")
 
 
+def _quiet_compiler_notices() -> None:
+    """torch.compile's C++ toolchain logs a CUDA_HOME notice and Inductor a deprecation warning on
+    every CPU compile; neither says anything about the user's run."""
+    import logging
+    import warnings
+
+    logging.getLogger("torch.utils.cpp_extension").setLevel(logging.ERROR)
+    warnings.filterwarnings("ignore", message=r"`torch\._prims_common\.check` is deprecated", category=FutureWarning)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    _quiet_compiler_notices()
     from escort_rl.config import ConfigError
     from escort_rl.trainers.checkpointing import CheckpointLoadError
 
