@@ -93,6 +93,10 @@ def _parser() -> argparse.ArgumentParser:
     sca.add_argument("--num-steps", type=int, default=500)
     sca.add_argument("--quick", action="store_true", help="smoke run: d 1 5, block, 2 seeds, N=100, 30 steps")
     sca.add_argument("--output", default="outputs/bench/scaling")
+    for p in (syn, sca):
+        p.add_argument("--bandwidth-scale", type=float, default=1.0,
+                       help="multiply ESCORT's and SVGD's median-heuristic bandwidth (default 1)")
+        p.add_argument("--compile", action="store_true", help="ESCORT and SVGD with compile=True")
     dom = bench_sub.add_parser("domains", help="filters on Light-Dark, Kidnapped Robot, MTT: shared trajectories",
                                description="Protocol (a) of SPEC §6 (paper Table 1 layout): every method filters the "
                                "same seeded trajectories (uniform random actions) from the same seeded priors; "
@@ -185,6 +189,16 @@ def _bench_domains(args) -> None:
     print(f"results: {out.resolve()} ({time.perf_counter() - t0:.1f} s)")
 
 
+def _filter_kwargs(args) -> dict:
+    """ESCORT/SVGD constructor arguments a benchmark's flags change from the defaults."""
+    kw = {}
+    if args.bandwidth_scale != 1.0:
+        kw["bandwidth_scale"] = args.bandwidth_scale
+    if args.compile:
+        kw["compile"] = True
+    return kw
+
+
 def _quiet_compiler_notices() -> None:
     """torch.compile's C++ toolchain logs a CUDA_HOME notice and Inductor a deprecation warning on
     every CPU compile; neither says anything about the user's run."""
@@ -254,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
 
             if args.bench == "synthetic":
                 kw = dict(targets=args.targets, methods=args.methods, seeds=args.seeds, n=args.particles,
-                          num_steps=args.num_steps)
+                          num_steps=args.num_steps, filter_kwargs=_filter_kwargs(args))
                 if args.quick:
                     kw.update(targets=["gmm1d", "gmm2d", "gmm3d"], seeds=2, n=100, num_steps=30)
                 Path(args.output).mkdir(parents=True, exist_ok=True)
@@ -262,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
                 md = syn.synthetic_markdown(result)
             else:
                 kw = dict(dims=args.dims, structures=args.structures, seeds=args.seeds, n=args.particles,
-                          num_steps=args.num_steps)
+                          num_steps=args.num_steps, filter_kwargs=_filter_kwargs(args))
                 if args.quick:
                     kw.update(dims=[1, 5], structures=["block"], seeds=2, n=100, num_steps=30)
                 Path(args.output).mkdir(parents=True, exist_ok=True)

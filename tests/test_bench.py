@@ -60,3 +60,15 @@ def test_bench_throughput_quick(tmp_path, capsys):
                  "--output", str(out), "num_particles=10"]) == 0
     rows = json.loads(out.read_text())
     assert rows[0]["frames"] == 10 and rows[0]["frames_per_second"] > 0
+
+
+def test_synthetic_bandwidth_scale_reaches_the_filters(tmp_path):
+    """``--bandwidth-scale`` changes ESCORT's and SVGD's fits and is recorded in the output."""
+    args = ["bench", "synthetic", "--quick", "--targets", "gmm2d", "--methods", "svgd", "--seeds", "1"]
+    assert main([*args, "--output", str(tmp_path / "a")]) == 0
+    assert main([*args, "--bandwidth-scale", "0.1", "--output", str(tmp_path / "b")]) == 0
+    a = json.loads((tmp_path / "a" / "synthetic.json").read_text())
+    b = json.loads((tmp_path / "b" / "synthetic.json").read_text())
+    assert a["filter_kwargs"] == {} and b["filter_kwargs"] == {"bandwidth_scale": 0.1}
+    assert a["rows"][0]["per_seed"]["sliced_w1"] != b["rows"][0]["per_seed"]["sliced_w1"]
+    assert "`bandwidth_scale=0.1`" in (tmp_path / "b" / "synthetic.md").read_text()

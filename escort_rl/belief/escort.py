@@ -71,6 +71,9 @@ class ESCORTFilter(BeliefFilter):
             so it is an option, not the default.
         bandwidth_every: recompute the median-heuristic bandwidth every this many iterations
             (default 10; the median is a selection over N² distances).
+        bandwidth_scale: multiplies the median-heuristic bandwidth (default 1). With well-separated
+            modes the median pairwise distance is the distance between modes, so the kernel spans
+            several modes and particles move together; a scale below 1 localises the kernel.
         lambda_corr: ``λ_corr`` (default 0.1; 0 gives ESCORT-NoCorr).
         lambda_temp: ``λ_temp`` (default 0.1; 0 gives ESCORT-NoTemp).
         n_proj: number of correlation projections and of temporal directions (default 5).
@@ -102,6 +105,7 @@ class ESCORTFilter(BeliefFilter):
         adagrad_alpha: float = 0.9,
         repulsion: str = "plain",
         bandwidth_every: int = 10,
+        bandwidth_scale: float = 1.0,
         lambda_corr: float = 0.1,
         lambda_temp: float = 0.1,
         n_proj: int = 5,
@@ -123,6 +127,7 @@ class ESCORTFilter(BeliefFilter):
             ("adagrad_alpha", 0 <= adagrad_alpha < 1, "in [0, 1)"),
             ("repulsion", repulsion in ("enhanced", "plain"), "'enhanced' or 'plain'"),
             ("bandwidth_every", isinstance(bandwidth_every, int) and bandwidth_every >= 1, "an int >= 1"),
+            ("bandwidth_scale", bandwidth_scale > 0, "> 0"),
             ("lambda_corr", lambda_corr >= 0, ">= 0"),
             ("lambda_temp", lambda_temp >= 0, ">= 0"),
             ("n_proj", isinstance(n_proj, int) and n_proj >= 1, "an int >= 1"),
@@ -141,6 +146,7 @@ class ESCORTFilter(BeliefFilter):
                 raise ValueError(f"{type(self).__name__}.{name}: must be {what}, got {locals()[name]!r}")
         self.num_steps, self.step_size, self.step_decay = num_steps, step_size, step_decay
         self.adagrad_alpha, self.repulsion, self.bandwidth_every = adagrad_alpha, repulsion, bandwidth_every
+        self.bandwidth_scale = bandwidth_scale
         self.lambda_corr, self.lambda_temp = lambda_corr, lambda_temp
         self.n_proj, self.proj_dim, self.projection = n_proj, proj_dim, projection
         self.projection_every, self.corr_form = projection_every, corr_form
@@ -233,7 +239,7 @@ class ESCORTFilter(BeliefFilter):
             for k in range(k_total):
                 if k % self.bandwidth_every == 0:
                     with timer("kernel"):
-                        bandwidth = median_bandwidth(pairwise_sq_dists(x))
+                        bandwidth = median_bandwidth(pairwise_sq_dists(x)) * self.bandwidth_scale
                 if use_corr and (proj is None or (self.projection == "learned" and k % self.projection_every == 0)):
                     with timer("correlation"):
                         if self.projection == "learned":
