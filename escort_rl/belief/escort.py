@@ -33,6 +33,7 @@ from escort_rl.belief.projections import (
     random_projections,
 )
 
+COMPILE_CACHE_ENTRIES = 64  # compiled variants kept per function (see ESCORTFilter._compiled)
 MAX_SCORE = 1e6  # scores are clamped to ±MAX_SCORE; AdaGrad normalises the step anyway
 
 
@@ -202,6 +203,10 @@ class ESCORTFilter(BeliefFilter):
         if not self.compile:
             return fn
         if fn.__name__ not in self._compiled_fns:
+            # Dynamo keeps one cache per function, shared by every filter: each model, shape and
+            # variant (F_corr/F_temp on or off) is an entry. Past the default limit of 8 it would
+            # silently run eager, so allow more.
+            torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, COMPILE_CACHE_ENTRIES)
             self._compiled_fns[fn.__name__] = torch.compile(fn, dynamic=False)
         return self._compiled_fns[fn.__name__]
 

@@ -24,15 +24,37 @@ class GaussianNoise:
         self.log_norm = -torch.log(torch.diagonal(scale_tril)).sum() - 0.5 * d * math.log(2 * math.pi)
 
     def log_prob(self, eps: Tensor) -> Tensor:
-        """``log N(ε; 0, L Lᵀ)`` for ``ε`` ``[*S, d]`` -> ``[*S]``."""
-        z = eps @ self.inv_tril_t
-        return self.log_norm - 0.5 * (z * z).sum(-1)
+        """``log N(ε; 0, L Lᵀ)`` for ``ε`` ``[*S, d]`` -> ``[*S]`` (in ``ε``'s dtype)."""
+        z = eps @ self.inv_tril_t.to(eps.dtype)
+        return self.log_norm.to(eps.dtype) - 0.5 * (z * z).sum(-1)
 
     def sample(self, shape, generator=None) -> Tensor:
         """``[*shape, d]`` draws."""
         d = self.scale_tril.shape[-1]
         e = torch.randn(*shape, d, generator=generator, device=self.scale_tril.device, dtype=self.scale_tril.dtype)
         return e @ self.scale_tril.T
+
+
+class AdditiveGaussianTransition:
+    """The transition part of the model protocol for ``s' = transition_mean(s, a) + ε``,
+    ``ε ~ N(0, L Lᵀ)``. A model mixes it in, defines ``transition_mean`` and sets
+    ``self._process = GaussianNoise(L)`` in its constructor."""
+
+    _process: GaussianNoise
+
+    def transition_scale_tril(self) -> Tensor:
+        """``[d, d]`` Cholesky factor ``L`` of the process-noise covariance."""
+        return self._process.scale_tril
+
+    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """``s' = transition_mean(s, a) + L ε``, ``ε ~ N(0, I)``. ``[*S, d]``."""
+        mean = self.transition_mean(s, a)
+        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
+        return mean + eps @ self._process.scale_tril.to(mean.dtype).T
+
+    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
+        """``log N(s' − transition_mean(s, a); 0, L Lᵀ)``. Broadcasts; returns ``[*S]``."""
+        return self._process.log_prob(s_next - self.transition_mean(s, a))
 
 
 def mvn_log_prob_tril(x: Tensor, mean: Tensor, scale_tril: Tensor) -> Tensor:

@@ -73,7 +73,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from escort_rl.models.gaussian import GaussianNoise, make_positive_definite, nearest_correlation_matrix
+from escort_rl.models.gaussian import (
+    AdditiveGaussianTransition,
+    GaussianNoise,
+    make_positive_definite,
+    nearest_correlation_matrix,
+)
 
 N_CALIBRATION = 5
 N_FEATURES = 10
@@ -162,7 +167,7 @@ def _descriptor(name: str, value: Sequence[float]) -> Tensor:
     return t / t.norm()
 
 
-class KidnappedRobot20D:
+class KidnappedRobot20D(AdditiveGaussianTransition):
     """The 20-D Kidnapped Robot localisation POMDP. All tensors are float32 on ``device``.
 
     Paper values are marked (paper); the others are open choices, documented with their reason in
@@ -408,22 +413,6 @@ class KidnappedRobot20D:
         head = torch.stack([t.expand(shape) for t in (x, y, theta, v, steer)], dim=-1)
         rest = torch.cat([s[..., CAL], self.unit_features(s)], dim=-1)
         return torch.cat([head, rest.expand(*shape, rest.shape[-1])], dim=-1)
-
-    def transition_scale_tril(self) -> Tensor:
-        """``[20, 20]`` Cholesky factor of the process-noise covariance."""
-        return self._scale_tril
-
-    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        mean = self.transition_mean(s, a)
-        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
-        return mean + eps @ self._scale_tril.to(mean.dtype).T
-
-    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
-        eps = s_next - self.transition_mean(s, a)
-        if eps.dtype == torch.float32:
-            return self._process.log_prob(eps)
-        z = eps @ self._process.inv_tril_t.to(eps.dtype)
-        return self._process.log_norm.to(eps.dtype) - 0.5 * (z * z).sum(-1)
 
     def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """Sample ``[visible, distance, similarity]`` per slot. ``s_next``: ``[*S, 20]`` -> ``[*S, 3K]``."""

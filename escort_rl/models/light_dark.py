@@ -29,8 +29,9 @@ import torch
 from torch import Tensor
 
 from escort_rl.models.gaussian import (
-    make_positive_definite,
+    AdditiveGaussianTransition,
     GaussianNoise,
+    make_positive_definite,
     nearest_correlation_matrix,
 )
 
@@ -71,7 +72,7 @@ def paper_correlations(n_pos: int = 5) -> Tensor:
     return c
 
 
-class LightDark10D:
+class LightDark10D(AdditiveGaussianTransition):
     """The 10-D Light-Dark navigation POMDP. All tensors are float32 on ``device``.
 
     Args:
@@ -188,18 +189,6 @@ class LightDark10D:
         new_pos = pos + self.dt * vel
         new_vel = (1.0 - self.damping) * vel
         return torch.cat([new_pos, new_vel], dim=-1) + self._velocity_force[a.long()]
-
-    def transition_scale_tril(self) -> Tensor:
-        """``[10, 10]`` Cholesky factor of the process-noise covariance."""
-        return self._scale_tril
-
-    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        mean = self.transition_mean(s, a)
-        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
-        return mean + eps @ self._scale_tril.T
-
-    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
-        return self._process.log_prob(s_next - self.transition_mean(s, a))
 
     def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """``o = P·x' + σ(x')·ε``. ``s_next``: ``[*S, 10]`` -> ``[*S, 5]``."""
