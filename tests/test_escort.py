@@ -233,3 +233,20 @@ def test_compiled_update_matches_eager(cls):
         beliefs.append(belief.particles)
     torch.testing.assert_close(beliefs[1], beliefs[0], atol=1e-4, rtol=1e-4)
     assert pickle.loads(pickle.dumps(filt)).compile  # workers receive a pickled filter
+
+
+def test_smoothed_prior_survives_an_ill_conditioned_spread():
+    """A belief spread over 1e4 in one direction and 1e-3 in others: float32 Cholesky of
+    Σ_T + h²Σ̂ can fail; the prior adds a ridge where needed and stays finite."""
+    from escort_rl.belief.prior import robust_cholesky
+
+    g = torch.Generator().manual_seed(0)
+    means = torch.randn(2, 100, 14, generator=g) * torch.tensor([1e4] + [1e-3] * 13)
+    tiny = torch.eye(14) * 1e-4
+    prior = SmoothedPrior(means, tiny)
+    assert torch.isfinite(prior.scale_tril).all()
+    assert torch.isfinite(prior.score(means[:, :5])).all()
+    bad = torch.ones(1, 3, 3)  # rank 1: needs the ridge
+    factor = robust_cholesky(bad)
+    assert torch.isfinite(factor).all()
+    torch.testing.assert_close(factor @ factor.transpose(-1, -2), bad, atol=1e-3, rtol=1e-3)

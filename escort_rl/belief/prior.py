@@ -24,6 +24,28 @@ def weighted_covariance(x: Tensor, log_weights: Tensor | None = None) -> Tensor:
     return (w.unsqueeze(-1) * c).transpose(-1, -2) @ c
 
 
+def robust_cholesky(cov: Tensor, ridge: float = 1e-6, tries: int = 8) -> Tensor:
+    """Cholesky factor of a symmetric PSD ``cov`` ``[*B, d, d]``. Where float round-off makes a batch
+    element fail (e.g. a spread-out belief whose covariance spans many orders of magnitude), adds
+    ``ridge · 10^k · mean(diag)`` to its diagonal, ``k = 0, 1, …``, until it factors."""
+    cov = 0.5 * (cov + cov.transpose(-1, -2))
+    eye = torch.eye(cov.shape[-1], dtype=cov.dtype, device=cov.device)
+    scale = torch.diagonal(cov, dim1=-2, dim2=-1).mean(-1).abs().clamp_min(1e-12)[..., None, None]
+    factor, info = torch.linalg.cholesky_ex(cov)
+    jitter = ridge
+    for _ in range(tries):
+        failed = (info > 0)[..., None, None]
+        if not bool(failed.any()):
+            return factor
+        cov = torch.where(failed, cov + jitter * scale * eye, cov)
+        factor, info = torch.linalg.cholesky_ex(cov)
+        jitter *= 10.0
+    if bool((info > 0).any()):
+        raise ValueError("SmoothedPrior: the prior covariance is not positive definite even with a ridge of "
+                         f"{jitter:.0e} × its mean variance; are the particles finite?")
+    return factor
+
+
 class SmoothedPrior:
     """``p̂(x) = Σ_j w_j N(x; μ_j, S)`` with ``S = Σ_T + h² Σ̂`` shared by all components.
 
@@ -45,7 +67,7 @@ class SmoothedPrior:
         process_cov = process_scale_tril @ process_scale_tril.transpose(-1, -2)
         cov = process_cov + h * h * weighted_covariance(means, log_weights)
         cov = cov + ridge * torch.eye(d, dtype=means.dtype, device=means.device)
-        self.scale_tril = torch.linalg.cholesky(cov)  # [*B, d, d]
+        self.scale_tril = robust_cholesky(cov)  # [*B, d, d]
         self.precision = torch.cholesky_inverse(self.scale_tril)  # [*B, d, d], symmetric
         self.means = means
         self.means_p = means @ self.precision  # μ_j P  [*B, N, d]
