@@ -332,8 +332,7 @@ class KidnappedRobot20D(AdditiveGaussianTransition):
         )
         cov = self.correlation * stds[:, None] * stds[None, :]
         self.noise_covariance = cov.to(torch.float32).to(self.device)
-        self._scale_tril = torch.linalg.cholesky(cov).to(torch.float32).to(self.device)
-        self._process = GaussianNoise(self._scale_tril)
+        self._process = GaussianNoise(torch.linalg.cholesky(cov).to(torch.float32).to(self.device))
 
         # actions: heading change and whether the robot moves
         self._dtheta = torch.tensor([self.turn_rate, -self.turn_rate, 0.0, 0.0], device=self.device)

@@ -135,8 +135,7 @@ class LightDark10D(AdditiveGaussianTransition):
         stds = torch.tensor([position_noise_std] * 5 + [velocity_noise_std] * 5, dtype=torch.float64)
         cov = self.correlation * stds[:, None] * stds[None, :]
         self.noise_covariance = cov.to(torch.float32).to(self.device)
-        self._scale_tril = torch.linalg.cholesky(cov).to(torch.float32).to(self.device)
-        self._process = GaussianNoise(self._scale_tril)
+        self._process = GaussianNoise(torch.linalg.cholesky(cov).to(torch.float32).to(self.device))
 
         self.light_centres = torch.tensor([c for c, _, _ in LIGHT_REGIONS], device=self.device)
         self.light_radii = torch.tensor([r for _, r, _ in LIGHT_REGIONS], device=self.device)

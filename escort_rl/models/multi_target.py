@@ -368,8 +368,7 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
                             * (N_TARGETS + 1), dtype=torch.float64)
         cov = self.correlation * stds[:, None] * stds[None, :]
         self.noise_covariance = to(cov)
-        self._scale_tril = to(torch.linalg.cholesky(cov))
-        self._process = GaussianNoise(self._scale_tril)
+        self._process = GaussianNoise(to(torch.linalg.cholesky(cov)))
 
     # ------------------------------------------------------------------ state access
     @staticmethod
