@@ -164,7 +164,11 @@ def _bench_domains(args) -> None:
     kw = {k: getattr(args, k) if getattr(args, k) is not None else (quick if args.quick else full)[k] for k in full}
 
     def show(kind, payload):
-        if kind == "row":
+        if kind == "row" and payload["failed"]:
+            f = payload["failed"]
+            print(f"{payload['domain']:>13} {payload['method']:>14} N={payload['particles']:<5} FAILED at step "
+                  f"{f['step']}: {f['message']}", flush=True)
+        elif kind == "row":
             s = payload["summary"]
             print(f"{payload['domain']:>13} {payload['method']:>14} N={payload['particles']:<5} final error "
                   f"{dom._fmt(s['final_error'])}  mean error {dom._fmt(s['mean_error'])}  "

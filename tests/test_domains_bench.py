@@ -88,3 +88,25 @@ def test_workers_share_trajectories_and_priors():
         assert all(math.isfinite(v) and v >= 0 for v in r2["per_seed"]["final_error"])
         # the prior (step 0) is shared, so its error is identical whatever the split
         assert r1["error_over_time"]["mean"][0] == pytest.approx(r2["error_over_time"]["mean"][0], abs=1e-12)
+
+
+def test_a_diverged_method_is_a_failed_row_and_the_run_goes_on(monkeypatch):
+    real = dom._check_finite
+
+    def diverge_svgd(belief, method, domain, step, seeds):
+        if method == "svgd" and step == 3:
+            raise dom.NonFiniteBeliefError(f"method '{method}' on domain '{domain}': diverged (test)")
+        real(belief, method, domain, step, seeds)
+
+    monkeypatch.setattr(dom, "_check_finite", diverge_svgd)
+    result = dom.run_domains(domains=["lightdark10d"], methods=["sir", "svgd", "escort"], seeds=2, n=10, steps=4,
+                             equal_time=True, particle_grid=(10, 20), max_particles=20, calibration_steps=1,
+                             threads=1, filter_set=(("num_steps", "2"),))
+    by = {r["method"]: r for r in result["rows"]}
+    assert by["svgd"]["failed"]["step"] == 3 and "diverged (test)" in by["svgd"]["failed"]["message"]
+    assert by["sir"]["failed"] is None and by["escort"]["failed"] is None
+    assert math.isfinite(by["sir"]["summary"]["final_error"][0])
+    eq = {r["method"]: r for r in result["equal_time"]["rows"]}
+    assert eq["svgd"]["failed"] and eq["svgd"]["reused_equal_n"]
+    md = dom.domains_markdown(result)
+    assert "| svgd | failed at step 3 |" in md and "## Failed runs" in md and "diverged (test)" in md

@@ -222,6 +222,28 @@ def test_transition_mean_dynamics(model):
     assert dv < 0  # target 1 (on the left) is pushed further left
 
 
+def test_flow_pull_is_zero_on_the_ring_and_linear_far_out(model):
+    c, ring = model.flow_center, model.flow_radius
+    on_ring = c + torch.tensor([ring, 0.0])
+    torch.testing.assert_close(model.flow(on_ring), model.flow_rate * torch.tensor([0.0, ring]))
+    far = torch.tensor([1e3, 0.0])
+    radial = model.flow(c + far)[0]
+    torch.testing.assert_close(radial, torch.tensor(-2 * model.flow_attraction * 1e3), rtol=1e-3, atol=0.0)
+
+
+def test_noise_free_dynamics_are_stable_from_far_away(model):
+    """Particles far outside the map (an unseen target's belief can spread there) come back: the
+    noise-free dynamics contract, they do not blow up (a cubic flow pull did, beyond ~14 from the centre)."""
+    g = torch.Generator().manual_seed(0)
+    s = 60.0 * torch.randn(256, 20, generator=g)
+    a = torch.zeros(256, dtype=torch.long)
+    for _ in range(400):
+        s = model.transition_mean(s, a)
+        assert torch.isfinite(s).all()
+    targets = model.target_positions(s)
+    assert (targets - model.flow_center).norm(dim=-1).max() < 30.0
+
+
 # ---------------------------------------------------------------------------------------------
 # observation model: normalisation, sampler agreement, gradients
 # ---------------------------------------------------------------------------------------------

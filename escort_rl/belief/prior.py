@@ -24,6 +24,11 @@ def weighted_covariance(x: Tensor, log_weights: Tensor | None = None) -> Tensor:
     return (w.unsqueeze(-1) * c).transpose(-1, -2) @ c
 
 
+class PriorCovarianceError(ValueError):
+    """The smoothed prior's covariance cannot be factored: the belief has diverged (particles so far
+    apart that the covariance is not positive definite in float, even with a ridge)."""
+
+
 def robust_cholesky(cov: Tensor, ridge: float = 1e-6, tries: int = 8) -> Tensor:
     """Cholesky factor of a symmetric PSD ``cov`` ``[*B, d, d]``. Where float round-off makes a batch
     element fail (e.g. a spread-out belief whose covariance spans many orders of magnitude), adds
@@ -41,7 +46,7 @@ def robust_cholesky(cov: Tensor, ridge: float = 1e-6, tries: int = 8) -> Tensor:
         factor, info = torch.linalg.cholesky_ex(cov)
         jitter *= 10.0
     if bool((info > 0).any()):
-        raise ValueError("SmoothedPrior: the prior covariance is not positive definite even with a ridge of "
+        raise PriorCovarianceError("SmoothedPrior: the prior covariance is not positive definite even with a ridge of "
                          f"{jitter:.0e} × its mean variance; are the particles finite?")
     return factor
 

@@ -60,6 +60,14 @@ class NonFiniteBeliefError(ValueError):
     """A filter produced NaN or Inf particles or weights; the message names the method and domain."""
 
 
+def _belief_failures() -> tuple[type[Exception], ...]:
+    """The errors that mean a filter's belief diverged on a trajectory: the run records a failed row
+    (with the step and the message) and goes on with the other methods."""
+    from escort_rl.belief.prior import PriorCovarianceError
+
+    return NonFiniteBeliefError, PriorCovarianceError
+
+
 # ---------------------------------------------------------------------------------------- seeds
 def derived_seed(kind: str, base_seed: int, seed: int) -> int:
     """A 63-bit seed for ``kind`` (``trajectory``, ``belief``, ``filter``) of one seed: the streams
@@ -233,21 +241,25 @@ def filter_trajectories(domain: str, method: str, traj: dict, seeds: list[int], 
     belief, belief_hashes = initial_beliefs(filt, model, seeds, n, base_seed)
     g = torch.Generator().manual_seed(derived_seed("filter", base_seed, seeds[0]))
     errors = [position_error(model, belief.mean(), states[:, 0])]
-    seconds, first_seconds = 0.0, 0.0
+    input_hashes = [tensor_hash(states[i], actions[i], obs[i]) for i in range(len(seeds))]
+    out = {"seconds": 0.0, "first_seconds": 0.0, "timed_steps": max(steps - 1, 1), "steps": steps,
+           "input_hashes": input_hashes, "belief_hashes": belief_hashes, "filter": repr(filt), "failed": None}
     for t in range(steps):
         t0 = time.perf_counter()
-        belief = filt.update(model, belief, actions[:, t], obs[:, t], g)
+        try:
+            belief = filt.update(model, belief, actions[:, t], obs[:, t], g)
+            _check_finite(belief, method, domain, t + 1, seeds)
+        except _belief_failures() as e:
+            out["failed"] = {"step": t + 1, "message": str(e)}
+            break
         # the first update is a warm-up (and, with compile=True, compiles): timed on its own
         if t == 0 and steps > 1:
-            first_seconds = time.perf_counter() - t0
+            out["first_seconds"] = time.perf_counter() - t0
         else:
-            seconds += time.perf_counter() - t0
-        _check_finite(belief, method, domain, t + 1, seeds)
+            out["seconds"] += time.perf_counter() - t0
         errors.append(position_error(model, belief.mean().detach(), states[:, t + 1]))
-    input_hashes = [tensor_hash(states[i], actions[i], obs[i]) for i in range(len(seeds))]
-    return {"errors": torch.stack(errors, dim=1).detach(), "seconds": seconds, "first_seconds": first_seconds,
-            "timed_steps": max(steps - 1, 1), "steps": steps,
-            "input_hashes": input_hashes, "belief_hashes": belief_hashes, "filter": repr(filt)}
+    out["errors"] = torch.stack(errors, dim=1).detach()
+    return out
 
 
 def _chunk_task(domain: str, method: str, seeds: list[int], n: int, steps: int, base_seed: int,
@@ -288,6 +300,14 @@ def mean_se(values) -> tuple[float, float]:
 
 
 def _row(domain: str, method: str, n: int, parts: list[dict], seeds: list[int]) -> dict:
+    failed = [p["failed"] for p in parts if p.get("failed")]
+    if failed:  # a diverged belief: no error figures, the earliest failure is reported
+        first = min(failed, key=lambda f: f["step"])
+        nan = (float("nan"), float("nan"))
+        return {"domain": domain, "method": method, "filter": parts[0]["filter"], "particles": n, "seeds": seeds,
+                "steps": parts[0]["steps"], "failed": first, "summary": {"final_error": nan, "mean_error": nan},
+                "input_hashes": [h for p in parts for h in p["input_hashes"]],
+                "initial_belief_hashes": [h for p in parts for h in p["belief_hashes"]]}
     errors = torch.tensor([e for p in parts for e in p["errors"]], dtype=torch.float64)  # [B, T+1]
     b = errors.shape[0]
     steps = parts[0]["steps"]
@@ -302,7 +322,7 @@ def _row(domain: str, method: str, n: int, parts: list[dict], seeds: list[int]) 
                                    "or negative")
     return {
         "domain": domain, "method": method, "filter": parts[0]["filter"], "particles": n, "seeds": seeds,
-        "steps": steps,
+        "steps": steps, "failed": None,
         "per_seed": {"final_error": final.tolist(), "mean_error": avg.tolist()},
         "summary": {"final_error": mean_se(final.tolist()), "mean_error": mean_se(avg.tolist())},
         "error_over_time": {"mean": errors.mean(0).tolist(), "se": se_t.tolist()},
@@ -470,17 +490,18 @@ def _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_par
 
 
 def _calibrate(domains, methods, trajs, seed_list, n, runner, grid, ref, calibration_steps, base_seed,
-               progress) -> dict:
+               progress, failed: dict) -> dict:
     """Per domain: the reference's seconds per step at ``n`` (the budget), each other method's seconds
     per step on the grid (stopping at the first ``N'`` over the budget), and the ``N'`` chosen: the
-    largest within the budget, or the smallest of the grid (listed in ``over_budget``) if none is."""
+    largest within the budget, or the smallest of the grid (listed in ``over_budget``) if none is.
+    ``failed``: domain -> methods whose equal-N run failed; they are not timed."""
     out = {}
     for d in domains:
         budget = time_per_step(d, ref, trajs[d], seed_list, n, calibration_steps, base_seed, runner.filter_set)
         calib, chosen = {}, {}
         for m in methods:
-            if m == ref:
-                calib[m], chosen[m] = {str(n): budget}, n
+            if m == ref or m in failed.get(d, ()):  # a failed method keeps N (its failed row is reused)
+                calib[m], chosen[m] = {str(n): (budget if m == ref else float("nan"))}, n
                 continue
             times = {}
             for k in grid:
@@ -495,6 +516,8 @@ def _calibrate(domains, methods, trajs, seed_list, n, runner, grid, ref, calibra
                                          "chosen": chosen[m]})
         out[d] = {"budget_seconds_per_step": budget, "calibration": calib, "chosen": chosen,
                   "over_budget": [m for m in methods if calib[m][str(chosen[m])] > budget]}
+        if failed.get(d) and ref in failed[d]:
+            raise NonFiniteBeliefError(f"the equal-time reference '{ref}' failed on '{d}'; pass --no-equal-time")
     return out
 
 
@@ -509,8 +532,9 @@ def _equal_time(domains, methods, rows, trajs, seed_list, n, horizon, runner, ma
     if runner.worker_threads:  # time under the workers' thread count, as the runs they are compared with
         torch.set_num_threads(runner.worker_threads)
     try:
+        failed = {d: {r["method"] for r in rows if r["domain"] == d and r["failed"]} for d in domains}
         choices = _calibrate(domains, methods, trajs, seed_list, n, runner, grid, ref, calibration_steps, base_seed,
-                             progress)
+                             progress, failed)
     finally:
         torch.set_num_threads(threads_here)
     for d in domains:
@@ -542,7 +566,7 @@ def plot_error_over_time(result: dict, domain: str, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 4))
-    for row in (r for r in result["rows"] if r["domain"] == domain):
+    for row in (r for r in result["rows"] if r["domain"] == domain and not r["failed"]):
         m = torch.tensor(row["error_over_time"]["mean"])
         se = torch.tensor(row["error_over_time"]["se"])
         t = torch.arange(m.shape[0])
@@ -565,11 +589,16 @@ def _fmt(pair, digits: int = 3) -> str:
 
 
 def _table(result: dict, rows: list[dict], cell) -> list[str]:
+    """One row per method, one column per domain; a failed run's cell says at which step it failed."""
     domains = result["domains"]
     lines = ["| method | " + " | ".join(domains) + " |", "| --- | " + " | ".join("---" for _ in domains) + " |"]
     by = {(r["domain"], r["method"]): r for r in rows}
+
+    def show(r):
+        return f"failed at step {r['failed']['step']}" if r["failed"] else cell(r)
+
     for m in result["methods"]:
-        lines.append(f"| {m} | " + " | ".join(cell(by[(d, m)]) if (d, m) in by else "—" for d in domains) + " |")
+        lines.append(f"| {m} | " + " | ".join(show(by[(d, m)]) if (d, m) in by else "—" for d in domains) + " |")
     return lines
 
 
@@ -633,6 +662,18 @@ def domains_markdown(result: dict) -> str:
         over = [f"{m} on {d}" for d, v in eq["domains"].items() for m in v["over_budget"]]
         if over:
             lines.append("Even the smallest N' is over the budget for: " + ", ".join(over) + ".")
+        lines.append("")
+    failures = [r for r in result["rows"] + (eq["rows"] if eq else []) if r["failed"]]
+    if failures:
+        lines += ["## Failed runs", "",
+                  "A failed run's belief diverged on at least one seed; the run stops there and has no error figures.",
+                  ""]
+        seen = set()
+        for r in failures:
+            if (r["domain"], r["method"], r["particles"]) not in seen:
+                seen.add((r["domain"], r["method"], r["particles"]))
+                lines.append(f"- {r['method']} on {r['domain']} (N = {r['particles']}): step {r['failed']['step']}: "
+                             f"{r['failed']['message']}")
         lines.append("")
     lines += [
         "## Task outcome",

@@ -17,8 +17,11 @@ Dynamics (additive correlated Gaussian noise ``η ~ N(0, Σ)``, semi-explicit Eu
     target i: p' = p + Δt·v                 v' = v + λ·(F(p) - v) + k_align·(v̄ - v) + R_i + W(p)
 
 ``λ`` is the damping (paper: 0.1). Targets are dragged toward the flow field ``F``, a circular
-current about ``flow_center``: ``F(p) = ω·(-r_y, r_x) + κ·(1 - ‖r‖²/R²)·r`` with ``r = p - c``
-(rotation plus a pull onto the ring of radius ``R``); in still flow the drag is plain damping.
+current about ``flow_center``: ``F(p) = ω·(-r_y, r_x) + 2κ·(1 - u)/(1 + u)·r`` with ``r = p - c``,
+``u = ‖r‖²/R²`` (rotation plus a pull onto the ring of radius ``R``, of slope ``-2κ`` across the ring
+and linear, ``-2κ·r``, far out); in still flow the drag is plain damping. The pull is kept linear far
+out on purpose: a cubic pull ``κ(1 - u)·r`` makes the explicit step unstable beyond ``‖r‖ ≈ 14`` (a
+particle that strays there, e.g. an unseen target's belief, is flung further out each step).
 ``v̄`` is the mean target velocity (flocking alignment). ``R_i = k_rep Σ_j relu(1 - d_ij/r)²·(p_i -
 p_j)/d_ij`` is the collision repulsion between targets closer than ``r`` (paper: 1.0).
 ``W(p) = k_wall·(relu(-p) - relu(p - map_size))`` pushes entities back into the ``10×10`` map
@@ -158,7 +161,8 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
         actions: unit-ish 2-D acceleration directions, one per action (paper: +x, -x, +y, -y); the
             normalised direction is also the heading of the field of view.
         flow_center, flow_rate, flow_radius, flow_attraction: the circular current
-            ``F(p) = ω·(-r_y, r_x) + κ·(1 - ‖r‖²/R²)·r``, ``r = p - c`` (ω in rad per unit time),
+            ``F(p) = ω·(-r_y, r_x) + 2κ·(1 - u)/(1 + u)·r``, ``r = p - c``, ``u = ‖r‖²/R²`` (ω in rad
+            per unit time),
             that targets are dragged toward.
         flocking_alignment: gain pulling each target's velocity toward the mean target velocity.
         repulsion_radius (paper: 1.0), repulsion_gain: collision repulsion between targets.
@@ -475,12 +479,14 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
 
     # ------------------------------------------------------------------ protocol: dynamics
     def flow(self, pos: Tensor) -> Tensor:
-        """The circular current ``F(p) = ω·(-r_y, r_x) + κ·(1 - ‖r‖²/R²)·r`` with ``r = p - c``:
-        a rotation at ω rad per unit time plus a pull onto the ring of radius ``R``
-        (polynomial, so smooth everywhere). ``[*S, 2]`` -> ``[*S, 2]``."""
+        """The circular current ``F(p) = ω·(-r_y, r_x) + 2κ·(1 - u)/(1 + u)·r`` with ``r = p - c``,
+        ``u = ‖r‖²/R²``: a rotation at ω rad per unit time plus a pull onto the ring of radius ``R``
+        (rational, so smooth everywhere; slope ``-2κ`` across the ring, ``-2κ·r`` far out, so the
+        dynamics stay stable for any state). ``[*S, 2]`` -> ``[*S, 2]``."""
         r = pos - self.flow_center
         rot = torch.stack([-r[..., 1], r[..., 0]], dim=-1)
-        radial = self.flow_attraction * (1.0 - (r * r).sum(-1, keepdim=True) / self.flow_radius**2)
+        u = (r * r).sum(-1, keepdim=True) / self.flow_radius**2
+        radial = 2.0 * self.flow_attraction * (1.0 - u) / (1.0 + u)
         return self.flow_rate * rot + radial * r
 
     def _wall(self, pos: Tensor) -> Tensor:
