@@ -120,8 +120,18 @@ def _parser() -> argparse.ArgumentParser:
                      help="set a filter key on every method that has it, e.g. num_steps=10 or compile=true")
     dom.add_argument("--quick", action="store_true",
                      help="smoke run (flags given explicitly win): all three domains, escort svgd sir, 2 seeds, "
-                     "20 steps, N=30, 1 torch thread, equal-time grid up to N'=60 with 1 timed step")
-    dom.add_argument("--output", default="outputs/bench/domains", help="folder for domains.json, domains.md, PNGs")
+                     "20 steps, N=30, 1 torch thread, equal-time grid up to N'=60 with 1 timed step; protocol b: "
+                     "10 steps, N=20, 1 training iteration of 2 envs")
+    dom.add_argument("--protocol", choices=("a", "b"), default="a",
+                     help="a: shared trajectories (default); b: closed loop, each method trains its own DeepSets "
+                     "policy (budget per domain in configs/bench/closed_loop.yaml) and drives it on --seeds "
+                     "evaluation episodes; a rerun with the same --output resumes from the checkpoints")
+    dom.add_argument("--train-iterations", type=int, default=None,
+                     help="protocol b: trainer.iterations for every domain (default: the yaml's)")
+    dom.add_argument("--train-envs", type=int, default=None,
+                     help="protocol b: trainer.num_envs for every domain (default: the yaml's)")
+    dom.add_argument("--output", default="outputs/bench/domains", help="folder for domains.json, domains.md, PNGs "
+                     "(protocol b: closed_loop.json, closed_loop.md, PNGs and runs/)")
     cal = bench_sub.add_parser("calibration", help="SVGD/ESCORT variants against the Kalman filter",
                                description="Linear-Gaussian model (d=4), N=300, 12 steps, 4 episodes: mean "
                                "Mahalanobis error and variance ratio against the exact Kalman posterior.")
@@ -152,10 +162,55 @@ def _train(overrides: list[str], quiet: bool = False) -> Path:
     return train(cfg, progress=not quiet)
 
 
+def _bench_closed_loop(args) -> None:
+    import time
+
+    from escort_rl.bench import closed_loop as cl
+    from escort_rl.bench import domains as dom
+
+    quick = dict(domains=["lightdark10d", "kidnapped20d", "mtt20d"], methods=["escort", "svgd", "sir"], seeds=2,
+                 particles=20, steps=10, filter_set=[], threads=1, train_iterations=1, train_envs=2)
+    full = dict(domains=list(dom.DEFAULT_DOMAINS), methods=list(dom.DEFAULT_METHODS), seeds=None, particles=None,
+                steps=None, filter_set=[], threads=None, train_iterations=None, train_envs=None)
+    kw = {k: getattr(args, k) if getattr(args, k) is not None else (quick if args.quick else full)[k] for k in full}
+    train = {k: v for k, v in (("iterations", kw["train_iterations"]), ("num_envs", kw["train_envs"])) if v is not None}
+
+    def show(row):
+        if row["failed"]:
+            print(f"{row['domain']:>13} {row['method']:>14} FAILED: {row['failed']['message']}", flush=True)
+            return
+        s = row["summary"]
+        trained = f"  trained {cl._train_cell(row)}" if row["train"] else ""
+        print(f"{row['domain']:>13} {row['method']:>14} final error {s['final_position_error']:.3f} ± "
+              f"{s['final_position_error_se']:.3f}  return {s['episode_return']:.1f} ± {s['episode_return_se']:.1f}  "
+              f"distance {s['final_distance']:.3f}  success {s['success_rate']:.2f}  "
+              f"{1e3 * row['seconds_per_step']:.1f} ms/step{trained}", flush=True)
+
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    result = cl.run_closed_loop(kw["domains"], kw["methods"], out, episodes=kw["seeds"], n=kw["particles"],
+                                steps=kw["steps"], train_overrides=train,
+                                filter_set=dom.parse_filter_set(kw["filter_set"]), threads=kw["threads"],
+                                progress=show)
+    for d in result["domains"]:
+        cl.plot_closed_loop_error(result, d, out / f"closed_loop_error_{d}.png")
+    md = cl.closed_loop_markdown(result)
+    (out / "closed_loop.json").write_text(json.dumps(result, indent=1))
+    (out / "closed_loop.md").write_text(md)
+    print(md)
+    print(f"results: {out.resolve()} ({time.perf_counter() - t0:.1f} s)")
+
+
 def _bench_domains(args) -> None:
     import time
 
     from escort_rl.bench import domains as dom
+
+    if args.protocol == "b":
+        return _bench_closed_loop(args)
+    if args.train_iterations is not None or args.train_envs is not None:
+        raise ValueError("--train-iterations/--train-envs: only for --protocol b")
 
     quick = dict(domains=["lightdark10d", "kidnapped20d", "mtt20d"], methods=["escort", "svgd", "sir"], seeds=2,
                  particles=30, steps=20, max_particles=60, filter_set=[], threads=1)

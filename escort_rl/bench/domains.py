@@ -120,6 +120,14 @@ def check_names(domains, methods, filter_set: tuple = ()) -> None:
             raise ValueError(f"--filter-set: no method in --methods has the filter key '{key}'")
 
 
+def check_at_least_one(**flags) -> None:
+    """Raise ``ValueError`` naming the flag (``particles`` -> ``--particles``) of the first value
+    below 1; ``None`` (not given) passes."""
+    for name, value in flags.items():
+        if value is not None and value < 1:
+            raise ValueError(f"--{name.replace('_', '-')}: must be >= 1, got {value}")
+
+
 def parse_filter_set(items) -> tuple[tuple[str, str], ...]:
     """``["num_steps=10", ...]`` -> ``(("num_steps", "10"), ...)``; the ``filter.`` prefix is optional."""
     out = []
@@ -417,16 +425,7 @@ def run_domains(domains=DEFAULT_DOMAINS, methods=DEFAULT_METHODS, seeds: int = 3
     domains, methods = list(domains), list(methods)
     filter_set = tuple(tuple(kv) for kv in filter_set)
     check_names(domains, methods, filter_set)
-    if seeds < 1:
-        raise ValueError(f"--seeds: must be >= 1, got {seeds}")
-    if n < 1:
-        raise ValueError(f"--particles: must be >= 1, got {n}")
-    if steps is not None and steps < 1:
-        raise ValueError(f"--steps: must be >= 1, got {steps}")
-    if workers < 1:
-        raise ValueError(f"--workers: must be >= 1, got {workers}")
-    if threads is not None and threads < 1:
-        raise ValueError(f"--threads: must be >= 1, got {threads}")
+    check_at_least_one(seeds=seeds, particles=n, steps=steps, workers=workers, threads=threads)
     previous_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)

@@ -1,5 +1,8 @@
-"""Policy and belief modules."""
+"""Policy and belief modules: the DeepSets policy on particle beliefs, and DVRL (a learned belief)."""
 
 from escort_rl.modules.deepsets import DeepSetsActor, make_deepsets_policy
+from escort_rl.modules.dvrl import DVRL, DVRLState, systematic_resample_indices
+from escort_rl.modules.dvrl_torchrl import DVRLPolicy, make_dvrl_primer
 
-__all__ = ["DeepSetsActor", "make_deepsets_policy"]
+__all__ = ["DVRL", "DVRLPolicy", "DVRLState", "DeepSetsActor", "make_deepsets_policy", "make_dvrl_primer",
+           "systematic_resample_indices"]

@@ -1,0 +1,287 @@
+"""The domain benchmark, protocol (b) "closed loop" (SPEC §6).
+
+For each domain and method (a filter config name under ``configs/filter/``) the project's REINFORCE
+trainer trains a DeepSets policy on that filter's beliefs, with the budget of
+``configs/bench/closed_loop.yaml`` (per domain, the same for every method: equal frames), and the
+trained policy then drives its own filter for ``episodes`` evaluation episodes: env seeds
+``eval_seed + 0 .. episodes - 1``, the same for every method, run as one batch. A uniform-random
+policy on the SIR belief is each domain's reference row (its actions ignore the belief, so only its
+position error depends on the filter).
+
+Metrics, mean ± standard error over the episodes: the final and time-averaged position error
+``‖E_b[pos] − pos_true‖₂`` (the definition of protocol (a), ``escort_rl.models.position_error``), the
+final distance to goal and success rate where the domain has a goal, the return, and the wall-clock
+per step (policy + env + belief update for the batch, over steps 2..T; the first step, which compiles
+with ``compile=true``, is timed apart). Each row also records its training frames and seconds.
+
+Nothing is lost to a killed run: each (domain, method) trains in ``<output>/runs/<domain>/<method>``
+with the trainer's checkpoints, and a rerun with the same ``output`` resumes every run from its last
+checkpoint and skips the finished ones (it refuses a run folder that holds another configuration).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from escort_rl.bench.domains import _belief_failures, applied_filter_set, check_at_least_one, check_names
+
+RANDOM = "random"
+REFERENCE_FILTER = "sir"  # the belief the random-policy row is scored on
+
+
+def settings_path() -> Path:
+    from escort_rl.config import config_dir
+
+    return config_dir() / "bench" / "closed_loop.yaml"
+
+
+def load_settings() -> dict:
+    """``configs/bench/closed_loop.yaml`` as a plain dict."""
+    return OmegaConf.to_container(OmegaConf.load(settings_path()), resolve=True)
+
+
+def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict, actor: dict,
+               filter_set: tuple = (), steps: int | None = None, seed: int = 0):
+    """The training config of one (domain, method) run: ``env=domain filter=method`` with the
+    budget ``train`` (trainer keys), the actor's input scaling ``actor``, the ``filter_set`` keys the
+    method's filter has, and ``steps`` (when given) as the episode length."""
+    from escort_rl.config import compose
+
+    overrides = [f"env={domain}", f"filter={method}", f"num_particles={n}", f"output_dir={run_dir}",
+                 f"seed={seed}"]
+    overrides += [f"trainer.{k}={v}" for k, v in train.items()]
+    overrides += [f"actor.{k}={v}" for k, v in actor.items()]
+    overrides += [f"filter.{k}={v}" for k, v in applied_filter_set(method, filter_set).items()]
+    if steps is not None:
+        overrides.append(f"env.max_steps={steps}")
+    return compose(overrides)
+
+
+def _comparable(config: dict) -> dict:
+    """A run's config without the keys that may change between a run and its resumption."""
+    config = json.loads(json.dumps(config))
+    config.pop("resume", None)
+    config.get("trainer", {}).pop("iterations", None)
+    return config
+
+
+def train_run(cfg, progress: bool = False) -> dict:
+    """Train (or resume, or skip when finished) the run in ``cfg.output_dir``. Returns the frames,
+    iterations, training seconds (summed over sessions) and the iteration it resumed from."""
+    from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint, resolve_checkpoint
+    from escort_rl.trainers.reinforce import train
+
+    run_dir = Path(cfg.output_dir)
+    saved = None
+    if (run_dir / "checkpoints").is_dir():
+        try:
+            saved = load_checkpoint(resolve_checkpoint(run_dir))
+        except CheckpointLoadError:
+            saved = None  # no complete checkpoint yet: start over
+    if saved is not None and _comparable(saved["config"]) != _comparable(OmegaConf.to_container(cfg, resolve=True)):
+        raise ValueError(f"--output: '{run_dir}' holds a run with another configuration; pass another --output "
+                         "or delete that folder")
+    resumed_from = int(saved["trainer_state"]["iteration"]) if saved is not None else 0
+    train(cfg, resume_state=saved, progress=progress)
+    final = load_checkpoint(resolve_checkpoint(run_dir))
+    history = final["trainer_state"]["history"]
+    return {"iterations": int(final["trainer_state"]["iteration"]), "frames": int(final["trainer_state"]["frames"]),
+            "seconds": float(sum(h["seconds"] for h in history)), "resumed_from_iteration": resumed_from,
+            "checkpoint": str(final["path"]),
+            "last_iteration_return": float(history[-1]["episode_return"]) if history else float("nan")}
+
+
+def evaluate_run(cfg, checkpoint: str | None, episodes: int, eval_seed: int, greedy: bool) -> dict:
+    """Roll the policy of ``checkpoint`` (uniform-random actions when ``None``) on ``episodes``
+    seeded episodes of ``cfg``'s env and filter. Returns the summary (mean ± s.e.), the mean
+    position error at each step, and the seconds per step."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from escort_rl.modules import make_deepsets_policy
+    from escort_rl.trainers.builders import build_actor, build_model
+    from escort_rl.trainers.checkpointing import load_checkpoint
+    from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes, summarise_episodes
+
+    model = build_model(cfg.env, cfg.device)
+    policy = None
+    if checkpoint is not None:
+        actor = build_actor(cfg, model.state_dim, model.n_actions)
+        load_checkpoint(checkpoint, actor=actor)
+        actor.eval()
+        policy = make_deepsets_policy(actor)
+    timing: dict = {}
+    mode = ExplorationType.DETERMINISTIC if greedy else ExplorationType.RANDOM
+    with set_exploration_type(mode):
+        rollout, per_step = run_episodes(cfg, policy, episodes, eval_seed, timing)
+    metrics = first_episode_metrics(rollout, model)
+    err = metrics["position_error"]  # [E, T], NaN after an episode ends
+    seen = (~torch.isnan(err)).sum(0)
+    over_time = torch.where(seen > 0, torch.nan_to_num(err).sum(0) / seen.clamp_min(1), torch.nan)
+    summary = summarise_episodes(metrics)
+    per_episode = {"final_position_error": err[torch.arange(err.shape[0]), metrics["length"] - 1].tolist(),
+                   "episode_return": metrics["episode_return"].tolist()}
+    return {"summary": summary, "per_episode": per_episode, "error_over_time": over_time.tolist(),
+            "seconds_per_step": per_step, "first_step_seconds": timing.get("first_step_seconds", float("nan"))}
+
+
+def run_closed_loop(domains, methods, output, episodes: int | None = None, n: int | None = None,
+                    steps: int | None = None, train_overrides: dict | None = None, filter_set=(),
+                    threads: int | None = None, progress=None, train_progress: bool = False) -> dict:
+    """Protocol (b) for every method on every domain, plus a random-policy row per domain.
+
+    ``episodes``, ``n``: default from ``configs/bench/closed_loop.yaml``. ``steps``: episode length
+    (default: each env's ``max_steps``). ``train_overrides``: trainer keys set for every domain (e.g.
+    ``{"iterations": 2}``) on top of the yaml's per-domain budget. ``filter_set``: (key, value) pairs
+    set on every method's filter config that has the key. ``progress(row)`` is called per row.
+    Writes the runs under ``output/runs``; returns the result (rows and settings)."""
+    domains, methods = list(domains), list(methods)
+    filter_set = tuple(tuple(kv) for kv in filter_set)
+    check_names(domains, methods, filter_set)
+    settings = load_settings()
+    episodes = int(episodes if episodes is not None else settings["episodes"])
+    n = int(n if n is not None else settings["particles"])
+    check_at_least_one(seeds=episodes, particles=n, steps=steps, threads=threads)
+    missing = [d for d in domains if d not in settings["train"] or d not in settings["actor"]]
+    if missing:
+        raise ValueError(f"{settings_path().name}: no train/actor entry for {', '.join(missing)}; add one")
+    output = Path(output)
+    previous_threads = torch.get_num_threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    t_start = time.perf_counter()
+    rows = []
+    try:
+        for d in domains:
+            budget = {**settings["train"][d], **(train_overrides or {})}
+            for m in [*methods, RANDOM]:
+                method = REFERENCE_FILTER if m == RANDOM else m
+                cfg = run_config(d, method, n, output / "runs" / d / m, budget, settings["actor"][d], filter_set, steps)
+                row = {"domain": d, "method": m, "filter": method, "particles": n, "episodes": episodes,
+                       "steps": int(cfg.env.max_steps), "policy": RANDOM if m == RANDOM else "trained",
+                       "train": None, "failed": None}
+                try:
+                    checkpoint = None
+                    if m != RANDOM:
+                        row["train"] = train_run(cfg, progress=train_progress)
+                        checkpoint = row["train"]["checkpoint"]
+                    row.update(evaluate_run(cfg, checkpoint, episodes, int(settings["eval_seed"]),
+                                            bool(settings["greedy"])))
+                except _belief_failures() as e:
+                    row["failed"] = {"message": str(e).splitlines()[0]}
+                rows.append(row)
+                if progress is not None:
+                    progress(row)
+    finally:
+        torch.set_num_threads(previous_threads)
+    return {"protocol": "b: closed loop", "domains": domains, "methods": [*methods, RANDOM], "episodes": episodes,
+            "particles": n, "eval_seed": int(settings["eval_seed"]), "greedy": bool(settings["greedy"]),
+            "train_budget": {d: {**settings["train"][d], **(train_overrides or {})} for d in domains},
+            "filter_set": {m: applied_filter_set(m, filter_set) for m in methods},
+            "torch_threads": torch.get_num_threads() if threads is None else threads,
+            "seconds": time.perf_counter() - t_start, "rows": rows}
+
+
+# ---------------------------------------------------------------------------------------- reporting
+def _cell(row: dict, key: str, digits: int = 3) -> str:
+    if row["failed"]:
+        return "failed"
+    m, se = row["summary"][key], row["summary"][f"{key}_se"]
+    return "—" if m is None or math.isnan(m) else f"{m:.{digits}f} ± {se:.{digits}f}"
+
+
+def _table(result: dict, cell) -> list[str]:
+    domains = result["domains"]
+    by = {(r["domain"], r["method"]): r for r in result["rows"]}
+    lines = ["| method | " + " | ".join(domains) + " |", "| --- | " + " | ".join("---" for _ in domains) + " |"]
+    for m in result["methods"]:
+        label = f"random policy ({REFERENCE_FILTER} belief)" if m == RANDOM else m
+        lines.append(f"| {label} | " + " | ".join(cell(by[(d, m)]) if (d, m) in by else "—" for d in domains) + " |")
+    return lines
+
+
+def _train_cell(row: dict) -> str:
+    t = row.get("train")
+    if not t:
+        return "—"
+    return f"{t['frames']} frames, {t['seconds'] / 60:.1f} min ({t['frames'] / max(t['seconds'], 1e-9):.0f} frames/s)"
+
+
+def closed_loop_markdown(result: dict) -> str:
+    budgets = "; ".join(f"{d}: " + ", ".join(f"{k}={v}" for k, v in b.items()) for d, b in result["train_budget"].items())
+    changed = [f"{m}: " + ", ".join(f"{k}={v}" for k, v in kv.items()) for m, kv in result["filter_set"].items() if kv]
+    lines = [
+        "# Domain benchmark, protocol (b): closed loop",
+        "",
+        f"Each method trains its own DeepSets policy (REINFORCE, the project trainer) on its own beliefs, N = "
+        f"{result['particles']} particles, then drives it on {result['episodes']} evaluation episodes (env seeds "
+        f"{result['eval_seed']} + 0..{result['episodes'] - 1}, the same for every method; policy "
+        f"{'greedy' if result['greedy'] else 'sampled'}). Mean ± standard error over the episodes. Training budget "
+        f"per domain (trainer keys, equal for every method): {budgets}.",
+        "",
+        *([f"Filter settings changed from the configs: {'; '.join(changed)}.", ""] if changed else []),
+        "## Final position error",
+        "",
+        *_table(result, lambda r: _cell(r, "final_position_error")),
+        "",
+        "## Time-averaged position error",
+        "",
+        *_table(result, lambda r: _cell(r, "mean_position_error")),
+        "",
+        "## Return",
+        "",
+        *_table(result, lambda r: _cell(r, "episode_return", 1)),
+        "",
+        "## Final distance to goal (domains with a goal)",
+        "",
+        *_table(result, lambda r: _cell(r, "final_distance")),
+        "",
+        "## Success rate",
+        "",
+        *_table(result, lambda r: _cell(r, "success_rate")),
+        "",
+        "## Wall-clock",
+        "",
+        "Milliseconds per evaluation step for the whole batch of episodes (policy + env + belief update, steps "
+        "2..T; the first step's seconds, which include compiling for `compile=true`, in brackets), torch threads: "
+        f"{result['torch_threads']}.",
+        "",
+        *_table(result, lambda r: "failed" if r["failed"] else
+                f"{1e3 * r['seconds_per_step']:.1f} ({r['first_step_seconds']:.1f} s)"),
+        "",
+        "Training cost (frames, minutes over all sessions of the run, frames per second):",
+        "",
+        *_table(result, _train_cell),
+        "",
+    ]
+    failed = [r for r in result["rows"] if r["failed"]]
+    if failed:
+        lines += ["## Failed runs", ""] + [f"- {r['method']} on {r['domain']}: {r['failed']['message']}"
+                                           for r in failed] + [""]
+    return "\n".join(lines)
+
+
+def plot_closed_loop_error(result: dict, domain: str, path: Path) -> Path:
+    """Mean position error over the evaluation episodes against the step, one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for row in (r for r in result["rows"] if r["domain"] == domain and not r["failed"]):
+        curve = row["error_over_time"]
+        ax.plot(range(1, len(curve) + 1), curve, label=row["method"], lw=1.2)
+    ax.set_xlabel("step")
+    ax.set_ylabel("position error ‖E_b[pos] − pos_true‖₂")
+    ax.set_title(f"{domain}: protocol (b), N = {result['particles']}, {result['episodes']} episodes (mean)", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

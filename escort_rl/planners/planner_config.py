@@ -1,0 +1,43 @@
+"""The planner defaults of each domain, from ``configs/planner/<domain>.yaml``."""
+
+from __future__ import annotations
+
+from inspect import signature
+
+from omegaconf import OmegaConf
+
+from escort_rl.config import ConfigError, config_dir
+from escort_rl.planners.pomcpow import POMCPOW
+
+
+def planner_domains() -> list[str]:
+    """The domains with a planner config (the file names in ``configs/planner/``)."""
+    return sorted(path.stem for path in (config_dir() / "planner").glob("*.yaml"))
+
+
+def load_planner_config(domain: str) -> dict:
+    """The POMCPOW keyword arguments for ``domain`` (e.g. ``"lightdark10d"``), as a plain dict.
+
+    Raises :class:`escort_rl.config.ConfigError` (a ``ValueError``) for an unknown domain or a key
+    that is not a :class:`POMCPOW` argument.
+    """
+    path = config_dir() / "planner" / f"{domain}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"domain: no planner config for '{domain}'; choose one of {planner_domains()}")
+    values = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    _check_keys(values, f"configs/planner/{domain}.yaml")
+    return values
+
+
+def build_planner(domain: str, **overrides) -> POMCPOW:
+    """A :class:`POMCPOW` with ``domain``'s defaults, any of them replaced by ``overrides``
+    (e.g. ``build_planner("lightdark10d", n_sim=100, max_depth=5)``)."""
+    _check_keys(overrides, "build_planner")
+    return POMCPOW(**{**load_planner_config(domain), **overrides})
+
+
+def _check_keys(values: dict, where: str) -> None:
+    allowed = set(signature(POMCPOW.__init__).parameters) - {"self"}
+    for key in values:
+        if key not in allowed:
+            raise ConfigError(f"{where}: unknown planner key '{key}'; POMCPOW takes {sorted(allowed)}")
