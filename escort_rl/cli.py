@@ -105,7 +105,7 @@ def _parser() -> argparse.ArgumentParser:
     dom.add_argument("--domains", nargs="+", default=None,
                      help="env configs (default: lightdark10d kidnapped20d mtt20d)")
     dom.add_argument("--methods", nargs="+", default=None, help="filter configs (default: escort escort_nocorr "
-                     "escort_notemp escort_noproj svgd sir)")
+                     "escort_notemp escort_noproj svgd sir; protocol b adds the planner rows pomcpow_sir pomcpow_escort)")
     dom.add_argument("--seeds", type=int, default=None, help="seeds 0..S-1, run as one batch (default 30)")
     dom.add_argument("--particles", type=int, default=None, help="N for every method (default 100)")
     dom.add_argument("--steps", type=int, default=None, help="steps per trajectory (default: env.max_steps)")
@@ -170,8 +170,9 @@ def _bench_closed_loop(args) -> None:
 
     quick = dict(domains=["lightdark10d", "kidnapped20d", "mtt20d"], methods=["escort", "svgd", "sir"], seeds=2,
                  particles=20, steps=10, filter_set=[], threads=1, train_iterations=1, train_envs=2)
-    full = dict(domains=list(dom.DEFAULT_DOMAINS), methods=list(dom.DEFAULT_METHODS), seeds=None, particles=None,
-                steps=None, filter_set=[], threads=None, train_iterations=None, train_envs=None)
+    full = dict(domains=list(dom.DEFAULT_DOMAINS), methods=[*dom.DEFAULT_METHODS, *cl.load_settings()["planners"]],
+                seeds=None, particles=None, steps=None, filter_set=[], threads=None, train_iterations=None,
+                train_envs=None)
     kw = {k: getattr(args, k) if getattr(args, k) is not None else (quick if args.quick else full)[k] for k in full}
     train = {k: v for k, v in (("iterations", kw["train_iterations"]), ("num_envs", kw["train_envs"])) if v is not None}
 
@@ -181,6 +182,8 @@ def _bench_closed_loop(args) -> None:
             return
         s = row["summary"]
         trained = f"  trained {cl._train_cell(row)}" if row["train"] else ""
+        if "seconds_per_decision" in row:
+            trained += f"  {1e3 * row['seconds_per_decision']:.1f} ms per decision"
         print(f"{row['domain']:>13} {row['method']:>14} final error {s['final_position_error']:.3f} ± "
               f"{s['final_position_error_se']:.3f}  return {s['episode_return']:.1f} ± {s['episode_return_se']:.1f}  "
               f"distance {s['final_distance']:.3f}  success {s['success_rate']:.2f}  "

@@ -77,3 +77,16 @@ def test_training_flags_belong_to_protocol_b(tmp_path, capsys):
     assert "--protocol b" in capsys.readouterr().err
     with pytest.raises(ValueError, match="--particles"):
         cl.run_closed_loop(["lightdark10d"], ["sir"], tmp_path, n=0)
+
+
+def test_planner_rows_plan_on_their_filters_belief(tmp_path):
+    result = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=2, n=10, steps=2, threads=1)
+    rows = {r["method"]: r for r in result["rows"]}
+    r = rows["pomcpow_sir"]
+    assert r["policy"] == "planner" and r["filter"] == "sir" and r["train"] is None and r["failed"] is None
+    assert r["seconds_per_decision"] > 0 and r["summary"]["episodes"] == 2
+    assert not (tmp_path / "runs" / "lightdark10d" / "pomcpow_sir").exists()  # nothing trained
+    assert "| POMCPOW (sir belief) |" in cl.closed_loop_markdown(result) and "ms per decision" in \
+        cl.closed_loop_markdown(result)
+    with pytest.raises(ValueError, match="--methods"):
+        cl.run_closed_loop(["lightdark10d"], ["pomcpow_nowhere"], tmp_path)

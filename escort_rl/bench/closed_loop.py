@@ -6,7 +6,9 @@ trainer trains a DeepSets policy on that filter's beliefs, with the budget of
 trained policy then drives its own filter for ``episodes`` evaluation episodes: env seeds
 ``eval_seed + 0 .. episodes - 1``, the same for every method, run as one batch. A uniform-random
 policy on the SIR belief is each domain's reference row (its actions ignore the belief, so only its
-position error depends on the filter).
+position error depends on the filter). Planner rows (``planners`` in the yaml, e.g. ``pomcpow_sir``)
+train nothing: POMCPOW with ``configs/planner/<domain>.yaml`` plans every decision on the named
+filter's belief.
 
 Metrics, mean ± standard error over the episodes: the final and time-averaged position error
 ``‖E_b[pos] − pos_true‖₂`` (the definition of protocol (a), ``escort_rl.models.position_error``), the
@@ -97,24 +99,37 @@ def train_run(cfg, progress: bool = False) -> dict:
             "last_iteration_return": float(history[-1]["episode_return"]) if history else float("nan")}
 
 
-def evaluate_run(cfg, checkpoint: str | None, episodes: int, eval_seed: int, greedy: bool) -> dict:
-    """Roll the policy of ``checkpoint`` (uniform-random actions when ``None``) on ``episodes``
-    seeded episodes of ``cfg``'s env and filter. Returns the summary (mean ± s.e.), the mean
-    position error at each step, and the seconds per step."""
-    from torchrl.envs.utils import ExplorationType, set_exploration_type
-
+def trained_policy(cfg, checkpoint: str):
+    """The DeepSets policy of a training checkpoint (a TorchRL ``ProbabilisticActor``)."""
     from escort_rl.modules import make_deepsets_policy
     from escort_rl.trainers.builders import build_actor, build_model
     from escort_rl.trainers.checkpointing import load_checkpoint
+
+    model = build_model(cfg.env, cfg.device)
+    actor = build_actor(cfg, model.state_dim, model.n_actions)
+    load_checkpoint(checkpoint, actor=actor)
+    actor.eval()
+    return make_deepsets_policy(actor)
+
+
+def planner_policy(cfg, domain: str, seed: int):
+    """POMCPOW with ``configs/planner/<domain>.yaml``, planning on the belief of ``cfg``'s filter."""
+    from escort_rl.planners import POMCPOWPolicy, build_planner
+    from escort_rl.trainers.builders import build_model
+
+    return POMCPOWPolicy(build_model(cfg.env, cfg.device), build_planner(domain), seed=seed)
+
+
+def evaluate_run(cfg, policy, episodes: int, eval_seed: int, greedy: bool) -> dict:
+    """Roll ``policy`` (uniform-random actions when ``None``) on ``episodes`` seeded episodes of
+    ``cfg``'s env and filter. Returns the summary (mean ± s.e.), the mean position error at each step,
+    and the seconds per step; for a planner, also its seconds per decision."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from escort_rl.trainers.builders import build_model
     from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes, summarise_episodes
 
     model = build_model(cfg.env, cfg.device)
-    policy = None
-    if checkpoint is not None:
-        actor = build_actor(cfg, model.state_dim, model.n_actions)
-        load_checkpoint(checkpoint, actor=actor)
-        actor.eval()
-        policy = make_deepsets_policy(actor)
     timing: dict = {}
     mode = ExplorationType.DETERMINISTIC if greedy else ExplorationType.RANDOM
     with set_exploration_type(mode):
@@ -126,8 +141,11 @@ def evaluate_run(cfg, checkpoint: str | None, episodes: int, eval_seed: int, gre
     summary = summarise_episodes(metrics)
     per_episode = {"final_position_error": err[torch.arange(err.shape[0]), metrics["length"] - 1].tolist(),
                    "episode_return": metrics["episode_return"].tolist()}
-    return {"summary": summary, "per_episode": per_episode, "error_over_time": over_time.tolist(),
-            "seconds_per_step": per_step, "first_step_seconds": timing.get("first_step_seconds", float("nan"))}
+    out = {"summary": summary, "per_episode": per_episode, "error_over_time": over_time.tolist(),
+           "seconds_per_step": per_step, "first_step_seconds": timing.get("first_step_seconds", float("nan"))}
+    if getattr(policy, "decisions", 0):
+        out["seconds_per_decision"] = policy.planning_seconds / policy.decisions
+    return out
 
 
 def run_closed_loop(domains, methods, output, episodes: int | None = None, n: int | None = None,
@@ -142,8 +160,12 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
     Writes the runs under ``output/runs``; returns the result (rows and settings)."""
     domains, methods = list(domains), list(methods)
     filter_set = tuple(tuple(kv) for kv in filter_set)
-    check_names(domains, methods, filter_set)
     settings = load_settings()
+    planners = settings.get("planners") or {}
+    check_names(domains, list(dict.fromkeys(planners[m]["filter"] if m in planners else m for m in methods)),
+                filter_set)
+    if len(set(methods)) != len(methods):
+        raise ValueError("--methods: a method is listed twice")
     episodes = int(episodes if episodes is not None else settings["episodes"])
     n = int(n if n is not None else settings["particles"])
     check_at_least_one(seeds=episodes, particles=n, steps=steps, threads=threads)
@@ -160,17 +182,19 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
         for d in domains:
             budget = {**settings["train"][d], **(train_overrides or {})}
             for m in [*methods, RANDOM]:
-                method = REFERENCE_FILTER if m == RANDOM else m
+                kind = RANDOM if m == RANDOM else "planner" if m in planners else "trained"
+                method = {RANDOM: REFERENCE_FILTER, "planner": planners.get(m, {}).get("filter"), "trained": m}[kind]
                 cfg = run_config(d, method, n, output / "runs" / d / m, budget, settings["actor"][d], filter_set, steps)
                 row = {"domain": d, "method": m, "filter": method, "particles": n, "episodes": episodes,
-                       "steps": int(cfg.env.max_steps), "policy": RANDOM if m == RANDOM else "trained",
-                       "train": None, "failed": None}
+                       "steps": int(cfg.env.max_steps), "policy": kind, "train": None, "failed": None}
                 try:
-                    checkpoint = None
-                    if m != RANDOM:
+                    policy = None
+                    if kind == "trained":
                         row["train"] = train_run(cfg, progress=train_progress)
-                        checkpoint = row["train"]["checkpoint"]
-                    row.update(evaluate_run(cfg, checkpoint, episodes, int(settings["eval_seed"]),
+                        policy = trained_policy(cfg, row["train"]["checkpoint"])
+                    elif kind == "planner":
+                        policy = planner_policy(cfg, d, int(settings["eval_seed"]))
+                    row.update(evaluate_run(cfg, policy, episodes, int(settings["eval_seed"]),
                                             bool(settings["greedy"])))
                 except _belief_failures() as e:
                     row["failed"] = {"message": str(e).splitlines()[0]}
@@ -182,7 +206,9 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
     return {"protocol": "b: closed loop", "domains": domains, "methods": [*methods, RANDOM], "episodes": episodes,
             "particles": n, "eval_seed": int(settings["eval_seed"]), "greedy": bool(settings["greedy"]),
             "train_budget": {d: {**settings["train"][d], **(train_overrides or {})} for d in domains},
-            "filter_set": {m: applied_filter_set(m, filter_set) for m in methods},
+            "filter_set": {m: applied_filter_set(planners[m]["filter"] if m in planners else m, filter_set)
+                           for m in methods},
+            "planners": {m: planners[m] for m in methods if m in planners},
             "torch_threads": torch.get_num_threads() if threads is None else threads,
             "seconds": time.perf_counter() - t_start, "rows": rows}
 
@@ -200,9 +226,20 @@ def _table(result: dict, cell) -> list[str]:
     by = {(r["domain"], r["method"]): r for r in result["rows"]}
     lines = ["| method | " + " | ".join(domains) + " |", "| --- | " + " | ".join("---" for _ in domains) + " |"]
     for m in result["methods"]:
-        label = f"random policy ({REFERENCE_FILTER} belief)" if m == RANDOM else m
+        planner = result.get("planners", {}).get(m)
+        label = (f"random policy ({REFERENCE_FILTER} belief)" if m == RANDOM
+                 else f"POMCPOW ({planner['filter']} belief)" if planner else m)
         lines.append(f"| {label} | " + " | ".join(cell(by[(d, m)]) if (d, m) in by else "—" for d in domains) + " |")
     return lines
+
+
+def _time_cell(row: dict) -> str:
+    if row["failed"]:
+        return "failed"
+    cell = f"{1e3 * row['seconds_per_step']:.1f} ({row['first_step_seconds']:.1f} s)"
+    if "seconds_per_decision" in row:
+        cell += f"; {1e3 * row['seconds_per_decision']:.1f} ms per decision"
+    return cell
 
 
 def _train_cell(row: dict) -> str:
@@ -249,10 +286,10 @@ def closed_loop_markdown(result: dict) -> str:
         "",
         "Milliseconds per evaluation step for the whole batch of episodes (policy + env + belief update, steps "
         "2..T; the first step's seconds, which include compiling for `compile=true`, in brackets), torch threads: "
-        f"{result['torch_threads']}.",
+        f"{result['torch_threads']}. Planner rows also give the mean wall-clock of one POMCPOW decision (one "
+        "belief; the batch's decisions run one after another).",
         "",
-        *_table(result, lambda r: "failed" if r["failed"] else
-                f"{1e3 * r['seconds_per_step']:.1f} ({r['first_step_seconds']:.1f} s)"),
+        *_table(result, _time_cell),
         "",
         "Training cost (frames, minutes over all sessions of the run, frames per second):",
         "",

@@ -29,7 +29,8 @@ class POMCPOWPolicy(TensorDictModuleBase):
         particles_key, log_weights_key, action_key: the tensordict keys.
 
     ``last_decisions`` holds the :class:`Decision` of each belief of the latest call (flattened batch
-    order), for timing and inspection.
+    order), for inspection; ``decisions`` and ``planning_seconds`` count all decisions since the
+    policy was built (or :meth:`reset_counters`), for timing.
     """
 
     def __init__(self, model, planner: POMCPOW, seed: int | None = None, particles_key: str = "particles",
@@ -44,6 +45,11 @@ class POMCPOWPolicy(TensorDictModuleBase):
         self.particles_key, self.log_weights_key, self.action_key = particles_key, log_weights_key, action_key
         self._generator: torch.Generator | None = None
         self.last_decisions: list[Decision] = []
+        self.decisions, self.planning_seconds = 0, 0.0
+
+    def reset_counters(self) -> None:
+        """Zero ``decisions`` and ``planning_seconds``."""
+        self.decisions, self.planning_seconds = 0, 0.0
 
     def _generator_on(self, device: torch.device) -> torch.Generator:
         """The planner's generator, (re)created on ``device`` with ``seed`` when first needed there."""
@@ -75,6 +81,8 @@ class POMCPOWPolicy(TensorDictModuleBase):
                               None if flat_log_weights is None else flat_log_weights[i], generator)
             for i in range(flat_particles.shape[0])
         ]
+        self.decisions += len(self.last_decisions)
+        self.planning_seconds += sum(dec.seconds for dec in self.last_decisions)
         actions = torch.tensor([dec.action for dec in self.last_decisions], dtype=torch.int64, device=particles.device)
         tensordict.set(self.action_key, actions.reshape(batch))
         return tensordict
