@@ -77,6 +77,7 @@ def train_run(cfg, progress: bool = False) -> dict:
     """Train (or resume, or skip when finished) the run in ``cfg.output_dir``. Returns the frames,
     iterations, training seconds (summed over sessions) and the iteration it resumed from."""
     from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint, resolve_checkpoint
+    from escort_rl.trainers.evaluate import display_path
     from escort_rl.trainers.reinforce import train
 
     run_dir = Path(cfg.output_dir)
@@ -95,7 +96,7 @@ def train_run(cfg, progress: bool = False) -> dict:
     history = final["trainer_state"]["history"]
     return {"iterations": int(final["trainer_state"]["iteration"]), "frames": int(final["trainer_state"]["frames"]),
             "seconds": float(sum(h["seconds"] for h in history)), "resumed_from_iteration": resumed_from,
-            "checkpoint": str(final["path"]),
+            "checkpoint": display_path(Path(final["path"])),
             "last_iteration_return": float(history[-1]["episode_return"]) if history else float("nan")}
 
 

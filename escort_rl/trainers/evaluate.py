@@ -47,7 +47,7 @@ def first_episode_metrics(rollout: TensorDict, model) -> dict:
     }
 
 
-def _display_path(path: Path) -> str:
+def display_path(path: Path) -> str:
     """The path relative to the working directory when it lies below it (reports stay portable)."""
     try:
         return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
@@ -130,7 +130,7 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     m_trained = first_episode_metrics(trained, model)
     m_random = first_episode_metrics(random_rollout, model)
     result = {
-        "checkpoint": _display_path(ckpt_path),
+        "checkpoint": display_path(ckpt_path),
         "env": cfg.env.name,
         "filter": cfg.filter.name,
         "num_particles": int(cfg.num_particles),
