@@ -256,7 +256,8 @@ def closed_loop_markdown(result: dict) -> str:
     lines = [
         "# Domain benchmark, protocol (b): closed loop",
         "",
-        f"Each method trains its own DeepSets policy (REINFORCE, the project trainer) on its own beliefs, N = "
+        f"Each filter method trains its own DeepSets policy (REINFORCE, the project trainer) on its own beliefs "
+        "(POMCPOW rows train nothing: the planner decides on its filter's belief), N = "
         f"{result['particles']} particles, then drives it on {result['episodes']} evaluation episodes (env seeds "
         f"{result['eval_seed']} + 0..{result['episodes'] - 1}, the same for every method; policy "
         f"{'greedy' if result['greedy'] else 'sampled'}). Mean ± standard error over the episodes. Training budget "
