@@ -44,9 +44,11 @@ def test_trains_each_method_evaluates_and_resumes(tmp_path, capsys):
     assert main([*TINY, "--train-iterations", "2", "--output", str(out)]) == 0
     _, rows = _rows(out)
     assert rows["escort"]["train"]["resumed_from_iteration"] == 1 and rows["escort"]["train"]["iterations"] == 2
+    assert not rows["escort"]["evaluation_reused"]  # a new checkpoint: evaluated again
     assert main([*TINY, "--train-iterations", "2", "--output", str(out)]) == 0
     _, again = _rows(out)
     assert again["escort"]["train"]["resumed_from_iteration"] == 2
+    assert again["escort"]["evaluation_reused"] and again["random"]["evaluation_reused"]
     assert again["escort"]["train"]["frames"] == rows["escort"]["train"]["frames"] == 2 * 2 * 5
     # evaluation is seeded: the same checkpoint gives the same episodes
     assert again["escort"]["per_episode"] == rows["escort"]["per_episode"]
@@ -85,8 +87,31 @@ def test_planner_rows_plan_on_their_filters_belief(tmp_path):
     r = rows["pomcpow_sir"]
     assert r["policy"] == "planner" and r["filter"] == "sir" and r["train"] is None and r["failed"] is None
     assert r["seconds_per_decision"] > 0 and r["summary"]["episodes"] == 2
-    assert not (tmp_path / "runs" / "lightdark10d" / "pomcpow_sir").exists()  # nothing trained
+    assert not (tmp_path / "runs" / "lightdark10d" / "pomcpow_sir" / "checkpoints").exists()  # nothing trained
     assert "| POMCPOW (sir belief) |" in cl.closed_loop_markdown(result) and "ms per decision" in \
         cl.closed_loop_markdown(result)
     with pytest.raises(ValueError, match="--methods"):
         cl.run_closed_loop(["lightdark10d"], ["pomcpow_nowhere"], tmp_path)
+
+
+def test_a_rerun_reuses_finished_evaluations_only_when_nothing_changed(tmp_path, monkeypatch):
+    kwargs = dict(n=10, steps=2, threads=1)
+    first = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=2, **kwargs)
+    assert [r["evaluation_reused"] for r in first["rows"]] == [False, False]
+
+    def must_not_run(*args, **kw):
+        raise AssertionError("a saved evaluation should have been reused")
+
+    monkeypatch.setattr(cl, "evaluate_run", must_not_run)
+    again = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=2, **kwargs)
+    assert [r["evaluation_reused"] for r in again["rows"]] == [True, True]
+    assert [r["per_episode"] for r in again["rows"]] == [r["per_episode"] for r in first["rows"]]
+    monkeypatch.undo()
+
+    # more episodes, or a changed planner setting, is a new evaluation
+    more = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=3, **kwargs)
+    assert [r["evaluation_reused"] for r in more["rows"]] == [False, False]
+    saved = tmp_path / "runs" / "lightdark10d" / "pomcpow_sir" / cl.EVALUATION_FILE
+    (saved).write_text("{not json")  # a torn file is ignored, not an error
+    torn = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=3, **kwargs)
+    assert not torn["rows"][0]["evaluation_reused"] and torn["rows"][1]["evaluation_reused"]

@@ -19,6 +19,9 @@ with ``compile=true``, is timed apart). Each row also records its training frame
 Nothing is lost to a killed run: each (domain, method) trains in ``<output>/runs/<domain>/<method>``
 with the trainer's checkpoints, and a rerun with the same ``output`` resumes every run from its last
 checkpoint and skips the finished ones (it refuses a run folder that holds another configuration).
+Each finished evaluation is saved as ``evaluation.json`` in its run folder, with everything it
+depended on (the run's config, the planner's settings, the episodes, seeds and checkpoint); a rerun
+reuses it when all of that is unchanged, so a killed benchmark repeats only the row it was in.
 """
 
 from __future__ import annotations
@@ -149,6 +152,40 @@ def evaluate_run(cfg, policy, episodes: int, eval_seed: int, greedy: bool) -> di
     return out
 
 
+EVALUATION_FILE = "evaluation.json"
+
+
+def _evaluation_key(cfg, kind: str, domain: str, episodes: int, eval_seed: int, greedy: bool,
+                    checkpoint: str | None) -> dict:
+    """What an evaluation row depends on, as plain JSON (compared in full on reuse)."""
+    key = {"config": OmegaConf.to_container(cfg, resolve=True), "policy": kind, "episodes": episodes,
+           "eval_seed": eval_seed, "greedy": greedy, "checkpoint": checkpoint}
+    key["config"].pop("resume", None)
+    if kind == "planner":
+        from escort_rl.planners import load_planner_config
+
+        key["planner"] = load_planner_config(domain)
+    return json.loads(json.dumps(key))
+
+
+def _saved_evaluation(run_dir: Path, key: dict) -> dict | None:
+    """The evaluation saved in ``run_dir`` under ``key``, or ``None`` (none, unreadable or stale)."""
+    path = run_dir / EVALUATION_FILE
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return saved.get("result") if saved.get("key") == key else None
+
+
+def _save_evaluation(run_dir: Path, key: dict, result: dict) -> None:
+    """Write atomically (a killed write leaves the previous file or none)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    tmp = run_dir / (EVALUATION_FILE + ".tmp")
+    tmp.write_text(json.dumps({"key": key, "result": result}))
+    tmp.replace(run_dir / EVALUATION_FILE)
+
+
 def run_closed_loop(domains, methods, output, episodes: int | None = None, n: int | None = None,
                     steps: int | None = None, train_overrides: dict | None = None, filter_set=(),
                     threads: int | None = None, progress=None, train_progress: bool = False) -> dict:
@@ -192,11 +229,19 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
                     policy = None
                     if kind == "trained":
                         row["train"] = train_run(cfg, progress=train_progress)
-                        policy = trained_policy(cfg, row["train"]["checkpoint"])
-                    elif kind == "planner":
-                        policy = planner_policy(cfg, d, int(settings["eval_seed"]))
-                    row.update(evaluate_run(cfg, policy, episodes, int(settings["eval_seed"]),
-                                            bool(settings["greedy"])))
+                    key = _evaluation_key(cfg, kind, d, episodes, int(settings["eval_seed"]),
+                                          bool(settings["greedy"]), (row["train"] or {}).get("checkpoint"))
+                    evaluation = _saved_evaluation(Path(cfg.output_dir), key)
+                    row["evaluation_reused"] = evaluation is not None
+                    if evaluation is None:
+                        if kind == "trained":
+                            policy = trained_policy(cfg, row["train"]["checkpoint"])
+                        elif kind == "planner":
+                            policy = planner_policy(cfg, d, int(settings["eval_seed"]))
+                        evaluation = evaluate_run(cfg, policy, episodes, int(settings["eval_seed"]),
+                                                  bool(settings["greedy"]))
+                        _save_evaluation(Path(cfg.output_dir), key, evaluation)
+                    row.update(evaluation)
                 except _belief_failures() as e:
                     row["failed"] = {"message": str(e).splitlines()[0]}
                 rows.append(row)
