@@ -147,7 +147,7 @@ def _train(overrides: list[str], quiet: bool = False) -> Path:
 
     from escort_rl.config import compose, merge_overrides
     from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
-    from escort_rl.trainers.reinforce import train
+    from escort_rl.trainers.registry import train
 
     resume = [o.split("=", 1)[1] for o in overrides if o.startswith("resume=")]
     rest = [o for o in overrides if not o.startswith("resume=")]

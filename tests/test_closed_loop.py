@@ -115,3 +115,15 @@ def test_a_rerun_reuses_finished_evaluations_only_when_nothing_changed(tmp_path,
     (saved).write_text("{not json")  # a torn file is ignored, not an error
     torn = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=3, **kwargs)
     assert not torn["rows"][0]["evaluation_reused"] and torn["rows"][1]["evaluation_reused"]
+
+
+def test_dvrl_row_trains_its_own_belief_and_reports_the_readout_error(tmp_path):
+    result = cl.run_closed_loop(["lightdark10d"], ["dvrl"], tmp_path, episodes=2, n=10, steps=6, threads=1,
+                                train_overrides={"iterations": 1, "num_envs": 2})
+    rows = {r["method"]: r for r in result["rows"]}
+    r = rows["dvrl"]
+    assert r["policy"] == "learned" and r["failed"] is None and r["train"]["frames"] == 2 * 6
+    assert math.isfinite(r["summary"]["final_position_error"]) and len(r["error_over_time"]) == 6
+    cfg_text = (tmp_path / "runs" / "lightdark10d" / "dvrl" / "config.yaml").read_text()
+    assert "algorithm: dvrl_a2c" in cfg_text
+    assert "| DVRL (learned belief, readout) |" in cl.closed_loop_markdown(result)

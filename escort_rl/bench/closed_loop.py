@@ -8,7 +8,9 @@ trained policy then drives its own filter for ``episodes`` evaluation episodes: 
 policy on the SIR belief is each domain's reference row (its actions ignore the belief, so only its
 position error depends on the filter). Planner rows (``planners`` in the yaml, e.g. ``pomcpow_sir``)
 train nothing: POMCPOW with ``configs/planner/<domain>.yaml`` plans every decision on the named
-filter's belief.
+filter's belief. Learned-belief rows (``learned``, e.g. ``dvrl``) train DVRL with its own trainer and
+the same budget; their position error is that of DVRL's state readout (see
+:mod:`escort_rl.trainers.dvrl_a2c`).
 
 Metrics, mean ± standard error over the episodes: the final and time-averaged position error
 ``‖E_b[pos] − pos_true‖₂`` (the definition of protocol (a), ``escort_rl.models.position_error``), the
@@ -35,6 +37,7 @@ import torch
 from omegaconf import OmegaConf
 
 from escort_rl.bench.domains import _belief_failures, applied_filter_set, check_at_least_one, check_names
+from escort_rl.trainers.evaluate import trained_policy
 
 RANDOM = "random"
 REFERENCE_FILTER = "sir"  # the belief the random-policy row is scored on
@@ -52,14 +55,15 @@ def load_settings() -> dict:
 
 
 def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict, actor: dict,
-               filter_set: tuple = (), steps: int | None = None, seed: int = 0):
+               filter_set: tuple = (), steps: int | None = None, seed: int = 0, trainer: str | None = None):
     """The training config of one (domain, method) run: ``env=domain filter=method`` with the
     budget ``train`` (trainer keys), the actor's input scaling ``actor``, the ``filter_set`` keys the
-    method's filter has, and ``steps`` (when given) as the episode length."""
+    method's filter has, and ``steps`` (when given) as the episode length. ``trainer``: a config of
+    ``configs/trainer/`` (default: the config's, REINFORCE)."""
     from escort_rl.config import compose
 
     overrides = [f"env={domain}", f"filter={method}", f"num_particles={n}", f"output_dir={run_dir}",
-                 f"seed={seed}"]
+                 f"seed={seed}", *([f"trainer={trainer}"] if trainer else [])]
     overrides += [f"trainer.{k}={v}" for k, v in train.items()]
     overrides += [f"actor.{k}={v}" for k, v in actor.items()]
     overrides += [f"filter.{k}={v}" for k, v in applied_filter_set(method, filter_set).items()]
@@ -81,7 +85,7 @@ def train_run(cfg, progress: bool = False) -> dict:
     iterations, training seconds (summed over sessions) and the iteration it resumed from."""
     from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint, resolve_checkpoint
     from escort_rl.trainers.evaluate import display_path
-    from escort_rl.trainers.reinforce import train
+    from escort_rl.trainers.registry import train
 
     run_dir = Path(cfg.output_dir)
     saved = None
@@ -103,19 +107,6 @@ def train_run(cfg, progress: bool = False) -> dict:
             "last_iteration_return": float(history[-1]["episode_return"]) if history else float("nan")}
 
 
-def trained_policy(cfg, checkpoint: str):
-    """The DeepSets policy of a training checkpoint (a TorchRL ``ProbabilisticActor``)."""
-    from escort_rl.modules import make_deepsets_policy
-    from escort_rl.trainers.builders import build_actor, build_model
-    from escort_rl.trainers.checkpointing import load_checkpoint
-
-    model = build_model(cfg.env, cfg.device)
-    actor = build_actor(cfg, model.state_dim, model.n_actions)
-    load_checkpoint(checkpoint, actor=actor)
-    actor.eval()
-    return make_deepsets_policy(actor)
-
-
 def planner_policy(cfg, domain: str, seed: int):
     """POMCPOW with ``configs/planner/<domain>.yaml``, planning on the belief of ``cfg``'s filter."""
     from escort_rl.planners import POMCPOWPolicy, build_planner
@@ -124,21 +115,23 @@ def planner_policy(cfg, domain: str, seed: int):
     return POMCPOWPolicy(build_model(cfg.env, cfg.device), build_planner(domain), seed=seed)
 
 
-def evaluate_run(cfg, policy, episodes: int, eval_seed: int, greedy: bool) -> dict:
+def evaluate_run(cfg, policy, episodes: int, eval_seed: int, greedy: bool, make=None, estimates=None) -> dict:
     """Roll ``policy`` (uniform-random actions when ``None``) on ``episodes`` seeded episodes of
     ``cfg``'s env and filter. Returns the summary (mean ± s.e.), the mean position error at each step,
-    and the seconds per step; for a planner, also its seconds per decision."""
+    and the seconds per step; for a planner, also its seconds per decision. ``make``, ``estimates``:
+    the env maker and belief-mean function of :func:`escort_rl.trainers.evaluate.trained_policy`
+    (default: ``cfg``'s filter in the env, the particles' mean)."""
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-    from escort_rl.trainers.builders import build_model
+    from escort_rl.trainers.builders import build_model, make_env
     from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes, summarise_episodes
 
     model = build_model(cfg.env, cfg.device)
     timing: dict = {}
     mode = ExplorationType.DETERMINISTIC if greedy else ExplorationType.RANDOM
     with set_exploration_type(mode):
-        rollout, per_step = run_episodes(cfg, policy, episodes, eval_seed, timing)
-    metrics = first_episode_metrics(rollout, model)
+        rollout, per_step = run_episodes(cfg, policy, episodes, eval_seed, timing, make=make or make_env)
+    metrics = first_episode_metrics(rollout, model, estimates(rollout) if estimates is not None else None)
     err = metrics["position_error"]  # [E, T], NaN after an episode ends
     seen = (~torch.isnan(err)).sum(0)
     over_time = torch.where(seen > 0, torch.nan_to_num(err).sum(0) / seen.clamp_min(1), torch.nan)
@@ -200,8 +193,9 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
     filter_set = tuple(tuple(kv) for kv in filter_set)
     settings = load_settings()
     planners = settings.get("planners") or {}
-    check_names(domains, list(dict.fromkeys(planners[m]["filter"] if m in planners else m for m in methods)),
-                filter_set)
+    learned = settings.get("learned") or {}
+    check_names(domains, list(dict.fromkeys(planners[m]["filter"] if m in planners else REFERENCE_FILTER
+                                            if m in learned else m for m in methods)), filter_set)
     if len(set(methods)) != len(methods):
         raise ValueError("--methods: a method is listed twice")
     episodes = int(episodes if episodes is not None else settings["episodes"])
@@ -220,26 +214,32 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
         for d in domains:
             budget = {**settings["train"][d], **(train_overrides or {})}
             for m in [*methods, RANDOM]:
-                kind = RANDOM if m == RANDOM else "planner" if m in planners else "trained"
-                method = {RANDOM: REFERENCE_FILTER, "planner": planners.get(m, {}).get("filter"), "trained": m}[kind]
-                cfg = run_config(d, method, n, output / "runs" / d / m, budget, settings["actor"][d], filter_set, steps)
-                row = {"domain": d, "method": m, "filter": method, "particles": n, "episodes": episodes,
-                       "steps": int(cfg.env.max_steps), "policy": kind, "train": None, "failed": None}
+                kind = (RANDOM if m == RANDOM else "planner" if m in planners else "learned" if m in learned
+                        else "trained")
+                # the learned-belief rows' filter config is unused (their belief is their own)
+                method = {RANDOM: REFERENCE_FILTER, "planner": planners.get(m, {}).get("filter"),
+                          "learned": REFERENCE_FILTER, "trained": m}[kind]
+                cfg = run_config(d, method, n, output / "runs" / d / m, budget, settings["actor"][d],
+                                 filter_set if kind != "learned" else (), steps,
+                                 trainer=learned[m]["trainer"] if kind == "learned" else None)
+                row = {"domain": d, "method": m, "filter": m if kind == "learned" else method, "particles": n,
+                       "episodes": episodes, "steps": int(cfg.env.max_steps), "policy": kind, "train": None,
+                       "failed": None}
                 try:
-                    policy = None
-                    if kind == "trained":
+                    policy = make = estimates = None
+                    if kind in ("trained", "learned"):
                         row["train"] = train_run(cfg, progress=train_progress)
                     key = _evaluation_key(cfg, kind, d, episodes, int(settings["eval_seed"]),
                                           bool(settings["greedy"]), (row["train"] or {}).get("checkpoint"))
                     evaluation = _saved_evaluation(Path(cfg.output_dir), key)
                     row["evaluation_reused"] = evaluation is not None
                     if evaluation is None:
-                        if kind == "trained":
-                            policy = trained_policy(cfg, row["train"]["checkpoint"])
+                        if kind in ("trained", "learned"):
+                            policy, make, estimates = trained_policy(cfg, row["train"]["checkpoint"])
                         elif kind == "planner":
                             policy = planner_policy(cfg, d, int(settings["eval_seed"]))
                         evaluation = evaluate_run(cfg, policy, episodes, int(settings["eval_seed"]),
-                                                  bool(settings["greedy"]))
+                                                  bool(settings["greedy"]), make, estimates)
                         _save_evaluation(Path(cfg.output_dir), key, evaluation)
                     row.update(evaluation)
                 except _belief_failures() as e:
@@ -253,8 +253,9 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
             "particles": n, "eval_seed": int(settings["eval_seed"]), "greedy": bool(settings["greedy"]),
             "train_budget": {d: {**settings["train"][d], **(train_overrides or {})} for d in domains},
             "filter_set": {m: applied_filter_set(planners[m]["filter"] if m in planners else m, filter_set)
-                           for m in methods},
+                           for m in methods if m not in learned},
             "planners": {m: planners[m] for m in methods if m in planners},
+            "learned": {m: learned[m] for m in methods if m in learned},
             "torch_threads": torch.get_num_threads() if threads is None else threads,
             "seconds": time.perf_counter() - t_start, "rows": rows}
 
@@ -274,7 +275,8 @@ def _table(result: dict, cell) -> list[str]:
     for m in result["methods"]:
         planner = result.get("planners", {}).get(m)
         label = (f"random policy ({REFERENCE_FILTER} belief)" if m == RANDOM
-                 else f"POMCPOW ({planner['filter']} belief)" if planner else m)
+                 else f"POMCPOW ({planner['filter']} belief)" if planner
+                 else f"{m.upper()} (learned belief, readout)" if m in result.get("learned", {}) else m)
         lines.append(f"| {label} | " + " | ".join(cell(by[(d, m)]) if (d, m) in by else "—" for d in domains) + " |")
     return lines
 
@@ -302,7 +304,9 @@ def closed_loop_markdown(result: dict) -> str:
         "# Domain benchmark, protocol (b): closed loop",
         "",
         f"Each filter method trains its own DeepSets policy (REINFORCE, the project trainer) on its own beliefs "
-        "(POMCPOW rows train nothing: the planner decides on its filter's belief), N = "
+        "(POMCPOW rows train nothing: the planner decides on its filter's belief; the DVRL row trains DVRL, "
+        "a learned belief, by A2C plus its ELBO at the same frames, and its position error is that of a "
+        "readout head fitted to the training trajectories' true states), N = "
         f"{result['particles']} particles, then drives it on {result['episodes']} evaluation episodes (env seeds "
         f"{result['eval_seed']} + 0..{result['episodes'] - 1}, the same for every method; policy "
         f"{'greedy' if result['greedy'] else 'sampled'}). Mean ± standard error over the episodes. Training budget "

@@ -195,3 +195,30 @@ class DeepSetsSummary(nn.Module):
 
 
 SUMMARIES = {"gru": GRUSummary, "deepsets": DeepSetsSummary}
+
+
+# ---------------------------------------------------------------------------------------- readout
+class StateReadout(nn.Module):
+    """A probe from DVRL's belief summary to the env's state, for measuring position error.
+
+    DVRL's latent ``z`` is not the state, so its belief has no position to compare with the truth. The
+    readout is an MLP ``summary [*, S] -> state estimate [*, state_dim]``, trained by regression on the
+    true states of the training trajectories, on a detached summary (it reads the belief, it does not
+    shape it). ``(x - loc) / scale`` of the target is what the network fits, so that one learning rate
+    suits maps of any size; the output is in state units.
+    """
+
+    def __init__(self, summary_dim: int, state_dim: int, hidden: int = 64, loc: float = 0.0,
+                 scale: float = 1.0) -> None:
+        super().__init__()
+        if scale <= 0:
+            raise ValueError(f"scale: must be positive, got {scale}")
+        self.net = mlp([summary_dim, hidden, hidden, state_dim], last_activation=False)
+        self.loc, self.scale = float(loc), float(scale)
+
+    def forward(self, summary: Tensor) -> Tensor:
+        return self.net(summary) * self.scale + self.loc
+
+    def loss(self, summary: Tensor, state: Tensor) -> Tensor:
+        """Mean squared error in standardised units, ``mean(((f(s) - (x - loc)/scale))²)``."""
+        return ((self.net(summary) - (state - self.loc) / self.scale) ** 2).mean()

@@ -12,8 +12,10 @@ Keys (``*B`` the env batch, ``K`` particles, prefix ``"dvrl"`` by default):
   ``"dvrl_h"`` ``[*B, K, H]``, ``"dvrl_z"`` ``[*B, K, Z]``, ``"dvrl_log_w"`` ``[*B, K]``,
   ``"dvrl_prev_action"`` ``[*B]`` int64 (the action taken before this observation).
 - written: ``"logits"`` ``[*B, n_actions]``, ``"action"`` ``[*B]`` int64, ``"action_log_prob"`` ``[*B]``,
-  ``"state_value"`` ``[*B, 1]``, ``"dvrl_elbo"`` ``[*B]`` (this step's ELBO term), and the four state
-  keys under ``"next"`` (``("next", "dvrl_prev_action")`` is the action just chosen).
+  ``"state_value"`` ``[*B, 1]``, ``"dvrl_elbo"`` ``[*B]`` (this step's ELBO term), ``"dvrl_summary"``
+  ``[*B, S]`` (the belief summary), with a readout also ``"state_estimate"`` ``[*B, state_dim]`` (the
+  readout's estimate of the current state), and the four state keys under ``"next"``
+  (``("next", "dvrl_prev_action")`` is the action just chosen).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModuleBase
 from tensordict.nn.probabilistic import interaction_type
+from torch import nn
 from torch.distributions import Categorical
 from torchrl.data import Unbounded
 from torchrl.envs.transforms import TensorDictPrimer
@@ -43,19 +46,24 @@ class DVRLPolicy(TensorDictModuleBase):
         dvrl: the :class:`~escort_rl.modules.dvrl.DVRL` model.
         observation_key, action_key, is_init_key: keys of the env and of ``InitTracker``.
         state_prefix: the state keys are ``f"{state_prefix}_h"``, ``_z``, ``_log_w``, ``_prev_action``.
+        readout: an optional :class:`~escort_rl.modules.dvrl_networks.StateReadout`; with one, the
+            policy also writes ``"state_estimate"``.
     """
 
     def __init__(self, dvrl: DVRL, observation_key: str = "observation", action_key: str = "action",
-                 is_init_key: str = "is_init", state_prefix: str = "dvrl") -> None:
+                 is_init_key: str = "is_init", state_prefix: str = "dvrl", readout: nn.Module | None = None) -> None:
         super().__init__()
         if not isinstance(dvrl, DVRL):
             raise TypeError(f"dvrl: expected a DVRL module, got {type(dvrl).__name__}")
         self.dvrl = dvrl
+        self.readout = readout
         self.observation_key, self.action_key, self.is_init_key = observation_key, action_key, is_init_key
         self.state_keys = {name: f"{state_prefix}_{name}" for name in ("h", "z", "log_w", "prev_action")}
         self.elbo_key = f"{state_prefix}_elbo"
+        self.summary_key = f"{state_prefix}_summary"
         self.in_keys = [observation_key, *self.state_keys.values(), is_init_key]
-        self.out_keys = ["logits", action_key, "action_log_prob", "state_value", self.elbo_key,
+        self.out_keys = ["logits", action_key, "action_log_prob", "state_value", self.elbo_key, self.summary_key,
+                         *(["state_estimate"] if readout is not None else []),
                          *(("next", key) for key in self.state_keys.values())]
 
     # ------------------------------------------------------------------------------ specs
@@ -117,6 +125,9 @@ class DVRLPolicy(TensorDictModuleBase):
         tensordict.set("action_log_prob", out(dist.log_prob(action)))
         tensordict.set("state_value", out(value.unsqueeze(-1)))
         tensordict.set(self.elbo_key, out(elbo))
+        tensordict.set(self.summary_key, out(summary))
+        if self.readout is not None:
+            tensordict.set("state_estimate", out(self.readout(summary.detach())))
         for name, value_ in (("h", new_state.h), ("z", new_state.z), ("log_w", new_state.log_w),
                              ("prev_action", action)):
             tensordict.set(("next", self.state_keys[name]), out(value_))

@@ -16,14 +16,17 @@ from escort_rl.models import position_dims, position_error
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import build_actor, build_model, make_env
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
+from escort_rl.trainers.registry import algorithm
 
 
-def first_episode_metrics(rollout: TensorDict, model) -> dict:
+def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor | None = None) -> dict:
     """Per-env metrics of the first episode in a rollout ``[E, T]``.
 
     Returns tensors: ``final_distance`` ``[E]``, ``success`` ``[E]``, ``episode_return`` ``[E]``,
     ``length`` ``[E]`` and ``position_error`` ``[E, T]`` (NaN after the episode ends), where the
-    position error is ``‖E_b[pos] − pos_true‖₂`` of the belief after each step.
+    position error is ``‖E_b[pos] − pos_true‖₂`` of the belief after each step. ``belief_mean``
+    ``[E, T, d]``: the state estimate after each step when the rollout carries no particles (DVRL's
+    readout); default: the weighted mean of ``("next", "particles")``.
     """
     done = rollout["next", "done"].squeeze(-1)  # [E, T]
     e, t = done.shape
@@ -34,8 +37,9 @@ def first_episode_metrics(rollout: TensorDict, model) -> dict:
     rewards = rollout["next", "reward"].squeeze(-1)
     true_state = rollout["next", "true_state"]
     final_state = true_state[torch.arange(e), end]
-    belief_w = torch.softmax(rollout["next", "particle_log_weights"], -1).unsqueeze(-1)
-    belief_mean = (belief_w * rollout["next", "particles"]).sum(-2)  # [E, T, d]
+    if belief_mean is None:
+        belief_w = torch.softmax(rollout["next", "particle_log_weights"], -1).unsqueeze(-1)
+        belief_mean = (belief_w * rollout["next", "particles"]).sum(-2)  # [E, T, d]
     pos_err = position_error(model, belief_mean, true_state)
     return {
         "final_distance": (model.distance_to_goal(final_state) if hasattr(model, "distance_to_goal")
@@ -78,12 +82,14 @@ def summarise_episodes(metrics: dict) -> dict:
             "mean_length": float(metrics["length"].double().mean())}
 
 
-def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = None) -> tuple[TensorDict, float]:
+def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = None,
+                 make=make_env) -> tuple[TensorDict, float]:
     """Roll ``policy`` (or uniform-random actions when ``None``) for one episode in each of
     ``episodes`` envs seeded with ``seed``. Returns the rollout ``[E, T]`` and the seconds per
     batched step (policy + env + belief update) over steps 2..T: the first step is a warm-up (with
-    ``filter.compile=true`` it compiles) and its seconds go to ``timing["first_step_seconds"]``."""
-    env = make_env(cfg, episodes, seed=seed)
+    ``filter.compile=true`` it compiles) and its seconds go to ``timing["first_step_seconds"]``.
+    ``make(cfg, num_envs, seed)`` builds the env (default: the env with ``cfg``'s belief filter)."""
+    env = make(cfg, episodes, seed=seed)
     torch.manual_seed(seed)
     stamps = []
     t0 = time.perf_counter()
@@ -101,6 +107,24 @@ def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = No
     return rollout, per_step
 
 
+def trained_policy(cfg, checkpoint):
+    """The trained policy of a checkpoint of either trainer, the env maker it runs in, and a function
+    ``rollout -> belief_mean [E, T, d]`` (``None``: the rollout's particles give the belief mean).
+
+    REINFORCE: the DeepSets policy, in the env with ``cfg``'s belief filter. DVRL: the DVRL policy
+    (its own belief) in the env with its state primer; the belief mean is its readout's estimate."""
+    if algorithm(cfg) == "dvrl_a2c":
+        from escort_rl.trainers.dvrl_a2c import load_dvrl_policy, make_dvrl_env, next_state_estimates
+
+        _, policy = load_dvrl_policy(checkpoint)
+        return policy, make_dvrl_env, lambda rollout: next_state_estimates(policy, rollout)
+    model = build_model(cfg.env, cfg.device)
+    actor = build_actor(cfg, model.state_dim, model.n_actions)
+    load_checkpoint(checkpoint, actor=actor)
+    actor.eval()
+    return make_deepsets_policy(actor), make_env, lambda rollout: None
+
+
 def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | Path | None = None,
              greedy: bool | None = None) -> dict:
     """Evaluate the checkpointed policy and a uniform-random policy on the same seeded episodes.
@@ -112,27 +136,24 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     meta = load_checkpoint(ckpt_path)  # reads config and history without restoring modules
     cfg = OmegaConf.create(meta["config"])
     model = build_model(cfg.env, cfg.device)
-    actor = build_actor(cfg, model.state_dim, model.n_actions)
-    load_checkpoint(ckpt_path, actor=actor)
-    actor.eval()
+    policy, make, estimates = trained_policy(cfg, ckpt_path)
     episodes = int(episodes if episodes is not None else cfg.evaluate.episodes)
     greedy = bool(cfg.evaluate.greedy if greedy is None else greedy)
     seed = int(cfg.evaluate.seed)
     out = Path(output) if output is not None else ckpt_path.parent.parent / "evaluation"
     out.mkdir(parents=True, exist_ok=True)
 
-    policy = make_deepsets_policy(actor)
     mode = ExplorationType.DETERMINISTIC if greedy else ExplorationType.RANDOM
     t_trained, t_random = {}, {}
     with set_exploration_type(mode):
-        trained, trained_step_s = run_episodes(cfg, policy, episodes, seed, t_trained)
+        trained, trained_step_s = run_episodes(cfg, policy, episodes, seed, t_trained, make=make)
     random_rollout, random_step_s = run_episodes(cfg, None, episodes, seed, t_random)
-    m_trained = first_episode_metrics(trained, model)
+    m_trained = first_episode_metrics(trained, model, estimates(trained))
     m_random = first_episode_metrics(random_rollout, model)
     result = {
         "checkpoint": display_path(ckpt_path),
         "env": cfg.env.name,
-        "filter": cfg.filter.name,
+        "filter": "dvrl (learned belief)" if algorithm(cfg) == "dvrl_a2c" else cfg.filter.name,
         "num_particles": int(cfg.num_particles),
         "episodes": episodes,
         "eval_seed": seed,
@@ -146,9 +167,10 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     if history:
         plot_learning_curve(history, out / "learning_curve.png")
     pos = list(position_dims(model))
-    plot_belief_projection(trained["next", "particles"][0][..., pos], trained["next", "true_state"][0, :, pos],
-                           out / "belief_projection.png",
-                           position_error=torch.nanmean(m_trained["position_error"], 0))
+    if "particles" in trained["next"].keys():
+        plot_belief_projection(trained["next", "particles"][0][..., pos], trained["next", "true_state"][0, :, pos],
+                               out / "belief_projection.png",
+                               position_error=torch.nanmean(m_trained["position_error"], 0))
     (out / "summary.md").write_text(_markdown(result))
     return result
 

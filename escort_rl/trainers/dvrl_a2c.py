@@ -1,0 +1,259 @@
+"""DVRL trained as in Igl et al. (2018): A2C on its own belief, plus the ELBO, with truncated BPTT.
+
+Read top to bottom: build the env (the POMDP env with ``InitTracker`` and DVRL's state primer, and no
+belief transform: DVRL's belief is its own particles), the DVRL policy and the state readout; resume
+if asked; then for each iteration reset ``num_envs`` envs (seeded per iteration) and run
+``env.max_steps`` steps in windows of ``dvrl.loss.bptt_steps``. Each window:
+
+1. steps the policy with gradients (the belief update, the action, the value and the ELBO term
+   of every step are one graph), auto-resetting finished envs (``step_and_maybe_reset``);
+2. bootstraps the window's returns with the value of the next belief (no gradient),
+   ``R_t = r_t + γ (1 − done_t) R_{t+1}``;
+3. takes one Adam step on
+
+       L = −mean(log π(a_t) Â_t) + c_v · mean(Huber(V_t, R_t)) − c_H · mean(H[π_t])
+           − c_enc · mean(ELBO_t),
+
+   with ``Â = (R − V)`` standardised over the window, ``c_enc`` = ``dvrl.loss.encoding_loss_coef``;
+4. fits the state readout to the true states on the detached summaries (a separate optimiser);
+5. cuts the graph (the particles are detached) and goes on.
+
+Collectors run their policy without gradients, and the belief must be differentiated along the very
+particles that chose the actions (a replay would draw new ones), so this trainer steps the env itself,
+as the original did. An iteration is ``num_envs × max_steps`` frames, like an iteration of the
+REINFORCE trainer, so the same budget keys give the same frames. The value loss is a Huber loss (not
+the original's squared error) because our domains' returns are in the hundreds, not clipped rewards.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDict, TensorDictBase
+from torchrl.checkpoint import CheckpointRotation
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+from tqdm import tqdm
+
+from escort_rl.config import ConfigError
+from escort_rl.envs import POMDPEnv
+from escort_rl.modules import DVRL, DVRLPolicy
+from escort_rl.modules.dvrl_networks import StateReadout
+from escort_rl.trainers.builders import build_model
+from escort_rl.trainers.checkpointing import checkpoint_dir, load_checkpoint, save_checkpoint
+from escort_rl.trainers.reinforce import episode_stats, iteration_seed, make_logger
+
+EPISODE_KEYS = (("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "true_state"))
+
+
+# ------------------------------------------------------------------------------------ building
+def build_dvrl_policy(cfg: DictConfig, model) -> DVRLPolicy:
+    """The :class:`DVRLPolicy` of ``cfg.dvrl`` (``configs/dvrl/<domain>.yaml``) for ``model``, with a
+    :class:`StateReadout` to ``model.state_dim`` standardised by ``cfg.actor``'s input scaling."""
+    dvrl = DVRL.from_config(OmegaConf.to_container(cfg.dvrl, resolve=True), model.obs_dim, model.n_actions)
+    readout = StateReadout(dvrl.summary_dim, model.state_dim, hidden=int(cfg.actor.hidden),
+                           loc=float(cfg.actor.input_loc), scale=float(cfg.actor.input_scale))
+    return DVRLPolicy(dvrl, readout=readout).to(cfg.device)
+
+
+def make_dvrl_env(cfg: DictConfig, num_envs: int, seed: int | None = None) -> TransformedEnv:
+    """``POMDPEnv`` with ``InitTracker`` and the DVRL state primer (module level, picklable by
+    ``functools.partial``, like :func:`escort_rl.trainers.builders.make_env`)."""
+    model = build_model(cfg.env, cfg.device)
+    base = POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
+    primer = build_dvrl_policy(cfg, model).make_tensordict_primer()
+    return TransformedEnv(base, Compose(InitTracker(), primer))
+
+
+def validate_dvrl_config(cfg: DictConfig) -> None:
+    t, loss = cfg.trainer, cfg.dvrl.get("loss") or {}
+    checks = [
+        ("trainer.iterations", t.iterations >= 1, "a positive int"),
+        ("trainer.num_envs", t.num_envs >= 1, "a positive int"),
+        ("trainer.lr", t.lr > 0, "a positive float"),
+        ("trainer.readout_lr", t.readout_lr > 0, "a positive float"),
+        ("trainer.gamma", 0 < t.gamma <= 1, "in (0, 1]"),
+        ("trainer.entropy_coef", t.entropy_coef >= 0, "non-negative"),
+        ("trainer.checkpoint_every", t.checkpoint_every >= 1, "a positive int"),
+        ("trainer.keep_checkpoints", t.keep_checkpoints >= 1, "a positive int"),
+        ("env.max_steps", cfg.env.max_steps is not None and cfg.env.max_steps >= 1, "a positive int"),
+    ]
+    for key, ok, what in checks:
+        if not ok:
+            raise ConfigError(f"{key}: must be {what}, got {OmegaConf.select(cfg, key)}")
+    for key, positive in (("encoding_loss_coef", False), ("value_loss_coef", False), ("bptt_steps", True)):
+        value = loss.get(key)
+        if value is None or value < 0 or (positive and (value < 1 or int(value) != value)):
+            raise ConfigError(f"dvrl.loss.{key}: must be {'a positive int' if positive else 'a non-negative float'}"
+                              f", got {value}; set it in configs/dvrl/{cfg.dvrl.name}.yaml")
+    if cfg.dvrl.name != cfg.env.name:
+        raise ConfigError(f"dvrl: the config '{cfg.dvrl.name}' is for another env than '{cfg.env.name}'; "
+                          f"pass dvrl={cfg.env.name}")
+
+
+# ------------------------------------------------------------------------------------ the loss
+def window_returns(reward: torch.Tensor, done: torch.Tensor, bootstrap: torch.Tensor, gamma: float) -> torch.Tensor:
+    """n-step returns of a window: ``R_t = r_t + γ (1 − done_t) R_{t+1}``, ``R_T = bootstrap``.
+
+    ``reward``, ``done``: ``[B, T]``; ``bootstrap``: ``[B]`` (the value after the window) -> ``[B, T]``.
+    """
+    out = torch.empty_like(reward)
+    running = bootstrap
+    for t in range(reward.shape[1] - 1, -1, -1):
+        running = reward[:, t] + gamma * (~done[:, t]).to(reward.dtype) * running
+        out[:, t] = running
+    return out
+
+
+def a2c_loss(window: TensorDictBase, bootstrap: torch.Tensor, gamma: float, entropy_coef: float,
+             value_loss_coef: float, encoding_loss_coef: float) -> tuple[torch.Tensor, dict]:
+    """The DVRL objective of one window ``[B, T]`` (see the module docstring).
+
+    ``window`` holds ``logits [B, T, A]``, ``action [B, T]``, ``state_value [B, T, 1]``, ``dvrl_elbo
+    [B, T]`` (with gradients) and ``("next", "reward" | "done") [B, T, 1]``. Returns the loss and
+    its terms as floats.
+    """
+    reward = window["next", "reward"].squeeze(-1)
+    done = window["next", "done"].squeeze(-1)
+    value = window["state_value"].squeeze(-1)
+    returns = window_returns(reward, done, bootstrap, gamma)
+    advantage = (returns - value).detach()
+    if advantage.numel() > 1:
+        advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
+    dist = torch.distributions.Categorical(logits=window["logits"])
+    policy_loss = -(dist.log_prob(window["action"]) * advantage).mean()
+    value_loss = torch.nn.functional.smooth_l1_loss(value, returns)
+    entropy = dist.entropy().mean()
+    elbo = window["dvrl_elbo"].mean()
+    loss = policy_loss + value_loss_coef * value_loss - entropy_coef * entropy - encoding_loss_coef * elbo
+    terms = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy, "elbo": elbo}
+    return loss, {k: float(v.detach()) for k, v in terms.items()}
+
+
+# ------------------------------------------------------------------------------------ training
+def train_dvrl(cfg: DictConfig, resume_state: dict | None = None, progress: bool = True) -> Path:
+    """Train DVRL and its readout; returns the run directory (``config.yaml``, ``checkpoints/``, CSV
+    logs and ``history.json``, as :func:`escort_rl.trainers.reinforce.train`)."""
+    validate_dvrl_config(cfg)
+    run_dir = Path(cfg.output_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    torch.manual_seed(int(cfg.seed))
+    t, loss_cfg = cfg.trainer, cfg.dvrl.loss
+
+    model = build_model(cfg.env, cfg.device)
+    policy = build_dvrl_policy(cfg, model)
+    optimizer = torch.optim.Adam(policy.dvrl.parameters(), lr=float(t.lr))
+    readout_optimizer = torch.optim.Adam(policy.readout.parameters(), lr=float(t.readout_lr))
+    components = {"actor": policy, "optimizer": optimizer, "readout_optimizer": readout_optimizer}
+
+    state = {"iteration": 0, "frames": 0, "history": []}
+    if resume_state is not None:
+        saved = load_checkpoint(resume_state["path"], **components)["trainer_state"]
+        state = {"iteration": int(saved["iteration"]), "frames": int(saved["frames"]), "history": list(saved["history"])}
+    n_iter = int(t.iterations)
+    if state["iteration"] >= n_iter:
+        return run_dir
+    rotation = CheckpointRotation(checkpoint_dir(run_dir), keep_last=int(t.keep_checkpoints))
+    config_dict = OmegaConf.to_container(cfg, resolve=True)
+    horizon, bptt = int(cfg.env.max_steps), int(loss_cfg.bptt_steps)
+    env = make_dvrl_env(cfg, int(t.num_envs), seed=int(cfg.seed))
+    logger = make_logger(cfg, run_dir)
+    bar = tqdm(total=n_iter, initial=state["iteration"], desc="train dvrl", disable=not progress, dynamic_ncols=True)
+    try:
+        for it in range(state["iteration"], n_iter):
+            seed = iteration_seed(cfg.seed, it)
+            env.set_seed(seed)
+            torch.manual_seed(seed)
+            t0 = time.perf_counter()
+            td = env.reset()
+            sums = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "elbo": 0.0, "readout_loss": 0.0,
+                    "grad_norm": 0.0}
+            episode_steps, windows = [], 0
+            for start in range(0, horizon, bptt):
+                steps = []
+                for _ in range(min(bptt, horizon - start)):
+                    td = policy(td)
+                    td, td_root = env.step_and_maybe_reset(td)
+                    steps.append(td)
+                    td = td_root
+                window = torch.stack(steps, dim=1)  # [B, T]
+                with torch.no_grad():
+                    bootstrap = policy(td.clone())["state_value"].squeeze(-1)
+                loss, terms = a2c_loss(window, bootstrap, float(t.gamma), float(t.entropy_coef),
+                                       float(loss_cfg.value_loss_coef), float(loss_cfg.encoding_loss_coef))
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(policy.dvrl.parameters(), float(t.max_grad_norm))
+                optimizer.step()
+
+                readout_loss = policy.readout.loss(window["dvrl_summary"].detach(), window["true_state"])
+                readout_optimizer.zero_grad(set_to_none=True)
+                readout_loss.backward()
+                readout_optimizer.step()
+
+                for key, value in terms.items():
+                    sums[key] += value
+                sums["readout_loss"] += float(readout_loss.detach())
+                sums["grad_norm"] += float(grad_norm)
+                windows += 1
+                episode_steps.append(window.select(*EPISODE_KEYS).detach())
+                td = td.detach()  # truncate backpropagation through time
+            batch = torch.cat(episode_steps, dim=1)
+            seconds = time.perf_counter() - t0
+            state["iteration"] = it + 1
+            state["frames"] += batch.numel()
+            record = {"iteration": it + 1, "frames": state["frames"], **episode_stats(batch, model),
+                      **{k: v / windows for k, v in sums.items()}, "fps": batch.numel() / max(seconds, 1e-9),
+                      "seconds": seconds}
+            if not all(math.isfinite(record[k]) for k in ("policy_loss", "value_loss", "elbo")):
+                raise FloatingPointError(f"DVRL training: a non-finite loss at iteration {it + 1} ({record}); "
+                                         "lower trainer.lr or dvrl.loss.encoding_loss_coef")
+            state["history"].append(record)
+            for key, value in record.items():
+                if key != "iteration":
+                    logger.log_scalar(key, value, step=it + 1)
+            bar.set_postfix(ret=f"{record['episode_return']:.1f}", elbo=f"{record['elbo']:.2f}",
+                            fps=f"{record['fps']:.0f}")
+            bar.update(1)
+            if (it + 1) % int(t.checkpoint_every) == 0 or it + 1 == n_iter:
+                save_checkpoint(rotation, it + 1, state, config_dict, **components)
+    finally:
+        bar.close()
+        env.close()
+    (run_dir / "history.json").write_text(json.dumps(state["history"], indent=1))
+    return run_dir
+
+
+# ------------------------------------------------------------------------------------ evaluation
+def load_dvrl_policy(checkpoint: str | Path) -> tuple[DictConfig, DVRLPolicy]:
+    """The config and the trained :class:`DVRLPolicy` (with its readout) of a DVRL checkpoint."""
+    from escort_rl.trainers.checkpointing import resolve_checkpoint
+
+    path = resolve_checkpoint(checkpoint)
+    cfg = OmegaConf.create(load_checkpoint(path)["config"])
+    policy = build_dvrl_policy(cfg, build_model(cfg.env, cfg.device))
+    load_checkpoint(path, actor=policy)
+    policy.eval()
+    return cfg, policy
+
+
+@torch.no_grad()
+def next_state_estimates(policy: DVRLPolicy, rollout: TensorDict, chunk: int = 4096) -> torch.Tensor:
+    """The readout's estimate of the state after each step of ``rollout`` ``[E, T]``: one belief
+    update with ``("next", "observation")`` from the carried particles ``("next", "dvrl_*")``, the
+    same update the policy makes at the next step. Returns ``[E, T, state_dim]``, comparable with
+    ``("next", "true_state")`` like a filter's ``("next", "particles")``."""
+    nxt = rollout["next"]
+    e, t = rollout.batch_size
+    flat = nxt.reshape(-1)
+    out = []
+    for start in range(0, flat.shape[0], chunk):
+        part = flat[start:start + chunk].clone()
+        part.set("is_init", torch.zeros(part.shape[0], 1, dtype=torch.bool))
+        out.append(policy(part)["state_estimate"])
+    return torch.cat(out).reshape(e, t, -1)
