@@ -137,6 +137,18 @@ def _parser() -> argparse.ArgumentParser:
                                "Mahalanobis error and variance ratio against the exact Kalman posterior.")
     cal.add_argument("--particles", type=int, default=300)
     cal.add_argument("--steps", type=int, default=12)
+    pb = bench_sub.add_parser("planner-budget", help="POMCPOW return against simulations per decision",
+                              description="POMCPOW on an SIR belief with each n_sim in --budgets, plus a uniform-random "
+                              "policy, on the same seeded episodes: return, final distance to goal and ms per "
+                              "decision (mean ± s.e.); writes planner_budget.json and planner_budget.md.")
+    pb.add_argument("--domain", default="lightdark1d", help="lightdark1d (default) or a configs/planner domain")
+    pb.add_argument("--budgets", type=int, nargs="+", default=None,
+                    help="n_sim values (default: lightdark1d 10 30 100 300, others 10 50 200)")
+    pb.add_argument("--episodes", type=int, default=None, help="episodes, one seeded batch (default 30 / 10)")
+    pb.add_argument("--steps", type=int, default=None, help="steps per episode (default 15 / 100)")
+    pb.add_argument("--output", default="outputs/bench/planner_budget", help="folder for the JSON and markdown")
+    pb.add_argument("--quick", action="store_true", help="smoke run (flags given win): budgets 2 5, 2 episodes, "
+                    "3 steps, 20 particles")
     cfg = sub.add_parser("config", help="print the composed config", description="Print the config as YAML.")
     cfg.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     return parser
@@ -243,7 +255,7 @@ def _bench_domains(args) -> None:
                              workers=args.workers, equal_time=not args.no_equal_time,
                              max_particles=kw["max_particles"], calibration_steps=1 if args.quick else 3,
                              filter_set=dom.parse_filter_set(kw["filter_set"]), threads=kw["threads"],
-                             progress=show, plot_dir=out)
+                             progress=show, plot_dir=out, runs_dir=out / "runs")
     md = dom.domains_markdown(result)
     (out / "domains.json").write_text(json.dumps(result, indent=1))
     (out / "domains.md").write_text(md)
@@ -352,6 +364,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"results: {out.resolve()}")
         elif args.command == "bench" and args.bench == "domains":
             _bench_domains(args)
+        elif args.command == "bench" and args.bench == "planner-budget":
+            from escort_rl.bench.planner_budget import cli as planner_budget_cli
+
+            planner_budget_cli(args)
         elif args.command == "bench" and args.bench == "calibration":
             from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
             from escort_rl.bench.calibration import kalman_calibration

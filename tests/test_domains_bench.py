@@ -110,3 +110,22 @@ def test_a_diverged_method_is_a_failed_row_and_the_run_goes_on(monkeypatch):
     assert eq["svgd"]["failed"] and eq["svgd"]["reused_equal_n"]
     md = dom.domains_markdown(result)
     assert "| svgd | failed at step 3 |" in md and "## Failed runs" in md and "diverged (test)" in md
+
+
+def test_learned_belief_row_reads_the_shared_trajectories(tmp_path, monkeypatch):
+    from escort_rl.bench import closed_loop as cl
+
+    settings = cl.load_settings()
+    settings["train"] = {d: {"iterations": 1, "num_envs": 2} for d in settings["train"]}
+    monkeypatch.setattr(cl, "load_settings", lambda: settings)
+    with pytest.raises(ValueError, match="--output"):
+        dom.run_domains(["lightdark10d"], ["dvrl"], seeds=2, n=10, steps=3)
+    result = dom.run_domains(["lightdark10d"], ["sir", "dvrl"], seeds=2, n=10, steps=4, equal_time=True,
+                             max_particles=10, calibration_steps=1, runs_dir=tmp_path / "runs", threads=1)
+    rows = {r["method"]: r for r in result["rows"]}
+    assert rows["dvrl"]["input_hashes"] == rows["sir"]["input_hashes"]  # the same sequences
+    assert len(rows["dvrl"]["error_over_time"]["mean"]) == 5 and rows["dvrl"]["failed"] is None
+    assert all(e >= 0 for e in rows["dvrl"]["per_seed"]["final_error"])
+    assert [r["method"] for r in result["equal_time"]["rows"]] == ["sir"]  # no particle count to match
+    assert (tmp_path / "runs" / "lightdark10d" / "dvrl" / "checkpoints").is_dir()
+    assert "| DVRL (learned belief, readout) |" in dom.domains_markdown(result)

@@ -48,6 +48,7 @@ from pathlib import Path
 import torch
 
 from escort_rl.models import position_dims, position_error
+from escort_rl.trainers.evaluate import display_path
 
 DEFAULT_METHODS = ("escort", "escort_nocorr", "escort_notemp", "escort_noproj", "svgd", "sir")
 DEFAULT_DOMAINS = ("lightdark10d", "kidnapped20d", "mtt20d")
@@ -105,19 +106,28 @@ def check_names(domains, methods, filter_set: tuple = ()) -> None:
         raise ValueError("--domains: give at least one domain")
     if not methods:
         raise ValueError("--methods: give at least one method")
-    known_d, known_m = available_domains(), available_methods()
+    known_d, known_m, learned = available_domains(), available_methods(), learned_methods()
     for d in domains:
         if d not in known_d:
             raise ValueError(f"--domains: unknown domain '{d}'; choose from {', '.join(known_d)}")
     for m in methods:
-        if m not in known_m:
+        if m not in known_m and m not in learned:
             raise ValueError(f"--methods: unknown method '{m}'; the methods are the filter configs "
-                             f"{', '.join(known_m)}")
+                             f"{', '.join(known_m)} and the learned beliefs {', '.join(learned)}")
     if len(set(methods)) != len(methods):
         raise ValueError("--methods: a method is listed twice")
+    filters = [m for m in methods if m not in learned]
     for key, _ in filter_set:
-        if not any(key in applied_filter_set(m, ((key, ""),)) for m in methods):
+        if not any(key in applied_filter_set(m, ((key, ""),)) for m in filters):
             raise ValueError(f"--filter-set: no method in --methods has the filter key '{key}'")
+
+
+def learned_methods() -> dict:
+    """The learned-belief methods (``learned`` in ``configs/bench/closed_loop.yaml``, e.g. ``dvrl``):
+    name -> ``{"trainer": ...}``."""
+    from escort_rl.bench.closed_loop import load_settings
+
+    return dict(load_settings().get("learned") or {})
 
 
 def check_at_least_one(**flags) -> None:
@@ -270,6 +280,58 @@ def filter_trajectories(domain: str, method: str, traj: dict, seeds: list[int], 
     return out
 
 
+def train_learned_beliefs(domains, methods, runs_dir: Path, progress: bool = False) -> dict:
+    """Train (or resume, or reuse) each learned-belief method of ``methods`` on each domain in
+    ``runs_dir/<domain>/<method>``, with protocol (b)'s run config and budget (the same folder layout,
+    so ``--output`` of a protocol (b) run can share its runs). Returns ``{(domain, method): checkpoint}``."""
+    from escort_rl.bench.closed_loop import load_settings, run_config, train_run
+
+    settings, learned = load_settings(), learned_methods()
+    out = {}
+    for d in domains:
+        for m in methods:
+            if m in learned:
+                cfg = run_config(d, "sir", int(settings["particles"]), Path(runs_dir) / d / m,
+                                 settings["train"][d], settings["actor"][d], trainer=learned[m]["trainer"])
+                out[(d, m)] = train_run(cfg, progress=progress)["checkpoint"]
+    return out
+
+
+@torch.no_grad()
+def learned_trajectories(domain: str, method: str, traj: dict, seeds: list[int], checkpoint: str,
+                         base_seed: int = 0) -> dict:
+    """A learned belief (DVRL) on the shared trajectories: the same output as :func:`filter_trajectories`.
+
+    The belief starts fresh (``h = z = 0``, the readout of that summary is the step-0 estimate) and
+    takes ``(actions[t], observations[t])`` at each step, as in its training (``a_{t-1}``, ``o_t``); the
+    position error is that of its readout's state estimate. It has no particles in state space, so
+    there is no prior hash (``belief_hashes`` are empty strings)."""
+    from escort_rl.trainers.dvrl_a2c import load_dvrl_policy
+
+    model, _ = build_domain(domain)
+    _, policy = load_dvrl_policy(checkpoint)
+    dvrl, readout = policy.dvrl, policy.readout
+    states, actions, obs = traj["states"], traj["actions"], traj["observations"]
+    b, steps = actions.shape
+    g = torch.Generator().manual_seed(derived_seed("filter", base_seed, seeds[0]))
+    state = dvrl.initial_state(b)
+    errors = [position_error(model, readout(dvrl.summarize(state)), states[:, 0])]
+    out = {"seconds": 0.0, "first_seconds": 0.0, "timed_steps": max(steps - 1, 1), "steps": steps,
+           "input_hashes": [tensor_hash(states[i], actions[i], obs[i]) for i in range(b)],
+           "belief_hashes": [""] * b, "filter": f"{method} ({display_path(Path(checkpoint))})", "failed": None}
+    for t in range(steps):
+        t0 = time.perf_counter()
+        state, _, summary = dvrl.step(state, actions[:, t], obs[:, t], None, g)
+        estimate = readout(summary)
+        if t == 0 and steps > 1:
+            out["first_seconds"] = time.perf_counter() - t0
+        else:
+            out["seconds"] += time.perf_counter() - t0
+        errors.append(position_error(model, estimate, states[:, t + 1]))
+    out["errors"] = torch.stack(errors, dim=1)
+    return out
+
+
 def _chunk_task(domain: str, method: str, seeds: list[int], n: int, steps: int, base_seed: int,
                 filter_set: tuple = ()) -> dict:
     """One worker process's share: regenerate its seeds' trajectories (identical to the main process's:
@@ -347,7 +409,8 @@ class _Runner:
     """Runs (domain, method, N) jobs over seed chunks, inline (``workers = 1``) or in a spawn pool."""
 
     def __init__(self, workers: int, seeds: list[int], base_seed: int, trajs: dict, filter_set: tuple,
-                 threads: int | None = None) -> None:
+                 threads: int | None = None, learned: dict | None = None) -> None:
+        self.learned = learned or {}  # (domain, method) -> checkpoint: run inline, on all seeds
         self.chunks = split_seeds(seeds, workers)
         self.filter_set = filter_set
         self.trajs = trajs
@@ -366,19 +429,23 @@ class _Runner:
     def run(self, jobs: list[tuple[str, str, int, int]], on_row=None) -> list[dict]:
         """``jobs``: (domain, method, N, steps). Rows in job order; ``on_row`` is called as each completes."""
         rows = []
-        if self.pool is None:
-            for domain, method, n, _ in jobs:
-                part = filter_trajectories(domain, method, self.trajs[domain], self.seeds, n, self.base_seed,
-                                           self.filter_set)
-                part["errors"] = part["errors"].tolist()
-                rows.append(_row(domain, method, n, [part], self.seeds))
-                if on_row is not None:
-                    on_row(rows[-1])
-            return rows
-        futures = [[self.pool.submit(_chunk_task, d, m, c, n, s, self.base_seed, self.filter_set) for c in self.chunks]
+        inline = self.pool is None
+        futures = [None if inline or (d, m) in self.learned else
+                   [self.pool.submit(_chunk_task, d, m, c, n, s, self.base_seed, self.filter_set) for c in self.chunks]
                    for d, m, n, s in jobs]
         for (domain, method, n, _), fs in zip(jobs, futures):
-            rows.append(_row(domain, method, n, [f.result() for f in fs], self.seeds))
+            if fs is not None:
+                parts = [f.result() for f in fs]
+            else:
+                if (domain, method) in self.learned:
+                    part = learned_trajectories(domain, method, self.trajs[domain], self.seeds,
+                                                self.learned[(domain, method)], self.base_seed)
+                else:
+                    part = filter_trajectories(domain, method, self.trajs[domain], self.seeds, n, self.base_seed,
+                                               self.filter_set)
+                part["errors"] = part["errors"].tolist()
+                parts = [part]
+            rows.append(_row(domain, method, n, parts, self.seeds))
             if on_row is not None:
                 on_row(rows[-1])
         return rows
@@ -411,7 +478,7 @@ def run_domains(domains=DEFAULT_DOMAINS, methods=DEFAULT_METHODS, seeds: int = 3
                 steps: int | None = None, workers: int = 1, equal_time: bool = True,
                 max_particles: int = 2000, particle_grid=PARTICLE_GRID, reference: str = "escort",
                 calibration_steps: int = 3, base_seed: int = 0, filter_set=(), threads: int | None = None,
-                progress=None, plot_dir=None) -> dict:
+                progress=None, plot_dir=None, runs_dir=None) -> dict:
     """Protocol (a) for every method on every domain; per-seed values and mean ± s.e.
 
     ``steps``: the horizon (default: each domain's ``env.max_steps``). ``filter_set``: (key, value)
@@ -421,23 +488,31 @@ def run_domains(domains=DEFAULT_DOMAINS, methods=DEFAULT_METHODS, seeds: int = 3
     on one thread, and much slower with several threads on a busy machine. ``progress(kind, payload)`` is
     called with ``("row", row)`` after each (domain, method) and ``("calibration", dict)`` after each
     equal-time measurement. With ``plot_dir``, writes ``error_over_time_<domain>.png``.
+    Learned-belief methods (``dvrl``) are trained first in ``runs_dir/<domain>/<method>`` (required
+    for them; see :func:`train_learned_beliefs`); they have no particle count, so they sit out the
+    equal-time table.
     """
     domains, methods = list(domains), list(methods)
     filter_set = tuple(tuple(kv) for kv in filter_set)
     check_names(domains, methods, filter_set)
     check_at_least_one(seeds=seeds, particles=n, steps=steps, workers=workers, threads=threads)
+    learned = [m for m in methods if m in learned_methods()]
+    if learned and runs_dir is None:
+        raise ValueError(f"--output: the learned beliefs {', '.join(learned)} need a folder to train in")
     previous_threads = torch.get_num_threads()
     if threads is not None:
         torch.set_num_threads(threads)
     try:
+        checkpoints = train_learned_beliefs(domains, learned, Path(runs_dir)) if learned else {}
         return _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_particles, particle_grid,
-                            reference, calibration_steps, base_seed, filter_set, threads, progress, plot_dir)
+                            reference, calibration_steps, base_seed, filter_set, threads, progress, plot_dir,
+                            checkpoints)
     finally:
         torch.set_num_threads(previous_threads)
 
 
 def _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_particles, particle_grid, reference,
-                 calibration_steps, base_seed, filter_set, threads, progress, plot_dir) -> dict:
+                 calibration_steps, base_seed, filter_set, threads, progress, plot_dir, checkpoints) -> dict:
     seed_list = list(range(seeds))
     horizon = {d: (steps if steps is not None else build_domain(d)[1]) for d in domains}
     t_start = time.perf_counter()
@@ -459,12 +534,13 @@ def _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_par
         if progress is not None:
             progress("row", row)
 
-    runner = _Runner(workers, seed_list, base_seed, trajs, filter_set, threads)
+    runner = _Runner(workers, seed_list, base_seed, trajs, filter_set, threads, checkpoints)
+    filters = [m for m in methods if not any((d, m) in checkpoints for d in domains)]
     try:
         rows = runner.run([(d, m, n, horizon[d]) for d in domains for m in methods], on_row)
         equal = None
-        if equal_time:
-            equal = _equal_time(domains, methods, rows, trajs, seed_list, n, horizon, runner, max_particles,
+        if equal_time and filters:
+            equal = _equal_time(domains, filters, rows, trajs, seed_list, n, horizon, runner, max_particles,
                                 particle_grid, reference, calibration_steps, base_seed, progress)
     finally:
         runner.close()
@@ -477,7 +553,8 @@ def _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_par
         "behaviour_policy": BEHAVIOUR_POLICY,
         "seeds": seeds, "particles": n, "workers": workers, "base_seed": base_seed,
         "methods": methods, "domains": domains, "domain_info": domain_info,
-        "filter_set": {m: applied_filter_set(m, filter_set) for m in methods},
+        "filter_set": {m: applied_filter_set(m, filter_set) for m in filters},
+        "learned": {f"{d}/{m}": display_path(Path(c)) for (d, m), c in checkpoints.items()},
         "torch_threads": torch.get_num_threads(),
         "worker_threads": (runner.worker_threads if workers > 1 else None), "seconds": time.perf_counter() - t_start,
         "rows": rows, "equal_time": equal,
@@ -596,8 +673,12 @@ def _table(result: dict, rows: list[dict], cell) -> list[str]:
     def show(r):
         return f"failed at step {r['failed']['step']}" if r["failed"] else cell(r)
 
+    learned = {key.split("/", 1)[1] for key in result.get("learned", {})}
     for m in result["methods"]:
-        lines.append(f"| {m} | " + " | ".join(show(by[(d, m)]) if (d, m) in by else "—" for d in domains) + " |")
+        label = f"{m.upper()} (learned belief, readout)" if m in learned else m
+        if not any((d, m) in by for d in domains):
+            continue  # e.g. a learned belief in the equal-time table
+        lines.append(f"| {label} | " + " | ".join(show(by[(d, m)]) if (d, m) in by else "—" for d in domains) + " |")
     return lines
 
 
@@ -616,6 +697,11 @@ def domains_markdown(result: dict) -> str:
         *([("Filter settings changed from the configs: " + "; ".join(
             f"{m}: " + ", ".join(f"{k}={v}" for k, v in kv.items()) for m, kv in result["filter_set"].items() if kv)
             + "."), ""] if any(result.get("filter_set", {}).values()) else []),
+        *([("Learned-belief rows (DVRL) were trained closed-loop with protocol (b)'s budget (checkpoints: "
+            + ", ".join(f"{k}: `{v}`" for k, v in result["learned"].items()) + "); they read the same "
+            "action/observation sequences, and their position error is that of a readout head from the belief "
+            "summary to the state, fitted to the training trajectories' true states. They have no particle "
+            "count and are not in the equal-time table."), ""] if result.get("learned") else []),
         "## Final position error (after the last step)",
         "",
         *_table(result, result["rows"], lambda r: _fmt(r["summary"]["final_error"])),
