@@ -1,8 +1,10 @@
 """The synthetic benchmark (SPEC §7): fit particles to fixed GMM targets and score them.
 
 Rows: ESCORT, ESCORT-NoCorr, SVGD (static fits by :meth:`ESCORTFilter.fit`; no time axis, so
-F_temp is off), SIR (importance resampling of the initial cloud by ``p/q``), and an oracle of N
-exact i.i.d. samples of the target (the floor N particles can reach). Every metric compares the
+F_temp is off), SIR (importance resampling of the initial cloud by ``p/q``), a DVRL-style
+parametric fit (DVRL's diagonal-Gaussian proposal family fitted by the importance-weighted ELBO with
+K = 100, then sampled; :mod:`escort_rl.bench.parametric`), and an oracle of N exact i.i.d. samples of
+the target (the floor N particles can reach). Every metric compares the
 particles with a fresh set of N exact samples. Seeds are batched: all seeds of a method are fitted
 in one ``[S, N, d]`` call.
 """
@@ -26,7 +28,7 @@ from escort_rl.bench.targets import (
 )
 
 SYNTHETIC_TARGETS = ("gmm1d", "gmm2d", "gmm3d", "gmm5d", "gmm20d")
-METHODS = ("escort", "escort_nocorr", "svgd", "sir", "oracle")
+METHODS = ("escort", "escort_nocorr", "svgd", "sir", "dvrl", "oracle")
 
 
 def _sample_batch(dist: GaussianMixture, seeds: list[int], n: int, offset: int) -> torch.Tensor:
@@ -43,6 +45,11 @@ def fit_particles(method: str, target: GaussianMixture, initial: GaussianMixture
     t0 = time.perf_counter()
     if method == "oracle":
         x = _sample_batch(target, seeds, n, offset=10_000)
+    elif method == "dvrl":
+        from escort_rl.bench.parametric import fit_parametric
+
+        x = fit_parametric(lambda z: target.log_prob(z), target.dim, seeds, n, num_steps=num_steps,
+                           init_mean=float(initial.means[0, 0]), init_std=float(initial.covariances[0, 0, 0]) ** 0.5)
     elif method == "sir":
         log_w = target.log_prob(x0) - initial.log_prob(x0)
         g = torch.Generator().manual_seed(seeds[0])
