@@ -115,6 +115,8 @@ def test_evaluate_reports_the_readout_position_error(tmp_path):
 def test_config_errors_name_the_key(tmp_path):
     with pytest.raises(ConfigError, match="dvrl.loss.bptt_steps"):
         train(_cfg(tmp_path, "dvrl.loss.bptt_steps=0"), progress=False)
+    with pytest.raises(ConfigError, match="dvrl.loss.reward_scale"):
+        train(_cfg(tmp_path, "dvrl.loss.reward_scale=0"), progress=False)
     with pytest.raises(ConfigError, match="dvrl="):
         train(_cfg(tmp_path, "dvrl=mtt20d"), progress=False)
     with pytest.raises(ConfigError, match="trainer.algorithm"):

@@ -8,7 +8,9 @@ if asked; then for each iteration reset ``num_envs`` envs (seeded per iteration)
 1. steps the policy with gradients (the belief update, the action, the value and the ELBO term
    of every step are one graph), auto-resetting finished envs (``step_and_maybe_reset``);
 2. bootstraps the window's returns with the value of the next belief (no gradient),
-   ``R_t = r_t + γ (1 − done_t) R_{t+1}``;
+   ``R_t = c_r r_t + γ (1 − done_t) R_{t+1}``, with ``c_r`` = ``dvrl.loss.reward_scale`` (the value head
+   fits ``c_r``-scaled returns: of order one instead of hundreds, which it could not reach from zero in
+   a few hundred Adam steps);
 3. takes one Adam step on
 
        L = −mean(log π(a_t) Â_t) + c_v · mean(Huber(V_t, R_t)) − c_H · mean(H[π_t])
@@ -85,9 +87,11 @@ def validate_dvrl_config(cfg: DictConfig) -> None:
     for key, ok, what in checks:
         if not ok:
             raise ConfigError(f"{key}: must be {what}, got {OmegaConf.select(cfg, key)}")
-    for key, positive in (("encoding_loss_coef", False), ("value_loss_coef", False), ("bptt_steps", True)):
+    for key, positive in (("encoding_loss_coef", False), ("value_loss_coef", False), ("bptt_steps", True),
+                          ("reward_scale", False)):
         value = loss.get(key)
-        if value is None or value < 0 or (positive and (value < 1 or int(value) != value)):
+        if value is None or value < 0 or (positive and (value < 1 or int(value) != value)) or \
+                (key == "reward_scale" and value == 0):
             raise ConfigError(f"dvrl.loss.{key}: must be {'a positive int' if positive else 'a non-negative float'}"
                               f", got {value}; set it in configs/dvrl/{cfg.dvrl.name}.yaml")
     if cfg.dvrl.name != cfg.env.name:
@@ -110,14 +114,14 @@ def window_returns(reward: torch.Tensor, done: torch.Tensor, bootstrap: torch.Te
 
 
 def a2c_loss(window: TensorDictBase, bootstrap: torch.Tensor, gamma: float, entropy_coef: float,
-             value_loss_coef: float, encoding_loss_coef: float) -> tuple[torch.Tensor, dict]:
+             value_loss_coef: float, encoding_loss_coef: float, reward_scale: float = 1.0) -> tuple[torch.Tensor, dict]:
     """The DVRL objective of one window ``[B, T]`` (see the module docstring).
 
     ``window`` holds ``logits [B, T, A]``, ``action [B, T]``, ``state_value [B, T, 1]``, ``dvrl_elbo
-    [B, T]`` (with gradients) and ``("next", "reward" | "done") [B, T, 1]``. Returns the loss and
-    its terms as floats.
+    [B, T]`` (with gradients) and ``("next", "reward" | "done") [B, T, 1]``; ``bootstrap [B]`` and the
+    values are in units of ``reward_scale × reward``. Returns the loss and its terms as floats.
     """
-    reward = window["next", "reward"].squeeze(-1)
+    reward = reward_scale * window["next", "reward"].squeeze(-1)
     done = window["next", "done"].squeeze(-1)
     value = window["state_value"].squeeze(-1)
     returns = window_returns(reward, done, bootstrap, gamma)
@@ -185,7 +189,8 @@ def train_dvrl(cfg: DictConfig, resume_state: dict | None = None, progress: bool
                 with torch.no_grad():
                     bootstrap = policy(td.clone())["state_value"].squeeze(-1)
                 loss, terms = a2c_loss(window, bootstrap, float(t.gamma), float(t.entropy_coef),
-                                       float(loss_cfg.value_loss_coef), float(loss_cfg.encoding_loss_coef))
+                                       float(loss_cfg.value_loss_coef), float(loss_cfg.encoding_loss_coef),
+                                       float(loss_cfg.reward_scale))
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 grad_norm = torch.nn.utils.clip_grad_norm_(policy.dvrl.parameters(), float(t.max_grad_norm))
