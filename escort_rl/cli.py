@@ -139,9 +139,9 @@ def _parser() -> argparse.ArgumentParser:
     cal.add_argument("--particles", type=int, default=300)
     cal.add_argument("--steps", type=int, default=12)
     pb = bench_sub.add_parser("planner-budget", help="POMCPOW return against simulations per decision",
-                              description="POMCPOW on an SIR belief with each n_sim in --budgets, plus a uniform-random "
-                              "policy, on the same seeded episodes: return, final distance to goal and ms per "
-                              "decision (mean ± s.e.); writes planner_budget.json and planner_budget.md.")
+                              description="POMCPOW on an SIR belief with each n_sim in --budgets, plus a "
+                              "uniform-random policy, on the same seeded episodes: return, final distance to goal "
+                              "and ms per decision (mean ± s.e.); writes planner_budget.json and planner_budget.md.")
     pb.add_argument("--domain", default="lightdark1d", help="lightdark1d (default) or a configs/planner domain")
     pb.add_argument("--budgets", type=int, nargs="+", default=None,
                     help="n_sim values (default: lightdark1d 10 30 100 300, others 10 50 200)")

@@ -12,6 +12,7 @@ from escort_rl.belief import SIRFilter
 from escort_rl.config import ConfigError, compose
 from escort_rl.models import DOMAINS, check_model
 from escort_rl.models.light_dark_1d import DECLARE, LightDark1D
+from escort_rl.planners.planner_config import LIGHTDARK1D_PLANNER
 from escort_rl.planners.planner_config import build_planner, load_planner_config, planner_domains
 from escort_rl.planners.policy import POMCPOWPolicy
 from escort_rl.planners.pomcpow import POMCPOW, ActionNode, BeliefNode
@@ -25,11 +26,11 @@ def gen(seed: int) -> torch.Generator:
 
 
 def light_dark_planner(n_sim: int) -> POMCPOW:
-    """Settings for the 1-D test problem: depth 5 reaches the light and comes back; few observation
-    children (k_o = 2, α_o = 0.1) so that each holds many weighted particles; a zero leaf value,
-    since random rollouts (which declare at random) mostly add noise here."""
-    return POMCPOW(n_sim=n_sim, max_depth=5, exploration_constant=100.0, k_action=3.0, alpha_action=0.0,
-                   k_observation=2.0, alpha_observation=0.1, discount=0.9, leaf_value=lambda s, depth: 0.0)
+    """The 1-D test problem's settings (``LIGHTDARK1D_PLANNER``, shared with the planner-budget
+    benchmark): depth 5 reaches the light and comes back; few observation children (k_o = 2,
+    α_o = 0.1) so that each holds many weighted particles; a zero leaf value, since random rollouts
+    (which declare at random) mostly add noise here."""
+    return POMCPOW(n_sim=n_sim, **LIGHTDARK1D_PLANNER)
 
 
 def run_episode(model: LightDark1D, choose_action, seed: int, max_steps: int = 10) -> float:
@@ -96,7 +97,10 @@ def test_first_move_is_towards_the_light():
     """From the broad start belief (symmetric about the goal) moving left or right is the same for
     reaching the goal; only the move towards the light (right) informs. At 400 simulations the search
     prefers it in most seeds (not in all: the Q-values of a thin tree are noisy), puts most root
-    visits on it, and never declares."""
+    visits on it, and never declares. Measured on plan seeds 0..29: right first in 23 at 400
+    simulations, 25 at 3200, 28 at 6400. The detour is worth about +20 at depth 5 (sparse-sampling
+    estimate: Q(right) ≈ 22..28, Q(left) ≈ 6), but it pays off 3-4 actions down the tree
+    (right, left, left, declare), which a 400-simulation tree only partly explores."""
     model = LightDark1D()
     particles = model.initial_belief((), 200, gen(0))
     planner = light_dark_planner(n_sim=400)
