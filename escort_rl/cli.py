@@ -133,6 +133,11 @@ def _parser() -> argparse.ArgumentParser:
                      help="protocol b: trainer.num_envs for every domain (default: the yaml's)")
     dom.add_argument("--output", default="outputs/bench/domains", help="folder for domains.json, domains.md, PNGs "
                      "(protocol b: closed_loop.json, closed_loop.md, PNGs and runs/)")
+    cur = bench_sub.add_parser("curves", help="learning curves of training runs side by side",
+                               description="Return, final distance to goal and (DVRL) ELBO against frames for "
+                               "each run directory; writes learning_curves.png, .md and .json.")
+    cur.add_argument("runs", nargs="+", help="run directories (or checkpoints), e.g. outputs/lightdark10d")
+    cur.add_argument("--output", default="outputs/bench/curves", help="folder for the figure and tables")
     cal = bench_sub.add_parser("calibration", help="SVGD/ESCORT variants against the Kalman filter",
                                description="Linear-Gaussian model (d=4), N=300, 12 steps, 4 episodes: mean "
                                "Mahalanobis error and variance ratio against the exact Kalman posterior.")
@@ -370,6 +375,11 @@ def main(argv: list[str] | None = None) -> int:
             from escort_rl.bench.planner_budget import cli as planner_budget_cli
 
             planner_budget_cli(args)
+        elif args.command == "bench" and args.bench == "curves":
+            from escort_rl.bench.curves import curves_markdown, write_curves
+
+            print(curves_markdown(write_curves(args.runs, args.output)))
+            print(f"results: {Path(args.output).resolve()}")
         elif args.command == "bench" and args.bench == "calibration":
             from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
             from escort_rl.bench.calibration import kalman_calibration
