@@ -41,7 +41,7 @@ def test_bench_synthetic_quick(tmp_path):
     assert main(["bench", "synthetic", "--quick", "--output", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "synthetic.json").read_text())
     methods = {r["method"] for r in result["rows"]}
-    assert methods == {"escort", "escort_nocorr", "svgd", "sir", "oracle"}
+    assert methods == {"escort", "escort_nocorr", "svgd", "sir", "dvrl", "oracle"}
     oracle = [r for r in result["rows"] if r["method"] == "oracle" and r["target"] == "gmm1d"][0]
     assert oracle["summary"]["mode_coverage"][0] == 1.0
     assert not math.isnan(oracle["summary"]["w1"][0])
