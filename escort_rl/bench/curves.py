@@ -44,12 +44,12 @@ def plot_learning_curves(runs: list[dict], path: Path) -> Path:
     panels = [("episode_return", "mean episode return"), ("final_distance", "final distance to goal"),
               ("elbo", "ELBO per step (DVRL)")]
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
-    for run in runs:
+    for i, run in enumerate(runs):
         frames = [h["frames"] for h in run["history"]]
         for ax, (key, _) in zip(axes, panels):
             values = [h.get(key, math.nan) for h in run["history"]]
             if any(not math.isnan(v) for v in values):
-                ax.plot([f / 1000 for f in frames], values, marker=".", label=f"{run['label']} ({Path(run['run']).name})")
+                ax.plot([f / 1000 for f in frames], values, marker=".", label=f"{run['label']} ({Path(run['run']).name})", color=f"C{i}")
     for ax, (_, name) in zip(axes, panels):
         ax.set_xlabel("frames (thousands)")
         ax.set_ylabel(name)
