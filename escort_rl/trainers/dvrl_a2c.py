@@ -46,8 +46,8 @@ from escort_rl.envs import POMDPEnv
 from escort_rl.modules import DVRL, DVRLPolicy
 from escort_rl.modules.dvrl_networks import StateReadout
 from escort_rl.trainers.builders import build_model
-from escort_rl.trainers.checkpointing import checkpoint_dir, load_checkpoint, save_checkpoint
-from escort_rl.trainers.reinforce import episode_stats, iteration_seed, make_logger
+from escort_rl.trainers.checkpointing import checkpoint_dir, load_checkpoint
+from escort_rl.trainers.reinforce import episode_stats, iteration_seed, make_logger, record_iteration
 
 EPISODE_KEYS = (("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "true_state"))
 
@@ -218,15 +218,10 @@ def train_dvrl(cfg: DictConfig, resume_state: dict | None = None, progress: bool
             if not all(math.isfinite(record[k]) for k in ("policy_loss", "value_loss", "elbo")):
                 raise FloatingPointError(f"DVRL training: a non-finite loss at iteration {it + 1} ({record}); "
                                          "lower trainer.lr or dvrl.loss.encoding_loss_coef")
-            state["history"].append(record)
-            for key, value in record.items():
-                if key != "iteration":
-                    logger.log_scalar(key, value, step=it + 1)
             bar.set_postfix(ret=f"{record['episode_return']:.1f}", elbo=f"{record['elbo']:.2f}",
                             fps=f"{record['fps']:.0f}")
             bar.update(1)
-            if (it + 1) % int(t.checkpoint_every) == 0 or it + 1 == n_iter:
-                save_checkpoint(rotation, it + 1, state, config_dict, **components)
+            record_iteration(record, state, logger, rotation, config_dict, components, int(t.checkpoint_every), n_iter)
     finally:
         bar.close()
         env.close()

@@ -178,6 +178,19 @@ def episode_stats(batch: TensorDict, model) -> dict:
     }
 
 
+def record_iteration(record: dict, state: dict, logger, rotation, config_dict: dict, components: dict,
+                     checkpoint_every: int, n_iter: int) -> None:
+    """Append an iteration's ``record`` to the trainer state's history, log its scalars, and save a
+    checkpoint every ``checkpoint_every`` iterations and after the last (shared by both trainers)."""
+    it = int(record["iteration"])
+    state["history"].append(record)
+    for key, value in record.items():
+        if key != "iteration":
+            logger.log_scalar(key, value, step=it)
+    if it % int(checkpoint_every) == 0 or it == n_iter:
+        save_checkpoint(rotation, it, state, config_dict, **components)
+
+
 def train(cfg: DictConfig, resume_state: dict | None = None, progress: bool = True) -> Path:
     """Train the DeepSets policy; returns the run directory.
 
@@ -237,15 +250,11 @@ def train(cfg: DictConfig, resume_state: dict | None = None, progress: bool = Tr
             record = {"iteration": it + 1, "frames": state["frames"], **episode_stats(batch, model),
                       "loss": stats["loss"], "entropy": stats["entropy"], "grad_norm": float(grad_norm),
                       "fps": batch.numel() / max(collect_s, 1e-9), "seconds": time.perf_counter() - t0}
-            state["history"].append(record)
-            for key, value in record.items():
-                if key != "iteration":
-                    logger.log_scalar(key, value, step=it + 1)
             bar.set_postfix(ret=f"{record['episode_return']:.1f}", dist=f"{record['final_distance']:.2f}",
                             fps=f"{record['fps']:.0f}")
             bar.update(1)
-            if (it + 1) % int(cfg.trainer.checkpoint_every) == 0 or it + 1 == n_iter:
-                save_checkpoint(rotation, it + 1, state, config_dict, **components)
+            record_iteration(record, state, logger, rotation, config_dict, components,
+                             int(cfg.trainer.checkpoint_every), n_iter)
     finally:
         bar.close()
         collector.shutdown()
