@@ -90,22 +90,7 @@ def _model_and_maker(domain: str, cfg):
     """The domain's model and the env maker ``make(cfg, num_envs, seed)`` for ``run_episodes``."""
     from escort_rl.trainers.builders import build_model, make_env
 
-    if domain != LIGHTDARK1D:
-        return build_model(cfg.env, cfg.device), make_env
-    from torchrl.envs import TransformedEnv
-
-    from escort_rl.envs import POMDPEnv
-    from escort_rl.models import LightDark1D
-    from escort_rl.trainers.builders import build_filter
-    from escort_rl.transforms import BeliefTransform
-
-    model = LightDark1D(device=cfg.device)
-
-    def make(cfg, num_envs: int, seed: int | None = None):  # make_env, for a model without an env config
-        base = POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
-        return TransformedEnv(base, BeliefTransform(model, build_filter(cfg.filter), int(cfg.num_particles)))
-
-    return model, make
+    return build_model(cfg.env, cfg.device), make_env
 
 
 def planner_settings(domain: str) -> dict:
