@@ -117,6 +117,8 @@ def test_config_errors_name_the_key(tmp_path):
         train(_cfg(tmp_path, "dvrl.loss.bptt_steps=0"), progress=False)
     with pytest.raises(ConfigError, match="dvrl.loss.reward_scale"):
         train(_cfg(tmp_path, "dvrl.loss.reward_scale=0"), progress=False)
+    with pytest.raises(ConfigError, match="collector.workers"):
+        train(_cfg(tmp_path, "collector.workers=2"), progress=False)
     with pytest.raises(ConfigError, match="dvrl="):
         train(_cfg(tmp_path, "dvrl=mtt20d"), progress=False)
     with pytest.raises(ConfigError, match="trainer.algorithm"):

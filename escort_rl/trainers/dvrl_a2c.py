@@ -94,6 +94,9 @@ def validate_dvrl_config(cfg: DictConfig) -> None:
                 (key == "reward_scale" and value == 0):
             raise ConfigError(f"dvrl.loss.{key}: must be {'a positive int' if positive else 'a non-negative float'}"
                               f", got {value}; set it in configs/dvrl/{cfg.dvrl.name}.yaml")
+    if int(cfg.collector.workers) != 1:
+        raise ConfigError(f"collector.workers: trainer=dvrl_a2c steps its envs in this process (it needs the "
+                          f"gradients of the acting particles), got {cfg.collector.workers}; set collector.workers=1")
     if cfg.dvrl.name != cfg.env.name:
         raise ConfigError(f"dvrl: the config '{cfg.dvrl.name}' is for another env than '{cfg.env.name}'; "
                           f"pass dvrl={cfg.env.name}")
