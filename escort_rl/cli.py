@@ -155,29 +155,46 @@ def _parser() -> argparse.ArgumentParser:
     pb.add_argument("--output", default="outputs/bench/planner_budget", help="folder for the JSON and markdown")
     pb.add_argument("--quick", action="store_true", help="smoke run (flags given win): budgets 2 5, 2 episodes, "
                     "3 steps, 20 particles")
-    cfg = sub.add_parser("config", help="print the composed config", description="Print the config as YAML.")
+    cfg = sub.add_parser("config", help="print the composed config",
+                         description="Print the config as YAML; with resume=RUN_DIR, the config that "
+                         "`escort-rl train resume=RUN_DIR ...` would continue that run with.")
     cfg.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     return parser
 
 
-def _train(overrides: list[str], quiet: bool = False) -> Path:
-    from omegaconf import OmegaConf
+def _train_config(overrides: list[str]):
+    """The config ``escort-rl train`` runs with, and the checkpoint it resumes (``None``: a new run).
 
-    from escort_rl.config import compose, merge_overrides
+    A new run records its overrides in the config (``overrides``); ``resume=RUN_DIR key=value ...``
+    composes the saved run's overrides followed by the new ones again (see
+    :func:`escort_rl.config.recompose`)."""
+    from escort_rl.config import compose, recompose, saved_config_drift
     from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
-    from escort_rl.trainers.registry import train
 
     resume = [o.split("=", 1)[1] for o in overrides if o.startswith("resume=")]
     rest = [o for o in overrides if not o.startswith("resume=")]
-    if resume and resume[0] not in ("", "null", "None"):
-        path = resolve_checkpoint(resume[0])
+    if resume and resume[-1] not in ("", "null", "None"):
+        path = resolve_checkpoint(resume[-1])
         saved = load_checkpoint(path)
-        cfg = merge_overrides(OmegaConf.create(saved["config"]), rest)
+        cfg = recompose(saved["config"], rest)
         cfg.resume = str(path)
-        print(f"resuming from {path} (iteration {saved['trainer_state']['iteration']})")
-        return train(cfg, resume_state=saved, progress=not quiet)
+        drift = saved_config_drift(saved["config"])
+        if drift:
+            print(f"note: the yaml changed since this run started; resuming with today's values of "
+                  f"{', '.join(drift[:8])}{' ...' if len(drift) > 8 else ''}", file=sys.stderr)
+        return cfg, saved
     cfg = compose(rest)
-    return train(cfg, progress=not quiet)
+    cfg.overrides = rest
+    return cfg, None
+
+
+def _train(overrides: list[str], quiet: bool = False) -> Path:
+    from escort_rl.trainers.registry import train
+
+    cfg, saved = _train_config(overrides)
+    if saved is not None:
+        print(f"resuming from {saved['path']} (iteration {saved['trainer_state']['iteration']})")
+    return train(cfg, resume_state=saved, progress=not quiet)
 
 
 def _bench_closed_loop(args) -> None:
@@ -300,9 +317,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "config":
             from omegaconf import OmegaConf
 
-            from escort_rl.config import compose
-
-            print(OmegaConf.to_yaml(compose(args.overrides)))
+            # with resume=RUN_DIR: the config `escort-rl train` would resume that run with
+            print(OmegaConf.to_yaml(_train_config(args.overrides)[0]))
         elif args.command == "bench" and args.bench == "throughput":
             from escort_rl.bench.throughput import collection_throughput
             from escort_rl.config import compose

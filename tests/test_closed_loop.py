@@ -63,14 +63,14 @@ def test_trains_each_method_evaluates_and_resumes(tmp_path, capsys):
 def test_every_domain_has_a_budget_and_builds():
     settings = cl.load_settings()
     for d in DEFAULT_DOMAINS:
-        assert settings["train"][d]["iterations"] >= 1 and settings["actor"][d]["input_scale"] > 0
-        cfg = cl.run_config(d, "escort", 7, "unused", settings["train"][d], settings["actor"][d],
+        assert settings["train"][d]["iterations"] >= 1
+        cfg = cl.run_config(d, "escort", 7, "unused", settings["train"][d],
                             (("num_steps", "3"), ("lambda_corr", "0.5")), steps=4)
         assert cfg.env.name == d and cfg.num_particles == 7 and cfg.env.max_steps == 4
         assert cfg.filter.num_steps == 3 and cfg.filter.lambda_corr == 0.5
         assert cfg.trainer.iterations == settings["train"][d]["iterations"]
     # a key the method's filter lacks is not applied (SIR has no num_steps)
-    cfg = cl.run_config("lightdark10d", "sir", 7, "unused", {}, {}, (("num_steps", "3"),))
+    cfg = cl.run_config("lightdark10d", "sir", 7, "unused", {}, (("num_steps", "3"),))
     assert "num_steps" not in cfg.filter
 
 

@@ -1,4 +1,4 @@
-"""The REINFORCE trainer: returns, config errors, checkpoints and kill/resume."""
+"""The training scaffold: config errors, checkpoints, kill/resume, evaluation reports."""
 
 import math
 import os
@@ -16,25 +16,12 @@ from escort_rl.cli import main
 from escort_rl.config import ConfigError, compose
 from escort_rl.modules import DeepSetsActor
 from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint
-from escort_rl.trainers.reinforce import complete_episode_mask, returns_to_go, train
+from escort_rl.trainers.registry import train
 
 # The default job's filter (ESCORT) at a tiny size; eager, because compiling in every test process
 # would dominate the test time (tests/test_escort.py checks that compiled and eager updates agree).
-TINY = ["trainer.num_envs=4", "env.max_steps=12", "num_particles=16", "actor.hidden=16",
+TINY = ["trainer=reinforce", "trainer.num_envs=4", "env.max_steps=12", "num_particles=16", "actor.hidden=16",
         "trainer.minibatch_size=64", "trainer.checkpoint_every=1", "filter.compile=false"]
-
-
-def test_returns_to_go_closed_form():
-    reward = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
-    done = torch.tensor([[False, True, False, True]])
-    g = returns_to_go(reward, done, gamma=0.5)
-    torch.testing.assert_close(g, torch.tensor([[1 + 0.5 * 2, 2.0, 3 + 0.5 * 4, 4.0]]))
-
-
-def test_complete_episode_mask_drops_the_cut_episode():
-    done = torch.tensor([[False, True, False, False], [False, False, False, True]])
-    mask = complete_episode_mask(done)
-    assert mask.tolist() == [[True, True, False, False], [True, True, True, True]]
 
 
 def test_unknown_config_key_names_the_key():
@@ -125,7 +112,7 @@ def test_two_collector_workers_and_learned_baseline(tmp_path):
     assert state["trainer_state"]["iteration"] == 2
     history = state["trainer_state"]["history"]
     assert all(h["episodes"] == 4 for h in history)  # 4 envs split over 2 workers, one episode each
-    assert all(math.isfinite(h["loss"]) for h in history)
+    assert all(math.isfinite(h["loss_actor"]) for h in history)
     critic = DeepSetsActor(10, 1, hidden=16)
     load_checkpoint(run, actor=DeepSetsActor(10, 10, hidden=16), critic=critic)
 
@@ -146,7 +133,7 @@ def test_episode_stats_by_hand():
     from tensordict import TensorDict
 
     from escort_rl.models import LightDark10D
-    from escort_rl.trainers.reinforce import episode_stats
+    from escort_rl.trainers.scaffold import episode_stats
 
     done = torch.tensor([[False, True, False, True], [False, False, False, False]])
     reward = torch.tensor([[1.0, 2.0, 3.0, 4.0], [5.0, 5.0, 5.0, 5.0]])

@@ -5,6 +5,8 @@ One update, for particles ``X_t``, action ``a`` and the next observation ``o``:
 1. Predict ``X̃ = transition(X_t, a)``.
 2. Target ``log p(x) = log O(o | x, a) + log p̂(x)``, with ``p̂`` the smoothed predicted prior
    (:class:`escort_rl.belief.prior.SmoothedPrior`) or, optionally, the exact transition mixture.
+   Its score takes ``∇ log O`` from the model's closed-form ``observation_score`` when the model has
+   one, else from autograd (:func:`likelihood_score`).
 3. From ``X = X̃``, ``K`` iterations of ``x_i ← x_i + ε · AdaGrad(φ_SVGD + F_corr + F_temp)``.
 4. Add Gaussian jitter. No resampling anywhere.
 
@@ -56,6 +58,22 @@ def autograd_score(log_density: Callable[[Tensor], Tensor], x: Tensor) -> Tensor
 def _finite(t: Tensor, bound: float = MAX_SCORE) -> Tensor:
     """NaN → 0 and ±inf → ±bound (finite values are left as they are)."""
     return torch.nan_to_num(t, nan=0.0, posinf=bound, neginf=-bound)
+
+
+def likelihood_score(model, obs: Tensor, action: Tensor) -> Callable[[Tensor], Tensor]:
+    """``x ↦ ∇_x log O(obs | x, action)`` for particles ``x`` ``[*B, N, d]`` (``obs`` ``[*B, 1, obs_dim]``,
+    ``action`` ``[*B, N]``) -> ``[*B, N, d]``.
+
+    Uses the model's closed-form ``observation_score`` when it has one (no autograd graph is recorded
+    and replayed: cheaper per iteration, eager or compiled), made finite by :func:`_finite` (NaN → 0,
+    like the zero gradient the autograd path gives a non-finite log-density; ±inf → ±``MAX_SCORE``,
+    like its clamp); otherwise :func:`autograd_score` through ``observation_log_prob``, so a model
+    without it works unchanged.
+    """
+    own = getattr(model, "observation_score", None)
+    if callable(own):
+        return lambda x: _finite(own(obs, x, action))
+    return lambda x: autograd_score(lambda z: model.observation_log_prob(obs, z, action), x)
 
 
 class ESCORTFilter(BeliefFilter):
@@ -173,12 +191,11 @@ class ESCORTFilter(BeliefFilter):
         return math.sqrt(0.01 * (1.0 + 0.1 * d)) if self.jitter is None else float(self.jitter)
 
     def _target_score(self, model, observation: Tensor, action: Tensor, prior) -> Callable[[Tensor], Tensor]:
-        """``x ↦ ∇ log O(o|x, a) + ∇ log p̂(x)``; the likelihood part by autograd."""
-        obs = observation.unsqueeze(-2)
+        """``x ↦ ∇ log O(o|x, a) + ∇ log p̂(x)``; the likelihood part by :func:`likelihood_score`."""
+        likelihood = likelihood_score(model, observation.unsqueeze(-2), action)
 
         def score(x: Tensor) -> Tensor:
-            grad = autograd_score(lambda z: model.observation_log_prob(obs, z, action), x)
-            return (grad + prior(x)).clamp(-MAX_SCORE, MAX_SCORE)
+            return (likelihood(x) + prior(x)).clamp(-MAX_SCORE, MAX_SCORE)
 
         return score
 

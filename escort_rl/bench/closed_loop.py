@@ -54,10 +54,10 @@ def load_settings() -> dict:
     return OmegaConf.to_container(OmegaConf.load(settings_path()), resolve=True)
 
 
-def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict, actor: dict,
+def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict,
                filter_set: tuple = (), steps: int | None = None, seed: int = 0, trainer: str | None = None):
     """The training config of one (domain, method) run: ``env=domain filter=method`` with the
-    budget ``train`` (trainer keys), the actor's input scaling ``actor``, the ``filter_set`` keys the
+    budget ``train`` (trainer keys), the ``filter_set`` keys the
     method's filter has, and ``steps`` (when given) as the episode length. ``trainer``: a config of
     ``configs/trainer/`` (default: the config's, REINFORCE)."""
     from escort_rl.config import compose
@@ -65,7 +65,6 @@ def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict, act
     overrides = [f"env={domain}", f"filter={method}", f"num_particles={n}", f"output_dir={run_dir}",
                  f"seed={seed}", *([f"trainer={trainer}"] if trainer else [])]
     overrides += [f"trainer.{k}={v}" for k, v in train.items()]
-    overrides += [f"actor.{k}={v}" for k, v in actor.items()]
     overrides += [f"filter.{k}={v}" for k, v in applied_filter_set(method, filter_set).items()]
     if steps is not None:
         overrides.append(f"env.max_steps={steps}")
@@ -201,9 +200,9 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
     episodes = int(episodes if episodes is not None else settings["episodes"])
     n = int(n if n is not None else settings["particles"])
     check_at_least_one(seeds=episodes, particles=n, steps=steps, threads=threads)
-    missing = [d for d in domains if d not in settings["train"] or d not in settings["actor"]]
+    missing = [d for d in domains if d not in settings["train"]]
     if missing:
-        raise ValueError(f"{settings_path().name}: no train/actor entry for {', '.join(missing)}; add one")
+        raise ValueError(f"{settings_path().name}: no train entry for {', '.join(missing)}; add one")
     output = Path(output)
     previous_threads = torch.get_num_threads()
     if threads is not None:
@@ -219,7 +218,7 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
                 # the learned-belief rows' filter config is unused (their belief is their own)
                 method = {RANDOM: REFERENCE_FILTER, "planner": planners.get(m, {}).get("filter"),
                           "learned": REFERENCE_FILTER, "trained": m}[kind]
-                cfg = run_config(d, method, n, output / "runs" / d / m, budget, settings["actor"][d],
+                cfg = run_config(d, method, n, output / "runs" / d / m, budget,
                                  filter_set if kind != "learned" else (), steps,
                                  trainer=learned[m]["trainer"] if kind == "learned" else None)
                 row = {"domain": d, "method": m, "filter": m if kind == "learned" else method, "particles": n,

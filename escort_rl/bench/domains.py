@@ -292,7 +292,7 @@ def train_learned_beliefs(domains, methods, runs_dir: Path, progress: bool = Fal
         for m in methods:
             if m in learned:
                 cfg = run_config(d, "sir", int(settings["particles"]), Path(runs_dir) / d / m,
-                                 settings["train"][d], settings["actor"][d], trainer=learned[m]["trainer"])
+                                 settings["train"][d], trainer=learned[m]["trainer"])
                 out[(d, m)] = train_run(cfg, progress=progress)["checkpoint"]
     return out
 

@@ -102,7 +102,7 @@ def run_synthetic(targets=SYNTHETIC_TARGETS, methods=METHODS, seeds: int = 30, n
     """
     from pathlib import Path
 
-    from escort_rl.bench.plots import plot_metric_against_dimension, plot_particles_on_target
+    from escort_rl.reporting.plots import plot_metric_against_dimension, plot_particles_on_target
 
     seed_list = list(range(seeds))
     results = []
@@ -135,7 +135,7 @@ def run_scaling(dims=(1, 5, 20, 50, 100, 200), structures=("block", "banded", "l
     ``plot_dir``, ``rmse_vs_dimension.png`` (averaged over the correlation structures)."""
     from pathlib import Path
 
-    from escort_rl.bench.plots import plot_metric_against_dimension
+    from escort_rl.reporting.plots import plot_metric_against_dimension
 
     seed_list = list(range(seeds))
     results = []

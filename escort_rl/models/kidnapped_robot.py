@@ -442,6 +442,84 @@ class KidnappedRobot20D(AdditiveGaussianTransition):
         lp_invisible = log_1mp.sum(-1)
         return torch.where(visible, lp_visible, lp_invisible).sum(-1)
 
+    def observation_score(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
+        """``∇_{s'} log O(o | s')`` in closed form (the gradient autograd gives
+        :meth:`observation_log_prob`). ``o``: ``[*S, 3K]``, ``s_next``: ``[*S, 20]`` (broadcast) ->
+        ``[*S, 20]``; speed and steering get 0.
+
+        Backward through :meth:`observation_components` by hand. Per landmark ``(k, c)`` the log-density
+        depends on ``ℓ_kc = log p_kc``, ``m_kc = log(1 − p_kc)``, the mean distance ``μ_kc`` and the mean
+        similarity ``η_kc``; with ``q_kc = softmax_c(ℓ_kc + Σ_{c' < c} m_kc' − (z_d² + z_s²)/2)`` (which copy
+        was reported) for a visible slot:
+
+            ∂/∂ℓ_kc = q_kc,   ∂/∂m_kc = Σ_{c' > c} q_kc',   ∂/∂μ_kc = q_kc z_d/σ_r,   ∂/∂η_kc = q_kc z_s/σ_s
+
+        and for an invisible slot ``∂/∂m_kc = 1``, the rest 0; ``m = log(1 − e^ℓ)`` adds
+        ``−∂/∂m · e^{ℓ − m}`` to ``∂/∂ℓ``. Then, with ``Δ = lm − p``, ``r = sqrt(‖Δ‖² + ε²)``, boresight
+        ``b = θ + c_2``, ``h = (cos b, sin b)``, ``cos δ = Δ·h/r``, range logit ``α = (R − r)/τ_r`` and
+        field-of-view logit ``β = (cos δ − cos(fov/2))/(sin(fov/2) τ_θ)``:
+
+            ∂ℓ/∂r = −σ(−α)/τ_r,  ∂ℓ/∂cos δ = σ(−β)/(sin(fov/2) τ_θ),  ∂μ/∂r = 1 + c_1
+            ∂r/∂p = −Δ/r,  ∂cos δ/∂p = (cos δ·Δ/r − h)/r,  ∂cos δ/∂b = Δ·h⊥/r,  h⊥ = (−sin b, cos b)
+            ∂μ/∂c_0 = 1, ∂μ/∂c_1 = r, ∂η/∂c_3 = ⟨u, d_kc⟩, ∂η/∂c_4 = 1,  u = f/n,  n = sqrt(‖f‖² + ε²)
+            ∂/∂f = (g − u⟨u, g⟩)/n   for   g = ∂/∂u = (1 + c_3) Σ_kc ∂/∂η_kc · d_kc
+        """
+        dt = s_next.dtype
+        pos, cal = s_next[..., : self.n_pos], s_next[..., CAL]
+        # forward: the pieces of observation_components, kept for the backward pass
+        delta = self.landmark_positions.to(dt) - pos[..., None, None, :]  # [*S, K, C, 2]
+        r = torch.sqrt((delta * delta).sum(-1) + _EPS**2)  # [*S, K, C]
+        bore = s_next[..., THETA] + cal[..., 2]
+        cos_b, sin_b = torch.cos(bore)[..., None, None], torch.sin(bore)[..., None, None]
+        cos_delta = (delta[..., 0] * cos_b + delta[..., 1] * sin_b) / r
+        alpha = (self.sensor_range - r) / self.range_softness
+        beta = (cos_delta - self._cos_half_fov) / self._fov_scale
+        log_p = self._log_p_det + F.logsigmoid(alpha) + F.logsigmoid(beta)
+        p = torch.exp(log_p)
+        log_1mp = torch.log1p(-p)
+        f = s_next[..., FEAT]
+        inv_n = torch.rsqrt((f * f).sum(-1, keepdim=True) + _EPS**2)
+        unit = f * inv_n  # [*S, 10]
+        desc = self.landmark_descriptors.to(dt).reshape(-1, N_FEATURES)  # [K·C, 10]
+        cos_sim = (unit @ desc.T).unflatten(-1, (self.n_slots, self.n_clusters))
+        gain_d, gain_s = 1.0 + cal[..., 1, None, None], 1.0 + cal[..., 3, None, None]
+        mean_dist = gain_d * r + cal[..., 0, None, None]
+        mean_sim = gain_s * cos_sim + cal[..., 4, None, None]
+        o3 = o.unflatten(-1, (self.n_slots, 3))
+        visible = (o3[..., 0] > 0.5).unsqueeze(-1).to(dt)  # [*S, K, 1], 1.0 for a visible slot
+        zd = (o3[..., 1, None] - mean_dist) / self.distance_noise_std
+        zs = (o3[..., 2, None] - mean_sim) / self.similarity_noise_std
+        log_first = log_p + torch.cumsum(log_1mp, -1) - log_1mp
+        logits = log_first - 0.5 * (zd * zd + zs * zs)
+        q = torch.exp(logits - logits.amax(-1, keepdim=True))  # softmax by hand: on a CPU, faster than
+        q = q * (visible / q.sum(-1, keepdim=True))  # ATen's on rows of a few entries; 0 if invisible
+        # backward: adjoints of log p, log(1 − p), mean distance and mean similarity
+        later = q.sum(-1, keepdim=True) - torch.cumsum(q, -1)  # Σ_{c' > c} q_kc'
+        g_1mp = later + (1.0 - visible)
+        g_lp = q - g_1mp * p / (1.0 - p)
+        g_dist = q * zd / self.distance_noise_std
+        g_sim = q * zs / self.similarity_noise_std
+        # position and boresight, through r and cos δ
+        g_r = -g_lp * torch.sigmoid(-alpha) / self.range_softness + g_dist * gain_d
+        g_cos = g_lp * torch.sigmoid(-beta) / self._fov_scale
+        heading = torch.stack([cos_b, sin_b], dim=-1)  # [*S, 1, 1, 2]
+        dir_ = delta / r.unsqueeze(-1)
+        d_pos = -g_r.unsqueeze(-1) * dir_ + (g_cos / r).unsqueeze(-1) * (cos_delta.unsqueeze(-1) * dir_ - heading)
+        d_pos = d_pos.sum((-3, -2))  # [*S, 2]
+        d_bore = (g_cos * (delta[..., 1] * cos_b - delta[..., 0] * sin_b) / r).sum((-2, -1))
+        # calibration
+        d_cal = torch.stack([
+            g_dist.sum((-2, -1)), (g_dist * r).sum((-2, -1)), d_bore,
+            (g_sim * cos_sim).sum((-2, -1)), g_sim.sum((-2, -1)),
+        ], dim=-1)  # [*S, 5]
+        # features, through u = f/n
+        g_unit = gain_s[..., 0] * (g_sim.flatten(-2) @ desc)  # [*S, 10]
+        d_feat = (g_unit - unit * (unit * g_unit).sum(-1, keepdim=True)) * inv_n
+        shape = d_cal.shape[:-1]
+        zero = torch.zeros((), dtype=dt, device=q.device).expand(shape)
+        head = torch.stack([d_pos[..., 0], d_pos[..., 1], d_bore, zero, zero], dim=-1)
+        return torch.cat([head, d_cal, d_feat.expand(*shape, N_FEATURES)], dim=-1)
+
     def reward(self, s: Tensor, a: Tensor, s_next: Tensor) -> Tensor:
         """−1 per step (paper)."""
         shape = torch.broadcast_shapes(s.shape[:-1], a.shape, s_next.shape[:-1])

@@ -151,15 +151,34 @@ class LightDark10D(AdditiveGaussianTransition):
         self._velocity_force = forces  # [n_actions, d]: the force added to v' per action
         swaps = torch.stack([torch.arange(5), torch.tensor([1, 0, 2, 3, 4]), torch.tensor([0, 1, 3, 2, 4])])
         self._swap_perms = swaps.to(self.device)  # [3, 5]: identity, swap(1,2), swap(3,4)
+        self._no_swap = torch.tensor([1.0, 0.0, 0.0], device=self.device)  # event weights in the light
 
     # ------------------------------------------------------------------ light and noise
-    def light(self, pos: Tensor) -> Tensor:
-        """Light intensity ``L(x)`` in [0.05, 1]. ``pos``: ``[*S, 5]`` -> ``[*S]``."""
+    def _light_levels(self, pos: Tensor) -> tuple[Tensor, Tensor]:
+        """Squared distances ``d_j²`` to the region centres and the levels ``I_j(1 - (d_j/r_j)²)``.
+        ``pos``: ``[*S, 5]`` -> two ``[*S, 7]`` tensors."""
         # squared distances to the centres by ‖x‖² - 2x·c + ‖c‖² (one matmul, no [*S, 7, 5] tensor)
         sq = (pos * pos).sum(-1, keepdim=True) - 2 * pos @ self.light_centres.T + self._centre_sq
         ratio = sq.clamp_min(0.0) / self._radius_sq  # (d_j / r_j)²
-        level = self.light_intensities * (1.0 - ratio)  # negative exactly when d_j > r_j
-        return level.amax(-1).clamp_min(0.05)
+        return sq, self.light_intensities * (1.0 - ratio)  # a level is negative exactly when d_j > r_j
+
+    def light(self, pos: Tensor) -> Tensor:
+        """Light intensity ``L(x)`` in [0.05, 1]. ``pos``: ``[*S, 5]`` -> ``[*S]``."""
+        return self._light_levels(pos)[1].amax(-1).clamp_min(0.05)
+
+    def light_and_gradient(self, pos: Tensor) -> tuple[Tensor, Tensor]:
+        """``L(x)`` ``[*S]`` and the gradient autograd gives it, ``∇L(x)`` ``[*S, 5]``.
+
+        ``∇L = Σ_j w_j·(-2 I_j/r_j²)·[d_j² ≥ 0]·(x - c_j)``: ``w`` shares 1 evenly among the regions
+        that attain the max (the gradient of ``amax``) and is 0 where the max is clamped up to 0.05
+        (outside every radius, or nearly so), so ``∇L = 0`` there. ``pos``: ``[*S, 5]``."""
+        sq, level = self._light_levels(pos)
+        top = level.amax(-1, keepdim=True)
+        at_top = (level == top).to(pos.dtype)
+        share = at_top / at_top.sum(-1, keepdim=True) * (top >= 0.05)
+        coef = share * (sq >= 0) * (-2.0 * self.light_intensities / self._radius_sq)  # [*S, 7]
+        grad = coef.sum(-1, keepdim=True) * pos - coef @ self.light_centres
+        return top.squeeze(-1).clamp_min(0.05), grad
 
     def observation_std_from_light(self, light: Tensor) -> Tensor:
         """σ = sqrt(σ_base²(1 - L) + σ_min²), elementwise."""
@@ -201,6 +220,20 @@ class LightDark10D(AdditiveGaussianTransition):
         eps = torch.randn(pos.shape, generator=generator, device=pos.device, dtype=pos.dtype)
         return seen + self.observation_std(pos).unsqueeze(-1) * eps
 
+    def _swap_errors(self, o: Tensor, pos: Tensor) -> Tensor:
+        """Squared errors ``‖o - P_k x‖²`` for the events {no swap, swap(1,2), swap(3,4)}: the swapped
+        ones differ from the unswapped one only in the two swapped coordinates.
+        ``o``, ``pos``: ``[*S, 5]`` (broadcast) -> ``[*S, 3]``."""
+        diff = o - pos  # [*S, 5]
+        sq = diff * diff
+        sq_id = sq.sum(-1)
+
+        def swapped(i: int, j: int) -> Tensor:
+            cross = (o[..., i] - pos[..., j]) ** 2 + (o[..., j] - pos[..., i]) ** 2
+            return sq_id - sq[..., i] - sq[..., j] + cross
+
+        return torch.stack([sq_id, swapped(0, 1), swapped(2, 3)], dim=-1)
+
     def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
         """``log O(o | s')``: in the dark, the mixture over {no swap, swap(1,2), swap(3,4)}.
 
@@ -211,20 +244,38 @@ class LightDark10D(AdditiveGaussianTransition):
         pos = s_next[..., : self.n_pos]
         light = self.light(pos)
         var = self.sigma_base**2 * (1.0 - light) + self.sigma_min**2  # [*S]
-        diff = o - pos  # [*S, 5]
-        sq = diff * diff
-        sq_id = sq.sum(-1)
-
-        def swapped(i: int, j: int) -> Tensor:
-            cross = (o[..., i] - pos[..., j]) ** 2 + (o[..., j] - pos[..., i]) ** 2
-            return sq_id - sq[..., i] - sq[..., j] + cross
-
-        errs = torch.stack([sq_id, swapped(0, 1), swapped(2, 3)], dim=-1)  # [*S, 3]
+        errs = self._swap_errors(o, pos)  # [*S, 3]
         log_norm = -0.5 * self.n_pos * (torch.log(var) + math.log(2 * math.pi))
         comp = -0.5 * errs / var.unsqueeze(-1)
         dark = light < self.dark_threshold
         mixed = torch.logsumexp(comp + self._log_event_probs, dim=-1)
         return log_norm + torch.where(dark, mixed, comp[..., 0])
+
+    def observation_score(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
+        """``∇_{s'} log O(o | s')`` in closed form (the gradient autograd gives
+        :meth:`observation_log_prob`). ``o``: ``[*S, 5]``, ``s_next``: ``[*S, 10]`` (broadcast) -> ``[*S, 10]``.
+
+        With ``v = σ²(x)``, errors ``e_k = ‖o - P_k x‖²`` and event weights ``w_k`` (the posterior
+        ``softmax_k(log π_k - e_k/2v)`` in the dark, ``(1, 0, 0)`` in the light):
+
+            ∇_x log O = (ō - x)/v + (ē/(2v²) - 5/(2v))·∇v,    ∇v = -σ_base²·∇L(x),
+
+        with ``ō = Σ_k w_k P_k o`` (each ``P_k`` is its own inverse) and ``ē = Σ_k w_k e_k``; ``∇L``
+        from :meth:`light_and_gradient`. The velocity part is 0."""
+        pos = s_next[..., : self.n_pos]
+        light, d_light = self.light_and_gradient(pos)
+        var = self.sigma_base**2 * (1.0 - light) + self.sigma_min**2  # [*S]
+        errs = self._swap_errors(o, pos)  # [*S, 3]
+        logits = -0.5 * errs / var.unsqueeze(-1) + self._log_event_probs
+        dark = (light < self.dark_threshold).unsqueeze(-1)
+        posterior = torch.exp(logits - logits.amax(-1, keepdim=True))  # softmax by hand: on a CPU,
+        posterior = posterior / posterior.sum(-1, keepdim=True)  # faster than ATen's on rows of 3
+        w = torch.where(dark, posterior, self._no_swap)  # [*S, 3]
+        seen = (w.unsqueeze(-1) * o[..., self._swap_perms]).sum(-2)  # ō [*S, 5]
+        mean_err = (w * errs).sum(-1)
+        d_var_coef = 0.5 * mean_err / var**2 - 0.5 * self.n_pos / var  # ∂ log O / ∂v
+        grad_pos = (seen - pos) / var.unsqueeze(-1) - (self.sigma_base**2 * d_var_coef).unsqueeze(-1) * d_light
+        return torch.cat([grad_pos, torch.zeros_like(grad_pos)], dim=-1)
 
     def distance_to_goal(self, s: Tensor) -> Tensor:
         """‖x - x_goal‖₂. ``s``: ``[*S, 10]`` -> ``[*S]``."""

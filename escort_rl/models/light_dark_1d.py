@@ -143,6 +143,24 @@ class LightDark1D:
         z = (o[..., 0] - mean) / std
         return -0.5 * z * z - torch.log(std) - 0.5 * math.log(2 * math.pi)
 
+    def observation_score(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
+        """``∇_{s'} log O(o | s')`` in closed form. With ``r = 1 - ended``, ``σ_run = σ(x')``, mean
+        ``μ = x'·r``, std ``σ = σ_run·r + (1 - r)`` and ``z = (o - μ)/σ``, the log-density has
+        ``∂/∂μ = z/σ`` and ``∂/∂σ = (z² - 1)/σ``, so
+
+            ∂/∂x'     = r·(z/σ + (z² - 1)/σ · noise_slope·sign(x' - light_position))
+            ∂/∂ended  = -x'·z/σ + (1 - σ_run)·(z² - 1)/σ
+
+        (``sign(0) = 0``, the gradient autograd gives ``|·|`` at 0).
+        ``o``: ``[*S, 1]``, ``s_next``: ``[*S, 2]`` (broadcast) -> ``[*S, 2]``."""
+        x, running = s_next[..., 0], 1.0 - s_next[..., 1]
+        mean, std = self._observation_mean_std(s_next)
+        z = (o[..., 0] - mean) / std
+        d_mean, d_std = z / std, (z * z - 1.0) / std
+        d_x = running * (d_mean + d_std * self.noise_slope * torch.sign(x - self.light_position))
+        d_ended = -x * d_mean + (1.0 - self.observation_std(x)) * d_std
+        return torch.stack([d_x, d_ended], dim=-1)
+
     def _observation_mean_std(self, s_next: Tensor) -> tuple[Tensor, Tensor]:
         """Mean and std of the observation, ``[*S]`` each: ``(x', σ(x'))`` while running and ``(0, 1)``
         once ended, so that the observation after declaring says nothing about where the agent was."""

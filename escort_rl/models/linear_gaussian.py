@@ -70,6 +70,8 @@ class LinearGaussian:
         self._obs_noise = GaussianNoise(self._r_tril)
         self._H_t = self.H.T.contiguous()
         self._F_t = self.F.T.contiguous()
+        # R⁻¹H [m, d], the matrix of the observation score (solved in float64)
+        self._score_matrix = torch.cholesky_solve(self.H.double(), self._r_tril.double()).to(**f32)
 
     def _noise(self, shape, tril: Tensor, generator) -> Tensor:
         eps = torch.randn(*shape, tril.shape[0], generator=generator, device=self.device)
@@ -100,6 +102,11 @@ class LinearGaussian:
 
     def observation_log_prob(self, o, s_next, a) -> Tensor:
         return self._obs_noise.log_prob(o - s_next @ self._H_t)
+
+    def observation_score(self, o, s_next, a) -> Tensor:
+        """``∇_{s'} log N(o; H s', R) = Hᵀ R⁻¹ (o − H s')``, written for row vectors as
+        ``(o − s' Hᵀ) R⁻¹ H``. ``o`` ``[*S, m]``, ``s_next`` ``[*S, d]`` (broadcast) -> ``[*S, d]``."""
+        return (o - s_next @ self._H_t) @ self._score_matrix
 
     def reward(self, s, a, s_next) -> Tensor:
         return -torch.linalg.vector_norm(s_next, dim=-1)

@@ -3,7 +3,7 @@
 Every function is batched over leading dimensions and written in torch. States end in
 ``state_dim``, observations in ``obs_dim``, and integer actions have the leading shape of the
 state they act on. Log densities are differentiable in the state (filters take scores with
-autograd).
+autograd, or from a model's optional closed-form ``observation_score``).
 
 The protocol is structural: any object with these attributes and methods is a model, including a
 user's class that imports nothing from ``escort_rl``.
@@ -33,6 +33,14 @@ class POMDPModel(Protocol):
     - ``observation_log_prob(o [*S, obs_dim], s_next [*S, d], a [*S])`` -> ``[*S]``.
     - ``reward(s, a, s_next)`` -> ``[*S]``.
     - ``is_terminal(s [*S, d])`` -> ``[*S]`` (bool).
+
+    Optional, used by the SVGD/ESCORT filters when present: ``observation_score(o [*S, obs_dim],
+    s_next [*S, d], a [*S])`` -> ``[*S, d]``, the score ``∇_{s'} log O(o | s', a)`` in closed form
+    (same broadcasting as ``observation_log_prob``; the leading shape is the broadcast one). A filter
+    falls back to autograd through ``observation_log_prob`` when a model lacks it, so it is an
+    optimisation, never a requirement (:func:`check_model` does not ask for it). It must equal the
+    autograd gradient of ``observation_log_prob(o, s_next, a).sum()`` with respect to ``s_next``,
+    including its zeros where the log-density is flat (clamps, branches).
 
     Optional, used by evaluation and benchmarks (see :func:`position_error`): ``position_dims``
     (the state indices of the position), ``position_error(estimate, truth)`` (a domain's own error,

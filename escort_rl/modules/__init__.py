@@ -3,6 +3,7 @@
 from escort_rl.modules.deepsets import DeepSetsActor, make_deepsets_policy
 from escort_rl.modules.dvrl import DVRL, DVRLState, systematic_resample_indices
 from escort_rl.modules.dvrl_torchrl import DVRLPolicy, make_dvrl_primer
+from escort_rl.modules.recurrent import make_recurrent_actor_critic
 
-__all__ = ["DVRL", "DVRLPolicy", "DVRLState", "DeepSetsActor", "make_deepsets_policy", "make_dvrl_primer",
+__all__ = ["DVRL", "DVRLPolicy", "DVRLState", "DeepSetsActor", "make_deepsets_policy", "make_dvrl_primer", "make_recurrent_actor_critic",
            "systematic_resample_indices"]

@@ -208,13 +208,17 @@ class StateReadout(nn.Module):
     suits maps of any size; the output is in state units.
     """
 
-    def __init__(self, summary_dim: int, state_dim: int, hidden: int = 64, loc: float = 0.0,
-                 scale: float = 1.0) -> None:
+    def __init__(self, summary_dim: int, state_dim: int, hidden: int = 64, loc: float | list[float] = 0.0,
+                 scale: float | list[float] = 1.0) -> None:
         super().__init__()
-        if scale <= 0:
+        scale_t = torch.as_tensor(scale, dtype=torch.float32).expand(state_dim).clone()
+        if not bool((scale_t > 0).all()):
             raise ValueError(f"scale: must be positive, got {scale}")
         self.net = mlp([summary_dim, hidden, hidden, state_dim], last_activation=False)
-        self.loc, self.scale = float(loc), float(scale)
+        # non-persistent buffers: they follow .to(device), and checkpoints of earlier runs load unchanged
+        self.register_buffer("loc", torch.as_tensor(loc, dtype=torch.float32).expand(state_dim).clone(),
+                             persistent=False)
+        self.register_buffer("scale", scale_t, persistent=False)
 
     def forward(self, summary: Tensor) -> Tensor:
         return self.net(summary) * self.scale + self.loc

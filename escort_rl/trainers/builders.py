@@ -22,29 +22,58 @@ MODELS = {**DOMAINS, "lightdark1d": LightDark1D}
 FILTERS = {"sir": SIRFilter, "svgd": SVGDFilter, "escort": ESCORTFilter}
 
 
-def _kwargs(node: DictConfig, exclude: tuple[str, ...] = ("name",)) -> dict:
-    data = OmegaConf.to_container(node, resolve=True)
+def _kwargs(node, exclude: tuple[str, ...] = ("name",)) -> dict:
+    data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
     return {k: v for k, v in data.items() if k not in exclude}
 
 
-def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
-    """The POMDP model named by ``env.name`` with the keyword arguments in ``env.model``."""
-    if env_cfg.name not in MODELS:
-        raise ConfigError(f"env.name: unknown environment '{env_cfg.name}'; choose one of {sorted(MODELS)}")
+def _target(cls) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def _instantiate(target: str, kwargs: dict, where: str, **extra):
+    """``hydra.utils.instantiate({"_target_": target, **kwargs}, **extra)``; returns the object, or
+    raises the constructor's own exception (``TypeError``, ``ValueError``), or :class:`ConfigError`
+    naming ``where._target_`` when the target cannot be imported."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
     try:
-        return MODELS[env_cfg.name](**_kwargs(env_cfg.model), device=device)
+        return instantiate({"_target_": target, **kwargs}, **extra, _convert_="all")
+    except InstantiationException as err:
+        cause = err.__cause__
+        if cause is None or isinstance(cause, ImportError):
+            raise ConfigError(f"{where}._target_: cannot import '{target}'") from None
+        raise cause from None
+
+
+def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
+    """The POMDP model of ``env.model._target_`` (configs saved without one: the model named by
+    ``env.name``) with the other keys of ``env.model`` as keyword arguments."""
+    model_cfg = env_cfg.get("model") or {}
+    target = model_cfg.get("_target_")
+    if target is None:
+        if env_cfg.name not in MODELS:
+            raise ConfigError(f"env.name: unknown environment '{env_cfg.name}'; choose one of {sorted(MODELS)}")
+        target = _target(MODELS[env_cfg.name])
+    try:
+        return _instantiate(target, _kwargs(model_cfg, exclude=("_target_",)), "env.model", device=device)
     except TypeError as err:
         raise ConfigError(f"env.model: {err}") from None
 
 
 def build_filter(filter_cfg: DictConfig):
-    """The belief filter of class ``filter.kind`` with the keys other than ``name`` and ``kind`` as
-    keyword arguments (``name`` labels a configuration, e.g. ``escort_nocorr``)."""
-    kind = filter_cfg.get("kind", filter_cfg.name)
-    if kind not in FILTERS:
-        raise ConfigError(f"filter.kind: unknown filter '{kind}'; choose one of {sorted(FILTERS)}")
+    """The belief filter of class ``filter._target_`` (configs saved without one: the class of
+    ``filter.kind``) with the keys other than ``_target_``, ``name`` and ``kind`` as keyword arguments
+    (``name`` labels a configuration, e.g. ``escort_nocorr``)."""
+    target = filter_cfg.get("_target_")
+    if target is None:
+        kind = filter_cfg.get("kind", filter_cfg.name)
+        if kind not in FILTERS:
+            raise ConfigError(f"filter.kind: unknown filter '{kind}'; choose one of {sorted(FILTERS)}")
+        target = _target(FILTERS[kind])
     try:
-        return FILTERS[kind](**_kwargs(filter_cfg, exclude=("name", "kind")))
+        return _instantiate(target, _kwargs(filter_cfg, exclude=("_target_", "name", "kind")), "filter")
     except (TypeError, ValueError) as err:
         raise ConfigError(f"filter: {str(err).splitlines()[0]}") from None
 
@@ -57,7 +86,16 @@ def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None) -> Transfo
     """
     model = build_model(cfg.env, cfg.device)
     base = POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
-    return TransformedEnv(base, BeliefTransform(model, build_filter(cfg.filter), int(cfg.num_particles)))
+    particles_key, log_weights_key = belief_keys(cfg)
+    return TransformedEnv(base, BeliefTransform(model, build_filter(cfg.filter), int(cfg.num_particles),
+                                                particles_key=particles_key, log_weights_key=log_weights_key))
+
+
+def belief_keys(cfg: DictConfig) -> tuple[str, str]:
+    """The tensordict keys the belief transform writes and the policies read (``keys.particles``,
+    ``keys.log_weights``)."""
+    keys = cfg.get("keys") or {}
+    return str(keys.get("particles", "particles")), str(keys.get("log_weights", "particle_log_weights"))
 
 
 def env_factory(cfg: DictConfig, num_envs: int, seed: int | None = None):
@@ -66,11 +104,17 @@ def env_factory(cfg: DictConfig, num_envs: int, seed: int | None = None):
     return partial(make_env, plain, num_envs, seed)
 
 
+def input_scaling(cfg: DictConfig) -> tuple:
+    """The per-dimension standardisation of particles, ``(x − loc) / scale``, of the env group
+    (``env.input_loc``, ``env.input_scale``: a number or one per state dimension)."""
+    def plain(v):
+        return OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
+
+    return plain(cfg.env.input_loc), plain(cfg.env.input_scale)
+
+
 def build_actor(cfg: DictConfig, state_dim: int, n_actions: int) -> DeepSetsActor:
-    return DeepSetsActor(
-        state_dim,
-        n_actions,
-        hidden=int(cfg.actor.hidden),
-        input_loc=cfg.actor.input_loc,
-        input_scale=cfg.actor.input_scale,
-    )
+    """A :class:`DeepSetsActor` of width ``actor.hidden`` with the env group's input scaling."""
+    loc, scale = input_scaling(cfg)
+    return DeepSetsActor(state_dim, n_actions, hidden=int(cfg.actor.hidden), input_loc=loc, input_scale=scale,
+                         encoder_layers=int(cfg.actor.get("encoder_layers", 2)))

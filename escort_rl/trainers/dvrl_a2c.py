@@ -29,7 +29,6 @@ the original's squared error) because our domains' returns are in the hundreds, 
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -37,17 +36,15 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
-from torchrl.checkpoint import CheckpointRotation
 from torchrl.envs import Compose, InitTracker, TransformedEnv
-from tqdm import tqdm
 
 from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
 from escort_rl.modules import DVRL, DVRLPolicy
 from escort_rl.modules.dvrl_networks import StateReadout
-from escort_rl.trainers.builders import build_model
-from escort_rl.trainers.checkpointing import checkpoint_dir, load_checkpoint
-from escort_rl.trainers.reinforce import episode_stats, iteration_seed, make_logger, record_iteration
+from escort_rl.trainers.builders import build_model, input_scaling
+from escort_rl.trainers.checkpointing import load_checkpoint
+from escort_rl.trainers.scaffold import episode_stats
 
 EPISODE_KEYS = (("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "true_state"))
 
@@ -57,8 +54,8 @@ def build_dvrl_policy(cfg: DictConfig, model) -> DVRLPolicy:
     """The :class:`DVRLPolicy` of ``cfg.dvrl`` (``configs/dvrl/<domain>.yaml``) for ``model``, with a
     :class:`StateReadout` to ``model.state_dim`` standardised by ``cfg.actor``'s input scaling."""
     dvrl = DVRL.from_config(OmegaConf.to_container(cfg.dvrl, resolve=True), model.obs_dim, model.n_actions)
-    readout = StateReadout(dvrl.summary_dim, model.state_dim, hidden=int(cfg.actor.hidden),
-                           loc=float(cfg.actor.input_loc), scale=float(cfg.actor.input_scale))
+    loc, scale = input_scaling(cfg)
+    readout = StateReadout(dvrl.summary_dim, model.state_dim, hidden=int(cfg.actor.hidden), loc=loc, scale=scale)
     return DVRLPolicy(dvrl, readout=readout).to(cfg.device)
 
 
@@ -142,94 +139,75 @@ def a2c_loss(window: TensorDictBase, bootstrap: torch.Tensor, gamma: float, entr
 
 
 # ------------------------------------------------------------------------------------ training
-def train_dvrl(cfg: DictConfig, resume_state: dict | None = None, progress: bool = True) -> Path:
-    """Train DVRL and its readout; returns the run directory (``config.yaml``, ``checkpoints/``, CSV
-    logs and ``history.json``, as :func:`escort_rl.trainers.reinforce.train`)."""
-    validate_dvrl_config(cfg)
-    run_dir = Path(cfg.output_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-    torch.manual_seed(int(cfg.seed))
-    t, loss_cfg = cfg.trainer, cfg.dvrl.loss
+class DVRLA2C:
+    """DVRL's A2C plus the ELBO with truncated BPTT, as an algorithm of the training scaffold
+    (:func:`escort_rl.trainers.scaffold.run_training`; see the module docstring for one iteration)."""
 
-    model = build_model(cfg.env, cfg.device)
-    policy = build_dvrl_policy(cfg, model)
-    optimizer = torch.optim.Adam(policy.dvrl.parameters(), lr=float(t.lr))
-    readout_optimizer = torch.optim.Adam(policy.readout.parameters(), lr=float(t.readout_lr))
-    components = {"actor": policy, "optimizer": optimizer, "readout_optimizer": readout_optimizer}
+    def __init__(self, cfg: DictConfig, model) -> None:
+        validate_dvrl_config(cfg)
+        t = cfg.trainer
+        self.cfg, self.model = cfg, model
+        self.policy = build_dvrl_policy(cfg, model)
+        self.optimizer = torch.optim.Adam(self.policy.dvrl.parameters(), lr=float(t.lr))
+        self.readout_optimizer = torch.optim.Adam(self.policy.readout.parameters(), lr=float(t.readout_lr))
+        self.components = {"actor": self.policy, "optimizer": self.optimizer,
+                           "readout_optimizer": self.readout_optimizer}
+        # built here, not at the first iteration: building it draws from the global generator (the
+        # primer's module), which must not shift the seeded iterations of a resumed run
+        self.env = make_dvrl_env(cfg, int(t.num_envs), seed=int(cfg.seed))
 
-    state = {"iteration": 0, "frames": 0, "history": []}
-    if resume_state is not None:
-        saved = load_checkpoint(resume_state["path"], **components)["trainer_state"]
-        state = {"iteration": int(saved["iteration"]), "frames": int(saved["frames"]), "history": list(saved["history"])}
-    n_iter = int(t.iterations)
-    if state["iteration"] >= n_iter:
-        return run_dir
-    rotation = CheckpointRotation(checkpoint_dir(run_dir), keep_last=int(t.keep_checkpoints))
-    config_dict = OmegaConf.to_container(cfg, resolve=True)
-    horizon, bptt = int(cfg.env.max_steps), int(loss_cfg.bptt_steps)
-    env = make_dvrl_env(cfg, int(t.num_envs), seed=int(cfg.seed))
-    logger = make_logger(cfg, run_dir)
-    bar = tqdm(total=n_iter, initial=state["iteration"], desc="train dvrl", disable=not progress, dynamic_ncols=True)
-    try:
-        for it in range(state["iteration"], n_iter):
-            seed = iteration_seed(cfg.seed, it)
-            env.set_seed(seed)
-            torch.manual_seed(seed)
-            t0 = time.perf_counter()
-            td = env.reset()
-            sums = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "elbo": 0.0, "readout_loss": 0.0,
-                    "grad_norm": 0.0}
-            episode_steps, windows = [], 0
-            for start in range(0, horizon, bptt):
-                steps = []
-                for _ in range(min(bptt, horizon - start)):
-                    td = policy(td)
-                    td, td_root = env.step_and_maybe_reset(td)
-                    steps.append(td)
-                    td = td_root
-                window = torch.stack(steps, dim=1)  # [B, T]
-                with torch.no_grad():
-                    bootstrap = policy(td.clone())["state_value"].squeeze(-1)
-                loss, terms = a2c_loss(window, bootstrap, float(t.gamma), float(t.entropy_coef),
-                                       float(loss_cfg.value_loss_coef), float(loss_cfg.encoding_loss_coef),
-                                       float(loss_cfg.reward_scale))
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                grad_norm = torch.nn.utils.clip_grad_norm_(policy.dvrl.parameters(), float(t.max_grad_norm))
-                optimizer.step()
+    def iteration(self, index: int, seed: int) -> dict:
+        t, loss_cfg = self.cfg.trainer, self.cfg.dvrl.loss
+        policy, env = self.policy, self.env
+        horizon, bptt = int(self.cfg.env.max_steps), int(loss_cfg.bptt_steps)
+        env.set_seed(seed)
+        t0 = time.perf_counter()
+        td = env.reset()
+        sums = {"policy_loss": 0.0, "value_loss": 0.0, "entropy": 0.0, "elbo": 0.0, "readout_loss": 0.0,
+                "grad_norm": 0.0}
+        episode_steps, windows = [], 0
+        for start in range(0, horizon, bptt):
+            steps = []
+            for _ in range(min(bptt, horizon - start)):
+                td = policy(td)
+                td, td_root = env.step_and_maybe_reset(td)
+                steps.append(td)
+                td = td_root
+            window = torch.stack(steps, dim=1)  # [B, T]
+            with torch.no_grad():
+                bootstrap = policy(td.clone())["state_value"].squeeze(-1)
+            loss, terms = a2c_loss(window, bootstrap, float(t.gamma), float(t.entropy_coef),
+                                   float(loss_cfg.value_loss_coef), float(loss_cfg.encoding_loss_coef),
+                                   float(loss_cfg.reward_scale))
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(policy.dvrl.parameters(), float(t.max_grad_norm))
+            self.optimizer.step()
 
-                readout_loss = policy.readout.loss(window["dvrl_summary"].detach(), window["true_state"])
-                readout_optimizer.zero_grad(set_to_none=True)
-                readout_loss.backward()
-                readout_optimizer.step()
+            readout_loss = policy.readout.loss(window["dvrl_summary"].detach(), window["true_state"])
+            self.readout_optimizer.zero_grad(set_to_none=True)
+            readout_loss.backward()
+            self.readout_optimizer.step()
 
-                for key, value in terms.items():
-                    sums[key] += value
-                sums["readout_loss"] += float(readout_loss.detach())
-                sums["grad_norm"] += float(grad_norm)
-                windows += 1
-                episode_steps.append(window.select(*EPISODE_KEYS).detach())
-                td = td.detach()  # truncate backpropagation through time
-            batch = torch.cat(episode_steps, dim=1)
-            seconds = time.perf_counter() - t0
-            state["iteration"] = it + 1
-            state["frames"] += batch.numel()
-            record = {"iteration": it + 1, "frames": state["frames"], **episode_stats(batch, model),
-                      **{k: v / windows for k, v in sums.items()}, "fps": batch.numel() / max(seconds, 1e-9),
-                      "seconds": seconds}
-            if not all(math.isfinite(record[k]) for k in ("policy_loss", "value_loss", "elbo")):
-                raise FloatingPointError(f"DVRL training: a non-finite loss at iteration {it + 1} ({record}); "
-                                         "lower trainer.lr or dvrl.loss.encoding_loss_coef")
-            bar.set_postfix(ret=f"{record['episode_return']:.1f}", elbo=f"{record['elbo']:.2f}",
-                            fps=f"{record['fps']:.0f}")
-            bar.update(1)
-            record_iteration(record, state, logger, rotation, config_dict, components, int(t.checkpoint_every), n_iter)
-    finally:
-        bar.close()
-        env.close()
-    (run_dir / "history.json").write_text(json.dumps(state["history"], indent=1))
-    return run_dir
+            for key, value in terms.items():
+                sums[key] += value
+            sums["readout_loss"] += float(readout_loss.detach())
+            sums["grad_norm"] += float(grad_norm)
+            windows += 1
+            episode_steps.append(window.select(*EPISODE_KEYS).detach())
+            td = td.detach()  # truncate backpropagation through time
+        batch = torch.cat(episode_steps, dim=1)
+        seconds = time.perf_counter() - t0
+        record = {"frames": batch.numel(), **episode_stats(batch, self.model),
+                  **{k: v / windows for k, v in sums.items()}, "fps": batch.numel() / max(seconds, 1e-9)}
+        if not all(math.isfinite(record[k]) for k in ("policy_loss", "value_loss", "elbo")):
+            raise FloatingPointError(f"DVRL training: a non-finite loss ({record}); "
+                                     "lower trainer.lr or dvrl.loss.encoding_loss_coef")
+        return record
+
+    def close(self) -> None:
+        if self.env is not None:
+            self.env.close()
 
 
 # ------------------------------------------------------------------------------------ evaluation

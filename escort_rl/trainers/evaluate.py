@@ -1,4 +1,5 @@
-"""Evaluate a trained policy against a uniform-random policy on the same seeded episodes."""
+"""Evaluate a trained policy beside its baselines on the same seeded episodes: the scripted
+controller on the same filter's belief (where the domain has one) and a uniform-random policy."""
 
 from __future__ import annotations
 
@@ -11,10 +12,11 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from escort_rl.bench.plots import plot_belief_projection, plot_learning_curve
+from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
 from escort_rl.models import position_dims, position_error
 from escort_rl.modules import make_deepsets_policy
-from escort_rl.trainers.builders import build_actor, build_model, make_env
+from escort_rl.planners import ScriptedBeliefController
+from escort_rl.trainers.builders import belief_keys, build_actor, build_model, make_env
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 from escort_rl.trainers.registry import algorithm
 
@@ -113,6 +115,12 @@ def trained_policy(cfg, checkpoint):
 
     REINFORCE: the DeepSets policy, in the env with ``cfg``'s belief filter. DVRL: the DVRL policy
     (its own belief) in the env with its state primer; the belief mean is its readout's estimate."""
+    if algorithm(cfg) == "recurrent_ppo":
+        from escort_rl.trainers.recurrent_ppo import load_recurrent_policy, make_recurrent_env, no_state_estimate
+
+        model = build_model(cfg.env, cfg.device)
+        return (load_recurrent_policy(cfg, checkpoint), make_recurrent_env,
+                lambda rollout: no_state_estimate(rollout, model))
     if algorithm(cfg) == "dvrl_a2c":
         from escort_rl.trainers.dvrl_a2c import load_dvrl_policy, make_dvrl_env, next_state_estimates
 
@@ -122,12 +130,23 @@ def trained_policy(cfg, checkpoint):
     actor = build_actor(cfg, model.state_dim, model.n_actions)
     load_checkpoint(checkpoint, actor=actor)
     actor.eval()
-    return make_deepsets_policy(actor), make_env, lambda rollout: None
+    return make_deepsets_policy(actor, *belief_keys(cfg)), make_env, lambda rollout: None
+
+
+def scripted_policy(cfg, model):
+    """The domain's scripted controller on the belief mean of ``cfg``'s filter, or ``None`` where the
+    domain has none (Kidnapped Robot: no goal to drive to)."""
+    particles_key, log_weights_key = belief_keys(cfg)
+    try:
+        return ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key)
+    except ValueError:
+        return None
 
 
 def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | Path | None = None,
              greedy: bool | None = None) -> dict:
-    """Evaluate the checkpointed policy and a uniform-random policy on the same seeded episodes.
+    """Evaluate the checkpointed policy, the scripted controller on the same filter's belief (where the
+    domain has one) and a uniform-random policy on the same seeded episodes.
 
     Writes ``summary.md``, ``metrics.json``, ``learning_curve.png`` and ``belief_projection.png``
     into ``output`` (default: ``<run>/evaluation``) and returns the metrics.
@@ -144,23 +163,33 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     out.mkdir(parents=True, exist_ok=True)
 
     mode = ExplorationType.DETERMINISTIC if greedy else ExplorationType.RANDOM
-    t_trained, t_random = {}, {}
+    t_trained, t_random, t_scripted = {}, {}, {}
     with set_exploration_type(mode):
         trained, trained_step_s = run_episodes(cfg, policy, episodes, seed, t_trained, make=make)
     random_rollout, random_step_s = run_episodes(cfg, None, episodes, seed, t_random)
     m_trained = first_episode_metrics(trained, model, estimates(trained))
     m_random = first_episode_metrics(random_rollout, model)
+    rows = {"trained": {**summarise_episodes(m_trained), "seconds_per_step": trained_step_s, **t_trained}}
+    scripted = scripted_policy(cfg, model)
+    if scripted is not None:
+        scripted_rollout, scripted_step_s = run_episodes(cfg, scripted, episodes, seed, t_scripted)
+        rows["scripted"] = {**summarise_episodes(first_episode_metrics(scripted_rollout, model)),
+                            "seconds_per_step": scripted_step_s, **t_scripted}
+    rows["random"] = {**summarise_episodes(m_random), "seconds_per_step": random_step_s, **t_random}
     result = {
         "checkpoint": display_path(ckpt_path),
         "env": cfg.env.name,
-        "filter": "dvrl (learned belief)" if algorithm(cfg) == "dvrl_a2c" else cfg.filter.name,
+        "filter": {"dvrl_a2c": "dvrl (learned belief)", "recurrent_ppo": "none (GRU on raw observations)"}.get(
+            algorithm(cfg), cfg.filter.name),
         "num_particles": int(cfg.num_particles),
         "episodes": episodes,
         "eval_seed": seed,
         "greedy": greedy,
         "trained_iterations": int(meta["trainer_state"]["iteration"]),
-        "trained": {**summarise_episodes(m_trained), "seconds_per_step": trained_step_s, **t_trained},
-        "random": {**summarise_episodes(m_random), "seconds_per_step": random_step_s, **t_random},
+        "trainer": algorithm(cfg),
+        "frames": int(meta["trainer_state"].get("frames", 0)),
+        "train_seconds": float(meta["trainer_state"].get("seconds", float("nan"))),
+        **rows,
     }
     (out / "metrics.json").write_text(json.dumps(result, indent=2))
     history = meta["trainer_state"].get("history", [])
@@ -177,7 +206,9 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
 
 def _markdown(r: dict) -> str:
     rows = []
-    for name in ("trained", "random"):
+    for name in ("trained", "scripted", "random"):
+        if name not in r:
+            continue
         m = r[name]
         rows.append(
             f"| {name} | {m['final_distance']:.3f} ± {m['final_distance_se']:.3f} | "
@@ -189,9 +220,10 @@ def _markdown(r: dict) -> str:
     return "\n".join([
         f"# Evaluation: {r['env']}, belief filter {r['filter']} (N={r['num_particles']})",
         "",
-        f"Checkpoint `{r['checkpoint']}` after {r['trained_iterations']} iterations; "
-        f"{r['episodes']} episodes with env seed {r['eval_seed']}, the same for both policies; "
-        f"trained policy {'greedy' if r['greedy'] else 'sampled'}. Mean ± standard error.",
+        f"Checkpoint `{r['checkpoint']}` ({r.get('trainer', 'reinforce')}) after {r['trained_iterations']} "
+        f"iterations ({r.get('frames', 0)} frames); {r['episodes']} episodes with env seed {r['eval_seed']}, "
+        f"the same for every policy; trained policy {'greedy' if r['greedy'] else 'sampled'}. "
+        "scripted: the domain's PD controller on the belief mean of the same filter. Mean ± standard error.",
         "",
         "| policy | final distance to goal | success rate | return | final position error | steps | ms per step (batch) |",
         "| --- | --- | --- | --- | --- | --- | --- |",

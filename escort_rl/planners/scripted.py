@@ -1,0 +1,283 @@
+"""Scripted belief controllers: a proportional-derivative (PD) rule on a state estimate.
+
+These are hand-written, non-learned baselines: they turn a point estimate of the state (the
+weighted mean of a particle belief, or the true state) into a discrete action. They show what a
+filter's belief is worth to a simple controller, with no training in the way, and the true-state
+variant is the full-information reference the same rule reaches.
+
+The rule (:func:`pd_action`): with position estimate ``x̂``, velocity estimate ``v̂`` and goal ``g``
+(all ``[*B, k]``),
+
+    u = (g − x̂) − gain_v · v̂,
+
+pick the dimension ``i`` with the largest ``|u_i|`` and push dimension ``i`` in the sign of ``u_i``
+(``u_i = 0`` counts as positive). Only one dimension can be pushed per step, so the rule spends it
+where the PD signal is largest. ``gain_v`` sets the braking: on the switching surface
+``g − x = gain_v·v`` the error decays with time constant ``gain_v`` (time units, ``gain_v/Δt`` steps).
+
+Per domain (:func:`scripted_controller_for`):
+
+- :class:`~escort_rl.models.LightDark10D`, state ``s = (x[5], v[5])``, actions ``a = 2i`` push
+  dimension ``i`` with ``+force`` and ``a = 2i+1`` with ``−force``: :class:`LightDarkPD`, exactly
+  :func:`pd_action` on ``(x̂, v̂, model.goal)``. Success (``is_terminal``) is ``‖x − goal‖ < 0.5``.
+- :class:`~escort_rl.models.MultiTargetTracking20D`, state ``[agent | target 1..4]`` with
+  ``[x, y, vx, vy]`` per entity: the agent controls only its own acceleration (``accel`` along
+  ``model.action_directions[a]``, default ``+x, −x, +y, −y``), and success is the *agent* within
+  ``success_radius`` of ``model.goal``; the targets only enter the reward (a collision penalty) and the
+  observations. The natural analogue, :class:`MultiTargetPD`, is the same PD signal on the agent's
+  position ``s[0:2]`` and velocity ``s[2:4]`` toward the goal, with the action whose acceleration
+  direction best aligns with it, ``argmax_a ⟨dir_a, u⟩``. For the default action set this is
+  exactly :func:`pd_action` (``+x, −x, +y, −y`` is the ``2i`` / ``2i+1`` encoding with ``k = 2``);
+  for other direction sets it stays well defined. It ignores the targets: it does not steer around
+  them (the collision penalty costs reward, not success) and does not aim the camera (the heading is
+  the chosen direction). The targets' belief therefore does not affect its actions; only the belief
+  over the agent's own position and velocity does.
+- :class:`~escort_rl.models.KidnappedRobot20D`: no scripted controller. The domain has no goal, its
+  reward is ``−1`` every step whatever the action, and ``is_terminal`` is always False: the task is
+  localisation, and a controller that "drives the belief-mean position toward the goal" has no goal
+  to drive to (and nothing in the return to improve). :func:`scripted_controller_for` raises a
+  ``ValueError`` that says so.
+
+Policies (TensorDict in, TensorDict out, so they drop into ``env.rollout(T, policy)`` and TorchRL's
+``Collector``): :class:`ScriptedBeliefController` reads the particles ``[*B, N, d]`` (and their log
+weights ``[*B, N]``) that :class:`escort_rl.transforms.BeliefTransform` writes and acts on the
+weighted mean ``Σ_n softmax(log w)_n · x_n``; :class:`TrueStateController` reads ``"true_state"``
+``[*B, d]`` (what :class:`escort_rl.envs.POMDPEnv` writes, for evaluation only).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import Tensor
+
+from escort_rl.models.kidnapped_robot import KidnappedRobot20D
+from escort_rl.models.light_dark import LightDark10D
+from escort_rl.models.multi_target import MultiTargetTracking20D
+
+DEFAULT_GAIN_V = 3.0
+
+__all__ = [
+    "DEFAULT_GAIN_V",
+    "LightDarkPD",
+    "MultiTargetPD",
+    "ScriptedBeliefController",
+    "TrueStateController",
+    "action_for_push",
+    "belief_mean",
+    "direction_action",
+    "pd_action",
+    "pd_signal",
+    "push_of_action",
+    "scripted_controller_for",
+]
+
+
+# ---------------------------------------------------------------------- the PD rule
+def _check_gain(gain_v: float) -> float:
+    if isinstance(gain_v, bool) or not isinstance(gain_v, (int, float)) or not math.isfinite(gain_v) or gain_v < 0:
+        raise ValueError(f"gain_v: must be a finite number >= 0, got {gain_v!r}")
+    return float(gain_v)
+
+
+def pd_signal(position_estimate: Tensor, velocity_estimate: Tensor, goal: Tensor,
+              gain_v: float = DEFAULT_GAIN_V) -> Tensor:
+    """``u = (goal − x̂) − gain_v·v̂``. Shapes broadcast, ``[*B, k]`` -> ``[*B, k]``."""
+    goal = torch.as_tensor(goal, dtype=position_estimate.dtype, device=position_estimate.device)
+    return (goal - position_estimate) - gain_v * velocity_estimate
+
+
+def action_for_push(dim: Tensor, positive: Tensor) -> Tensor:
+    """The discrete action that pushes dimension ``dim`` up (``positive``) or down: ``2·dim`` or
+    ``2·dim + 1`` (Light-Dark 10D's encoding, and Multi-Target Tracking's default ``+x, −x, +y, −y``)."""
+    return (2 * dim.long() + (~positive.bool()).long()).long()
+
+
+def push_of_action(action: Tensor) -> tuple[Tensor, Tensor]:
+    """Inverse of :func:`action_for_push`: ``(dim, positive)`` = ``(a // 2, a even)``."""
+    action = action.long()
+    return torch.div(action, 2, rounding_mode="floor"), action % 2 == 0
+
+
+def pd_action(position_estimate: Tensor, velocity_estimate: Tensor, goal: Tensor,
+              gain_v: float = DEFAULT_GAIN_V) -> Tensor:
+    """The PD action: push the dimension with the largest ``|u_i|`` in the sign of ``u_i``.
+
+    Args:
+        position_estimate, velocity_estimate: ``x̂``, ``v̂``: ``[*B, k]``.
+        goal: ``[k]`` (or broadcastable to ``[*B, k]``).
+        gain_v: the velocity (derivative) gain, ``>= 0``.
+
+    Returns:
+        int64 ``[*B]``: ``2i`` to push dimension ``i`` up, ``2i + 1`` to push it down (``u_i = 0``
+        pushes up; ties in ``|u_i|`` go to the lowest ``i``).
+    """
+    gain_v = _check_gain(gain_v)
+    if position_estimate.shape[-1:] != velocity_estimate.shape[-1:]:
+        raise ValueError(f"pd_action: position_estimate {tuple(position_estimate.shape)} and velocity_estimate "
+                         f"{tuple(velocity_estimate.shape)} must have the same last dimension")
+    u = pd_signal(position_estimate, velocity_estimate, goal, gain_v)
+    dim = u.abs().argmax(-1, keepdim=True)
+    positive = torch.gather(u, -1, dim) >= 0
+    return action_for_push(dim.squeeze(-1), positive.squeeze(-1))
+
+
+def direction_action(u: Tensor, directions: Tensor) -> Tensor:
+    """The action whose direction best aligns with ``u``: ``argmax_a ⟨directions_a, u⟩``.
+
+    ``u``: ``[*B, k]``, ``directions``: ``[n_actions, k]`` -> int64 ``[*B]`` (ties go to the lowest
+    action). For the directions ``+e_0, −e_0, +e_1, −e_1, …`` it equals :func:`pd_action`'s choice.
+    """
+    scores = u @ directions.to(dtype=u.dtype, device=u.device).T
+    return scores.argmax(-1).long()
+
+
+def belief_mean(particles: Tensor, log_weights: Tensor | None = None) -> Tensor:
+    """``Σ_n softmax(log_weights)_n · particles_n``: ``[*B, N, d]`` (and ``[*B, N]``) -> ``[*B, d]``.
+    Without log weights, the plain mean. The log weights need not be normalised."""
+    if log_weights is None:
+        return particles.mean(-2)
+    w = torch.softmax(log_weights.to(particles.dtype), dim=-1)
+    return (w.unsqueeze(-1) * particles).sum(-2)
+
+
+# ---------------------------------------------------------------------- per-domain controllers
+class LightDarkPD:
+    """Light-Dark 10D: :func:`pd_action` on ``x̂ = s[..., :5]``, ``v̂ = s[..., 5:10]`` toward
+    ``model.goal``. Call it on a state estimate ``[*B, 10]`` to get actions int64 ``[*B]``."""
+
+    def __init__(self, model: LightDark10D, gain_v: float = DEFAULT_GAIN_V) -> None:
+        self.model, self.gain_v = model, _check_gain(gain_v)
+        self.n_pos = int(model.n_pos)
+
+    def __call__(self, state: Tensor) -> Tensor:
+        k = self.n_pos
+        return pd_action(state[..., :k], state[..., k : 2 * k], self.model.goal, self.gain_v)
+
+
+class MultiTargetPD:
+    """Multi-Target Tracking 20D: the PD signal on the *agent* (position ``s[..., 0:2]``, velocity
+    ``s[..., 2:4]``) toward ``model.goal``, and the action ``argmax_a ⟨model.action_directions_a, u⟩``
+    (:func:`pd_action` for the default ``+x, −x, +y, −y``). The targets are ignored: success is the
+    agent reaching the goal; see the module docstring. ``[*B, 20]`` -> int64 ``[*B]``."""
+
+    def __init__(self, model: MultiTargetTracking20D, gain_v: float = DEFAULT_GAIN_V) -> None:
+        self.model, self.gain_v = model, _check_gain(gain_v)
+
+    def __call__(self, state: Tensor) -> Tensor:
+        u = pd_signal(state[..., 0:2], state[..., 2:4], self.model.goal, self.gain_v)
+        return direction_action(u, self.model.action_directions)
+
+
+def scripted_controller_for(model, gain_v: float = DEFAULT_GAIN_V) -> Callable[[Tensor], Tensor]:
+    """The scripted controller of ``model``'s domain: a callable from a state estimate ``[*B, d]`` to
+    actions int64 ``[*B]``.
+
+    - :class:`~escort_rl.models.LightDark10D` -> :class:`LightDarkPD`;
+    - :class:`~escort_rl.models.MultiTargetTracking20D` -> :class:`MultiTargetPD`;
+    - :class:`~escort_rl.models.KidnappedRobot20D` -> ``ValueError``: the domain has no goal, a
+      constant reward and no terminal state, so there is nothing for a goal-seeking rule to do;
+    - anything else -> ``ValueError``.
+    """
+    gain_v = _check_gain(gain_v)
+    if isinstance(model, LightDark10D):
+        return LightDarkPD(model, gain_v)
+    if isinstance(model, MultiTargetTracking20D):
+        return MultiTargetPD(model, gain_v)
+    name = type(model).__name__
+    if isinstance(model, KidnappedRobot20D):
+        raise ValueError(
+            f"scripted_controller_for: no scripted controller for {name}: the domain has no goal "
+            "(its reward is -1 every step whatever the action and is_terminal is always False; the task "
+            "is localisation), so a rule that drives the belief-mean position toward a goal does not apply"
+        )
+    raise ValueError(
+        f"scripted_controller_for: no scripted controller for {name}; supported models are "
+        "LightDark10D and MultiTargetTracking20D"
+    )
+
+
+# ---------------------------------------------------------------------- TorchRL policies
+class _ScriptedPolicy(TensorDictModuleBase):
+    """Shared plumbing: a per-domain controller from :func:`scripted_controller_for` (or one given)."""
+
+    def __init__(self, model, action_key: str, gain_v: float,
+                 controller: Callable[[Tensor], Tensor] | None) -> None:
+        super().__init__()
+        self.model = model
+        self.action_key = action_key
+        self.gain_v = _check_gain(gain_v)
+        self.controller = controller if controller is not None else scripted_controller_for(model, gain_v)
+
+    def _act(self, tensordict: TensorDictBase, estimate: Tensor) -> TensorDictBase:
+        action = self.controller(estimate).to(torch.int64)
+        tensordict.set(self.action_key, action.reshape(estimate.shape[:-1]))
+        return tensordict
+
+
+class ScriptedBeliefController(_ScriptedPolicy):
+    """Acts on the weighted mean of a particle belief with the domain's scripted controller.
+
+    Keys (``*B`` the tensordict's batch shape): reads ``particles_key`` ``[*B, N, d]`` and, when
+    present, ``log_weights_key`` ``[*B, N]`` (the mean is ``Σ_n softmax(log w)_n x_n``; without log
+    weights, the plain mean); writes ``action_key`` int64 ``[*B]``. These are the keys
+    :class:`escort_rl.transforms.BeliefTransform` writes, so the controller drops into
+    ``env.rollout(T, policy)`` and ``torchrl.collectors.Collector`` for a
+    ``TransformedEnv(POMDPEnv(model, ...), BeliefTransform(model, filter, N))``.
+
+    Args:
+        model: the env's model; it picks the controller (:func:`scripted_controller_for`; raises
+            ``ValueError`` for a model without one, e.g. Kidnapped Robot 20D).
+        particles_key, log_weights_key, action_key: the tensordict keys.
+        gain_v: the velocity gain of the PD rule.
+        controller: a callable ``[*B, d] -> [*B]`` to use instead of the model's default.
+    """
+
+    def __init__(self, model, particles_key: str = "particles", log_weights_key: str = "particle_log_weights",
+                 action_key: str = "action", gain_v: float = DEFAULT_GAIN_V,
+                 controller: Callable[[Tensor], Tensor] | None = None) -> None:
+        super().__init__(model, action_key, gain_v, controller)
+        self.particles_key, self.log_weights_key = particles_key, log_weights_key
+        self.in_keys = [particles_key, log_weights_key]
+        self.out_keys = [action_key]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        particles = tensordict.get(self.particles_key, None)
+        if particles is None:
+            raise KeyError(f"ScriptedBeliefController.particles_key: '{self.particles_key}' is not in the "
+                           "tensordict; add a BeliefTransform to the env")
+        d = self.model.state_dim
+        if particles.dim() < 2 or particles.shape[-1] != d:
+            raise ValueError(f"{self.particles_key}: expected shape [*B, N, {d}], got {tuple(particles.shape)}")
+        log_weights = tensordict.get(self.log_weights_key, None)
+        if log_weights is not None and log_weights.shape != particles.shape[:-1]:
+            raise ValueError(f"{self.log_weights_key}: expected shape {tuple(particles.shape[:-1])}, "
+                             f"got {tuple(log_weights.shape)}")
+        return self._act(tensordict, belief_mean(particles, log_weights))
+
+
+class TrueStateController(_ScriptedPolicy):
+    """The same scripted controller on the true state: reads ``state_key`` (default
+    ``"true_state"``, written by :class:`escort_rl.envs.POMDPEnv` for evaluation) ``[*B, d]`` and
+    writes ``action_key`` int64 ``[*B]``. The full-information reference for
+    :class:`ScriptedBeliefController`; not a policy for the partially observed task."""
+
+    def __init__(self, model, state_key: str = "true_state", action_key: str = "action",
+                 gain_v: float = DEFAULT_GAIN_V, controller: Callable[[Tensor], Tensor] | None = None) -> None:
+        super().__init__(model, action_key, gain_v, controller)
+        self.state_key = state_key
+        self.in_keys = [state_key]
+        self.out_keys = [action_key]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        state = tensordict.get(self.state_key, None)
+        if state is None:
+            raise KeyError(f"TrueStateController.state_key: '{self.state_key}' is not in the tensordict")
+        d = self.model.state_dim
+        if state.shape[-1:] != (d,):
+            raise ValueError(f"{self.state_key}: expected shape [*B, {d}], got {tuple(state.shape)}")
+        return self._act(tensordict, state)

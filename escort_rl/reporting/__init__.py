@@ -1,0 +1,1 @@
+"""Reporting shared by trainers and benchmarks: figures (below both layers)."""

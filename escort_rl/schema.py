@@ -1,0 +1,817 @@
+"""Typed schemas of the configs in ``configs/``, and the checks their metadata drives.
+
+Every Hydra group option starts with ``defaults: [<option>_schema, _self_]`` (e.g.
+``configs/trainer/ppo.yaml`` -> ``ppo_schema``), and ``config.yaml`` with ``config_schema``: the
+dataclasses below, registered in Hydra's ``ConfigStore`` under those names by :func:`register`.
+Composing therefore gives a typed config: a value of the wrong type (``num_particles=2.5``) or a
+key the schema lacks (``trainer.lrr=1``) fails while composing, naming the key.
+
+Ranges are field metadata, checked by :func:`check_config` after composing (and again by
+``escort_rl.trainers.validation.validate_train_config`` before training):
+
+- ``ge``, ``gt``, ``le``, ``lt``: bounds on a number (on every number of a list);
+- ``choices``: the allowed values (of every element of a list);
+- ``finite``: every float must be finite. This is the default for every field; ``finite: False``
+  opts out;
+- ``check``: a function ``value -> message | None`` for what bounds cannot say (``device``,
+  ``output_dir``, ``trainer.warm_start_filter``);
+- ``stage: "train"``: checked only before training, not while composing;
+- ``group``: the root field holds a Hydra group; a config without types (one saved by an older
+  version) is checked against the option named by ``GROUPS``.
+
+Schemas of classes (the models, the filters, the planner) mirror their constructors, defaults
+included (tests check both), with ``_target_`` for ``hydra.utils.instantiate``; mappings have no
+default (``???``) because OmegaConf merges mappings key by key: a default would keep keys the yaml
+leaves out. The schemas of the other groups give types and ranges only: their values live in the
+yaml (``???`` here).
+
+The benchmark settings (``configs/bench/``) and the planner settings (``configs/planner/``) are
+read without Hydra; :func:`load_typed` applies a schema to such a file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional
+
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException,
+                              ValidationError)
+
+
+def _f(default: Any = MISSING, **meta) -> Any:
+    """A dataclass field with ``meta`` as its metadata; list and dict defaults are copied per instance."""
+    if isinstance(default, (list, dict)):
+        value = default
+        return field(default_factory=lambda: _copy(value), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def _copy(value):
+    if isinstance(value, list):
+        return [_copy(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _copy(v) for k, v in value.items()}
+    return value
+
+
+def _sub(cls) -> Any:
+    return field(default_factory=cls)
+
+
+# ------------------------------------------------------------------------------------- checks
+def check_device(value: str) -> str | None:
+    """``cpu``, ``cuda``, ``cuda:N`` or ``mps``, present on this machine."""
+    import torch
+
+    try:
+        dev = torch.device(value)
+    except (RuntimeError, TypeError, ValueError):
+        return f"not a device: '{value}'; use cpu, cuda or cuda:N"
+    if dev.type == "cpu":
+        return None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            return f"'{value}' but this machine has no CUDA device (torch.cuda.is_available() is False); use device=cpu"
+        count = torch.cuda.device_count()
+        if dev.index is not None and dev.index >= count:
+            return f"'{value}' but this machine has {count} CUDA device(s): cuda:0 .. cuda:{count - 1}"
+        return None
+    if dev.type == "mps":
+        mps = getattr(torch.backends, "mps", None)
+        return None if mps is not None and mps.is_available() else f"'{value}' but MPS is not available; use device=cpu"
+    return f"'{value}' is not supported; use cpu, cuda or cuda:N"
+
+
+def check_output_dir(value: str) -> str | None:
+    """A folder, or a path that can become one: not an existing file, nor under one."""
+    path = Path(value).expanduser()
+    if path.exists() and not path.is_dir():
+        return f"'{value}' is an existing file; pass a folder"
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                return f"'{value}' is under the file '{parent}'; pass a folder"
+            break
+    return None
+
+
+def check_filter_name(value: str | None) -> str | None:
+    """``None`` or the name of a ``configs/filter/`` option."""
+    if value is None:
+        return None
+    names = option_names("filter")
+    return None if value in names else f"no filter config '{value}'; choose one of {', '.join(names)}"
+
+
+def check_nonempty(value: str) -> str | None:
+    return None if value else "must not be empty"
+
+
+def check_number_or_list(value) -> str | None:
+    """A number or a list of numbers (``env.input_loc``, ``env.input_scale``)."""
+    items = value if isinstance(value, list) else [value]
+    if not items or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in items):
+        return f"expected a number or a list of numbers, got {value!r}"
+    return None
+
+
+def option_names(group: str) -> list[str]:
+    """The options of a Hydra group: the yaml files in ``configs/<group>/``."""
+    from escort_rl.config import config_dir
+
+    return sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
+
+
+# ------------------------------------------------------------------------------- env (models)
+@dataclass
+class LightDark10DModelConfig:
+    """``escort_rl.models.LightDark10D``'s arguments."""
+
+    _target_: str = "escort_rl.models.LightDark10D"
+    position_noise_std: float = _f(0.05, gt=0)
+    velocity_noise_std: float = _f(0.05, gt=0)
+    force: float = 0.1
+    damping: float = 0.1
+    dt: float = _f(0.1, gt=0)
+    sigma_base: float = _f(0.5, gt=0)
+    sigma_min: float = _f(0.01, gt=0)
+    confusion_prob: float = _f(0.2, ge=0, lt=1)
+    dark_threshold: float = 0.1
+    goal: float = 8.0
+    success_radius: float = 0.5
+    start_low: float = 0.0
+    start_high: float = 2.0
+
+
+@dataclass
+class KidnappedRobot20DModelConfig:
+    """``escort_rl.models.KidnappedRobot20D``'s arguments."""
+
+    _target_: str = "escort_rl.models.KidnappedRobot20D"
+    map_size: float = _f(20.0, gt=0)
+    cluster_centres: List[List[float]] = _f([[5.0, 5.0], [15.0, 5.0], [5.0, 15.0], [15.0, 15.0]])
+    cluster_offsets: List[List[float]] = _f([[-2.0, -1.0], [0.5, -1.5], [1.5, 1.0], [-1.0, 1.5]])
+    cluster_types: List[str] = _f(["house", "house", "shop", "warehouse"])
+    type_prototypes: Dict[str, List[float]] = MISSING
+    descriptor_perturbation_std: float = _f(0.1, ge=0)
+    map_seed: int = 0
+    reference_descriptor: List[float] = _f([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    sensor_range: float = _f(5.0, gt=0)
+    field_of_view_deg: float = _f(90.0, gt=0, lt=360)
+    range_softness: float = _f(0.2, gt=0)
+    fov_softness: float = _f(0.05, gt=0)
+    detection_prob: float = _f(0.95, gt=0, lt=1)
+    distance_noise_std: float = _f(0.2, gt=0)
+    similarity_noise_std: float = _f(0.05, gt=0)
+    turn_rate: float = _f(0.1, ge=0)
+    dt: float = _f(0.1, gt=0)
+    nominal_speed: float = _f(2.0, ge=0)
+    velocity_reversion: float = _f(0.1, ge=0, le=1)
+    position_noise_std: float = _f(0.02, gt=0)
+    heading_noise_std: float = _f(0.02, gt=0)
+    velocity_noise_std: float = _f(0.05, gt=0)
+    steering_noise_std: float = _f(0.02, gt=0)
+    calibration_noise_std: float = _f(0.005, gt=0)
+    feature_noise_std: float = _f(0.01, gt=0)
+    rho_position_heading: float = _f(0.6, gt=-1, lt=1)
+    rho_position_velocity: float = _f(0.8, gt=-1, lt=1)
+    rho_calibration: float = _f(0.4, gt=-1, lt=1)
+    rho_calibration_feature: float = _f(0.3, gt=-1, lt=1)
+    start_speed_std: float = _f(0.1, ge=0)
+    start_steering_std: float = _f(0.05, ge=0)
+    start_calibration_std: float = _f(0.05, ge=0)
+    start_feature_std: float = _f(0.1, ge=0)
+
+
+@dataclass
+class MultiTargetTracking20DModelConfig:
+    """``escort_rl.models.MultiTargetTracking20D``'s arguments."""
+
+    _target_: str = "escort_rl.models.MultiTargetTracking20D"
+    map_size: float = _f(10.0, gt=0)
+    dt: float = _f(0.1, gt=0)
+    damping: float = _f(0.1, ge=0, le=1)
+    accel: float = _f(0.2, gt=0)
+    actions: List[List[float]] = _f([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    flow_center: List[float] = _f([5.0, 5.0])
+    flow_rate: float = 0.3
+    flow_radius: float = _f(3.5, gt=0)
+    flow_attraction: float = _f(0.2, ge=0)
+    flocking_alignment: float = _f(0.05, ge=0)
+    repulsion_radius: float = _f(1.0, gt=0)
+    repulsion_gain: float = _f(0.1, ge=0)
+    wall_gain: float = _f(0.1, ge=0)
+    position_noise_std: float = _f(0.05, gt=0)
+    velocity_noise_std: float = _f(0.05, gt=0)
+    agent_obs_noise_std: float = _f(0.1, gt=0)
+    zone_x_edges: List[float] = _f([5.0])
+    zone_y_edges: List[float] = _f([5.0])
+    zone_grid: List[List[str]] = _f([["clear", "limited"], ["confusion", "blind"]])
+    zone_visibility: Dict[str, float] = _f(MISSING, ge=0, le=1)
+    zone_noise_std: Dict[str, float] = _f(MISSING, gt=0)
+    zone_swap_prob: Dict[str, float] = _f(MISSING, ge=0, le=1)
+    zone_softness: float = _f(0.1, gt=0)
+    fov_degrees: float = _f(60.0, gt=0, lt=360)
+    fov_softness: float = _f(0.02, gt=0)
+    swap_length_scale: float = _f(2.0, gt=0)
+    goal: List[float] = _f([9.0, 9.0])
+    success_radius: float = _f(0.5, gt=0)
+    distance_weight: float = _f(0.1, ge=0)
+    step_penalty: float = _f(0.05, ge=0)
+    collision_radius: float = _f(0.5, ge=0)
+    collision_penalty: float = _f(1.0, ge=0)
+    agent_start_center: List[float] = _f([1.0, 1.0])
+    agent_start_halfwidth: float = _f(0.5, ge=0)
+    target_start_centers: List[List[float]] = _f([[2.5, 2.5], [7.5, 2.5], [7.5, 7.5], [2.5, 7.5]])
+    target_start_halfwidth: float = _f(0.5, ge=0)
+
+
+@dataclass
+class LightDark10DEnvConfig:
+    """``configs/env/lightdark10d.yaml``."""
+
+    name: str = _f("lightdark10d", choices=["lightdark10d"])
+    max_steps: int = _f(MISSING, ge=1)
+    # (x - input_loc) / input_scale per state dimension: a number or one per dimension
+    input_loc: Any = _f(MISSING, check=check_number_or_list)
+    input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
+    model: LightDark10DModelConfig = _sub(LightDark10DModelConfig)
+
+
+@dataclass
+class KidnappedRobot20DEnvConfig:
+    """``configs/env/kidnapped20d.yaml``."""
+
+    name: str = _f("kidnapped20d", choices=["kidnapped20d"])
+    max_steps: int = _f(MISSING, ge=1)
+    input_loc: Any = _f(MISSING, check=check_number_or_list)
+    input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
+    model: KidnappedRobot20DModelConfig = _sub(KidnappedRobot20DModelConfig)
+
+
+@dataclass
+class MultiTargetTracking20DEnvConfig:
+    """``configs/env/mtt20d.yaml``."""
+
+    name: str = _f("mtt20d", choices=["mtt20d"])
+    max_steps: int = _f(MISSING, ge=1)
+    input_loc: Any = _f(MISSING, check=check_number_or_list)
+    input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
+    model: MultiTargetTracking20DModelConfig = _sub(MultiTargetTracking20DModelConfig)
+
+
+ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "kidnapped20d": KidnappedRobot20DEnvConfig,
+               "mtt20d": MultiTargetTracking20DEnvConfig}
+
+
+# ------------------------------------------------------------------------------------ filters
+@dataclass
+class SIRConfig:
+    """``configs/filter/sir.yaml``: ``escort_rl.belief.SIRFilter``'s arguments; ``name`` labels the
+    configuration and ``kind`` the filter family (the class of configs saved without ``_target_``)."""
+
+    _target_: str = "escort_rl.belief.SIRFilter"
+    name: str = "sir"
+    kind: str = _f("sir", choices=["sir"])
+    resample_threshold: float = _f(0.5, ge=0, le=1)
+    roughening: float = _f(0.0, ge=0)
+
+
+def _prior() -> Any:
+    return _f("smoothed", choices=["smoothed", "exact"])
+
+
+def _jitter() -> Any:
+    return _f(None, ge=0)
+
+
+@dataclass
+class SVGDConfig:
+    """``configs/filter/svgd.yaml``: ``escort_rl.belief.SVGDFilter``'s arguments (ESCORT's without
+    the regularisers)."""
+
+    _target_: str = "escort_rl.belief.SVGDFilter"
+    name: str = "svgd"
+    kind: str = _f("svgd", choices=["svgd"])
+    num_steps: int = _f(50, ge=0)
+    step_size: float = _f(0.1, gt=0)
+    step_decay: float = _f(0.0, ge=0)
+    adagrad_alpha: float = _f(0.9, ge=0, lt=1)
+    repulsion: str = _f("plain", choices=["plain", "enhanced"])
+    bandwidth_every: int = _f(10, ge=1)
+    bandwidth_scale: float = _f(1.0, gt=0)
+    prior: str = _prior()
+    jitter: Optional[float] = _jitter()
+    compile: bool = False
+
+
+@dataclass
+class ESCORTConfig:
+    """``configs/filter/escort*.yaml``: ``escort_rl.belief.ESCORTFilter``'s arguments."""
+
+    _target_: str = "escort_rl.belief.ESCORTFilter"
+    name: str = "escort"
+    kind: str = _f("escort", choices=["escort"])
+    num_steps: int = _f(50, ge=0)
+    step_size: float = _f(0.1, gt=0)
+    step_decay: float = _f(0.0, ge=0)
+    adagrad_alpha: float = _f(0.9, ge=0, lt=1)
+    repulsion: str = _f("plain", choices=["plain", "enhanced"])
+    bandwidth_every: int = _f(10, ge=1)
+    bandwidth_scale: float = _f(1.0, gt=0)
+    lambda_corr: float = _f(0.1, ge=0)
+    lambda_temp: float = _f(0.1, ge=0)
+    n_proj: int = _f(5, ge=1)
+    proj_dim: int = _f(2, ge=1)
+    projection: str = _f("learned", choices=["learned", "random"])
+    projection_every: int = _f(10, ge=1)
+    corr_form: str = _f("velocity", choices=["velocity", "position"])
+    temp_schedule: str = _f("anneal", choices=["anneal", "constant"])
+    temp_clip: float = 10.0
+    likelihood_pull: float = _f(0.0, ge=0)
+    prior: str = _prior()
+    jitter: Optional[float] = _jitter()
+    compile: bool = False
+
+
+FILTER_SCHEMAS = {"sir": SIRConfig, "svgd": SVGDConfig, "escort": ESCORTConfig}
+
+
+# ----------------------------------------------------------------------------------- trainers
+@dataclass
+class TrainerConfig:
+    """The keys every trainer reads: an iteration is ``num_envs`` episodes of ``env.max_steps`` steps."""
+
+    algorithm: str = MISSING
+    iterations: int = _f(MISSING, ge=1)
+    num_envs: int = _f(MISSING, ge=1)
+    lr: float = _f(MISSING, gt=0)
+    gamma: float = _f(MISSING, gt=0, le=1)
+    entropy_coef: float = _f(MISSING, ge=0)
+    max_grad_norm: float = _f(MISSING, gt=0)
+    checkpoint_every: int = _f(MISSING, ge=1)
+    keep_checkpoints: int = _f(MISSING, ge=1)
+
+
+@dataclass
+class ReinforceConfig(TrainerConfig):
+    """``configs/trainer/reinforce.yaml``."""
+
+    algorithm: str = _f("reinforce", choices=["reinforce"])
+    # checked before training only: a config naming another baseline still composes
+    baseline: str = _f(MISSING, choices=["time", "learned"], stage="train")
+    reward_scale: float = _f(MISSING, gt=0)
+    minibatch_size: int = _f(MISSING, ge=1)
+    warm_start_filter: Optional[str] = _f(None, check=check_filter_name)
+    warm_start_iterations: int = _f(0, ge=0)
+
+
+@dataclass
+class PPOConfig(TrainerConfig):
+    """``configs/trainer/ppo.yaml``."""
+
+    algorithm: str = _f("ppo", choices=["ppo"])
+    rollout_steps: int = _f(MISSING, ge=1)
+    gae_lambda: float = _f(MISSING, ge=0, le=1)
+    clip_epsilon: float = _f(MISSING, gt=0)
+    epochs: int = _f(MISSING, ge=1)
+    minibatches: int = _f(MISSING, ge=1)
+    critic_coef: float = _f(MISSING, ge=0)
+    reward_scale: float = _f(MISSING, gt=0)
+    warm_start_filter: Optional[str] = _f(None, check=check_filter_name)
+    warm_start_iterations: int = _f(0, ge=0)
+
+
+@dataclass
+class DVRLA2CConfig(TrainerConfig):
+    """``configs/trainer/dvrl_a2c.yaml``."""
+
+    algorithm: str = _f("dvrl_a2c", choices=["dvrl_a2c"])
+    readout_lr: float = _f(MISSING, gt=0)
+
+
+@dataclass
+class RecurrentPPOConfig(PPOConfig):
+    """``configs/trainer/recurrent_ppo.yaml``."""
+
+    algorithm: str = _f("recurrent_ppo", choices=["recurrent_ppo"])
+    hidden: int = _f(MISSING, ge=1)
+
+
+TRAINER_SCHEMAS = {"reinforce": ReinforceConfig, "ppo": PPOConfig, "dvrl_a2c": DVRLA2CConfig,
+                   "recurrent_ppo": RecurrentPPOConfig}
+
+
+# --------------------------------------------------------------------------------------- dvrl
+@dataclass
+class DVRLModuleConfig:
+    """``escort_rl.modules.DVRL``'s size arguments (``dvrl.module``)."""
+
+    num_particles: int = _f(MISSING, ge=1)
+    latent_dim: int = _f(MISSING, ge=1)
+    hidden: int = _f(MISSING, ge=1)
+    encoding_dim: Optional[int] = _f(None, ge=1)
+    summary: str = _f(MISSING, choices=["gru", "deepsets"])
+    summary_dim: Optional[int] = _f(None, ge=1)
+    resample: bool = MISSING
+
+
+@dataclass
+class DVRLLossConfig:
+    """The DVRL trainer's loss weights (``dvrl.loss``)."""
+
+    encoding_loss_coef: float = _f(MISSING, ge=0)
+    value_loss_coef: float = _f(MISSING, ge=0)
+    bptt_steps: int = _f(MISSING, ge=1)
+    reward_scale: float = _f(MISSING, gt=0)
+
+
+@dataclass
+class DVRLConfig:
+    """``configs/dvrl/<domain>.yaml``."""
+
+    name: str = _f(MISSING, choices=list(ENV_SCHEMAS))
+    obs_dim: int = _f(MISSING, ge=1)
+    n_actions: int = _f(MISSING, ge=1)
+    module: DVRLModuleConfig = _sub(DVRLModuleConfig)
+    loss: DVRLLossConfig = _sub(DVRLLossConfig)
+
+
+# ------------------------------------------------------------------------------------ planner
+@dataclass
+class PlannerConfig:
+    """``configs/planner/<domain>.yaml``: ``escort_rl.planners.pomcpow.POMCPOW``'s arguments but
+    ``leaf_value`` (a callable, set in code). Read with :func:`load_typed`."""
+
+    n_sim: Optional[int] = _f(100, ge=1)
+    time_budget_s: Optional[float] = _f(None, gt=0)
+    max_depth: int = _f(3, ge=1)
+    exploration_constant: float = _f(10.0, ge=0)
+    k_action: float = _f(4.0, gt=0)
+    alpha_action: float = _f(0.5, ge=0, le=1)
+    k_observation: float = _f(4.0, gt=0)
+    alpha_observation: float = _f(0.5, ge=0, le=1)
+    discount: float = _f(0.95, ge=0, le=1)
+    rollout_count: int = _f(8, ge=1)
+
+
+# -------------------------------------------------------------------------------------- bench
+@dataclass
+class TrainBudgetConfig:
+    iterations: int = _f(MISSING, ge=1)
+    num_envs: int = _f(MISSING, ge=1)
+
+
+@dataclass
+class PlannerRowConfig:
+    filter: str = _f(MISSING, check=check_filter_name)
+
+
+@dataclass
+class LearnedRowConfig:
+    trainer: str = MISSING
+
+
+@dataclass
+class ClosedLoopBenchConfig:
+    """``configs/bench/closed_loop.yaml`` (protocol (b) of the domain benchmark)."""
+
+    episodes: int = _f(MISSING, ge=1)
+    eval_seed: int = MISSING
+    particles: int = _f(MISSING, ge=1)
+    greedy: bool = MISSING
+    train: Dict[str, TrainBudgetConfig] = MISSING
+    planners: Dict[str, PlannerRowConfig] = MISSING
+    learned: Dict[str, LearnedRowConfig] = MISSING
+
+
+@dataclass
+class SyntheticTargetConfig:
+    """One GMM target: components are ``{mean, cov}`` or ``{mean, var, corr}`` with several forms
+    each (see the yaml's header), so they stay untyped."""
+
+    dim: int = _f(MISSING, ge=1)
+    weights: List[float] = _f(MISSING, gt=0, le=1)
+    components: List[Any] = MISSING
+
+
+@dataclass
+class GaussianInitialConfig:
+    mean: float = MISSING
+    std: float = _f(MISSING, gt=0)
+
+
+@dataclass
+class ScalabilityConfig:
+    dims: List[int] = _f(MISSING, ge=1)
+    structures: List[str] = _f(MISSING, choices=["block", "banded", "long_range", "sparse"])
+    weights: List[float] = _f(MISSING, gt=0, le=1)
+    positions: List[float] = MISSING
+    std: List[float] = _f(MISSING, gt=0)
+    block: Dict[str, Any] = MISSING
+    banded: Dict[str, Any] = MISSING
+    long_range: Dict[str, Any] = MISSING
+    sparse: Dict[str, Any] = MISSING
+    initial: GaussianInitialConfig = _sub(GaussianInitialConfig)
+
+
+@dataclass
+class SyntheticBenchConfig:
+    """``configs/bench/synthetic.yaml`` (the paper's synthetic targets)."""
+
+    targets: Dict[str, SyntheticTargetConfig] = MISSING
+    initial: Dict[str, GaussianInitialConfig] = MISSING
+    scalability: ScalabilityConfig = _sub(ScalabilityConfig)
+
+
+# --------------------------------------------------------------------------------------- root
+@dataclass
+class KeysConfig:
+    """The tensordict keys the belief transform writes and the policies read."""
+
+    particles: str = _f(MISSING, check=check_nonempty)
+    log_weights: str = _f(MISSING, check=check_nonempty)
+
+
+@dataclass
+class ActorConfig:
+    hidden: int = _f(MISSING, ge=1)
+    encoder_layers: int = _f(2, ge=1)
+
+
+@dataclass
+class CollectorConfig:
+    workers: int = _f(MISSING, ge=1)
+
+
+@dataclass
+class LoggerConfig:
+    backend: str = _f(MISSING, choices=["csv", "tensorboard"])
+
+
+@dataclass
+class EvaluateConfig:
+    episodes: int = _f(MISSING, ge=1)
+    seed: int = MISSING
+    greedy: bool = MISSING
+
+
+@dataclass
+class Config:
+    """``configs/config.yaml``. The groups are typed by their options' schemas."""
+
+    env: Any = _f(MISSING, group="env")
+    filter: Any = _f(MISSING, group="filter")
+    trainer: Any = _f(MISSING, group="trainer")
+    dvrl: Any = _f(MISSING, group="dvrl")
+    seed: int = MISSING
+    device: str = _f(MISSING, check=check_device)
+    num_particles: int = _f(MISSING, ge=1)
+    output_dir: str = _f(MISSING, check=check_output_dir)
+    keys: KeysConfig = _sub(KeysConfig)
+    resume: Optional[str] = None
+    actor: ActorConfig = _sub(ActorConfig)
+    collector: CollectorConfig = _sub(CollectorConfig)
+    logger: LoggerConfig = _sub(LoggerConfig)
+    evaluate: EvaluateConfig = _sub(EvaluateConfig)
+    # The overrides `escort-rl train` composed this run from (null: composed in code, or saved by an
+    # older version); `train resume=RUN_DIR ...` recomposes from them.
+    overrides: Optional[List[str]] = None
+
+
+def _group_schema(group: str, node) -> type | None:
+    """The schema of a group option from its contents (for configs without types)."""
+    if group == "env":
+        return ENV_SCHEMAS.get(node.get("name"))
+    if group == "filter":
+        return FILTER_SCHEMAS.get(node.get("kind", node.get("name")))
+    if group == "trainer":
+        return TRAINER_SCHEMAS.get(node.get("algorithm", "reinforce"))
+    if group == "dvrl":
+        return DVRLConfig
+    return None
+
+
+# ------------------------------------------------------------------------------ registration
+_REGISTERED = False
+
+
+def register() -> None:
+    """Store the schemas in Hydra's ConfigStore under the names the yaml defaults lists use
+    (idempotent)."""
+    global _REGISTERED
+    if _REGISTERED:
+        return
+    from hydra.core.config_store import ConfigStore
+
+    cs = ConfigStore.instance()
+    cs.store(name="config_schema", node=Config)
+    for name, node in ENV_SCHEMAS.items():
+        cs.store(group="env", name=f"{name}_schema", node=node)
+    for name, node in FILTER_SCHEMAS.items():
+        cs.store(group="filter", name=f"{name}_schema", node=node)
+    for name, node in TRAINER_SCHEMAS.items():
+        cs.store(group="trainer", name=f"{name}_schema", node=node)
+    cs.store(group="dvrl", name="dvrl_schema", node=DVRLConfig)
+    _REGISTERED = True
+
+
+# ------------------------------------------------------------------------------ type messages
+_NAMES = {int: ("an int", "ints"), float: ("a number", "numbers"), bool: ("true or false", "booleans"),
+          str: ("a string", "strings")}
+
+
+def describe_type(hint, plural: bool = False) -> str:
+    """``int`` -> ``an int``; ``List[float]`` -> ``a list of numbers``; ``Optional[X]`` -> ``... or null``."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is typing.Union and type(None) in args:
+        rest = [a for a in args if a is not type(None)]
+        return f"{describe_type(rest[0], plural)} or null" if len(rest) == 1 else "a value"
+    if hint in _NAMES:
+        return _NAMES[hint][plural]
+    if origin in (list, List):
+        return "lists" if plural else f"a list of {describe_type(args[0], True) if args else 'values'}"
+    if origin in (dict, Dict):
+        return "mappings" if plural else f"a mapping to {describe_type(args[1], True) if args else 'values'}"
+    if dataclasses.is_dataclass(hint):
+        return "mappings" if plural else "a mapping"
+    return "values" if plural else "a value"
+
+
+def _type_ok(value, hint) -> bool:
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is Any:
+        return True
+    if origin is typing.Union:
+        return any(_type_ok(value, a) for a in args)
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint is str:
+        return isinstance(value, str)
+    if origin in (list, List):
+        return isinstance(value, list) and (not args or all(_type_ok(v, args[0]) for v in value))
+    if origin in (dict, Dict):
+        return isinstance(value, dict) and (not args or all(_type_ok(v, args[1]) for v in value.values()))
+    if dataclasses.is_dataclass(hint):
+        return isinstance(value, dict)
+    return True
+
+
+def _field_hint(schema, key) -> Any:
+    if not (isinstance(schema, type) and dataclasses.is_dataclass(schema)) or not isinstance(key, str):
+        return None
+    return typing.get_type_hints(schema).get(key)
+
+
+def _show(value) -> str:
+    return f"'{value}'" if not isinstance(value, (list, dict, ListConfig, DictConfig)) else repr(value)
+
+
+def describe_error(err: OmegaConfBaseException) -> str:
+    """One line for an OmegaConf error, from its structured fields (``full_key``, ``value``, the
+    schema's type of the key): ``num_particles: expected an int, got '2.5'``."""
+    key = err.full_key or err.key or "?"
+    if isinstance(err, (ConfigKeyError, ConfigAttributeError)) and err.object_type is not None:
+        return f"unknown key '{key}'"
+    if isinstance(err, MissingMandatoryValue):
+        return f"{key}: missing (???); set it"
+    if isinstance(err, ValidationError):
+        hint = _field_hint(err.object_type, err.key)
+        if hint is None and isinstance(err.parent_node, ListConfig):  # an element of a typed list
+            hint = err.parent_node._metadata.element_type
+        if hint is not None:
+            return f"{key}: expected {describe_type(hint)}, got {_show(err.value)}"
+    msg = (err.msg or type(err).__name__).strip().splitlines()[0]
+    return f"{key}: {msg}" if err.full_key else msg
+
+
+# ------------------------------------------------------------------------------------ checker
+def check_config(cfg, schema: type | None = None, *, stage: str = "compose", prefix: str = "") -> None:
+    """Raise ``ConfigError(prefix + "<full key>: <what is wrong>")`` for the first value that breaks
+    its schema's type or metadata. ``schema``: for a config without types (default: the root
+    :class:`Config`); a typed config carries its own. ``stage="train"`` adds the checks marked so."""
+    from escort_rl.config import ConfigError
+
+    problem = find_problem(cfg, schema or Config, stage=stage)
+    if problem is not None:
+        raise ConfigError(prefix + problem)
+
+
+def find_problem(cfg, schema: type | None = None, *, stage: str = "compose", path: str = "") -> str | None:
+    """The message :func:`check_config` raises, or ``None``."""
+    if not isinstance(cfg, DictConfig):
+        cfg = OmegaConf.create(cfg)
+    return _walk(cfg, schema, path, stage)
+
+
+def _walk(node: DictConfig, schema, path: str, stage: str) -> str | None:
+    own = OmegaConf.get_type(node)
+    if own is not None and dataclasses.is_dataclass(own):
+        schema = own
+    if schema is None:
+        return None
+    hints = typing.get_type_hints(schema)
+    for f in dataclasses.fields(schema):
+        if f.name.startswith("_") or f.name not in node:
+            continue
+        key = f"{path}.{f.name}" if path else f.name
+        if OmegaConf.is_missing(node, f.name):
+            return f"{key}: missing (???); set it"
+        problem = _check_value(node[f.name], hints[f.name], f.metadata, key, stage)
+        if problem is not None:
+            return problem
+    return None
+
+
+def _check_value(value, hint, meta, key: str, stage: str) -> str | None:
+    if "group" in meta and isinstance(value, DictConfig):
+        return _walk(value, _group_schema(meta["group"], value), key, stage)
+    sub = hint
+    if typing.get_origin(hint) is typing.Union:
+        sub = next((a for a in typing.get_args(hint) if a is not type(None)), hint)
+    if isinstance(value, DictConfig) and dataclasses.is_dataclass(sub):
+        return _walk(value, sub, key, stage)
+    args = typing.get_args(sub)
+    if (isinstance(value, DictConfig) and typing.get_origin(sub) in (dict, Dict) and len(args) == 2
+            and dataclasses.is_dataclass(args[1])):
+        for k in value:
+            problem = _walk(value[k], args[1], f"{key}.{k}", stage)
+            if problem is not None:
+                return problem
+        return None
+    plain = OmegaConf.to_container(value, resolve=True) if isinstance(value, (DictConfig, ListConfig)) else value
+    if not _type_ok(plain, hint):
+        return f"{key}: expected {describe_type(hint)}, got {_show(plain)}"
+    if plain is None:
+        return None
+    if meta.get("finite", True):
+        bad = next((v for v in _numbers(plain) if isinstance(v, float) and not math.isfinite(v)), None)
+        if bad is not None:
+            return f"{key}: must be a finite number, got {bad}"
+    if meta.get("stage", "compose") == "train" and stage != "train":
+        return None
+    for name, ok, what in (("ge", lambda v, b: v >= b, ">="), ("gt", lambda v, b: v > b, ">"),
+                           ("le", lambda v, b: v <= b, "<="), ("lt", lambda v, b: v < b, "<")):
+        if name in meta:
+            bad = next((v for v in _numbers(plain) if not ok(v, meta[name])), None)
+            if bad is not None:
+                return f"{key}: must be {what} {meta[name]}, got {bad}"
+    if "choices" in meta:
+        items = plain if isinstance(plain, list) else [plain]
+        bad = [v for v in items if v not in meta["choices"]]
+        if bad:
+            choices = ", ".join(str(c) for c in meta["choices"])
+            return f"{key}: must be one of {choices}; got '{bad[0]}'"
+    check: Callable | None = meta.get("check")
+    if check is not None:
+        msg = check(plain)
+        if msg:
+            return f"{key}: {msg}"
+    return None
+
+
+def _numbers(value):
+    """Every number in ``value`` (a number, or nested lists and mappings), booleans excluded."""
+    if isinstance(value, bool):
+        return
+    if isinstance(value, (int, float)):
+        yield value
+    elif isinstance(value, list):
+        for v in value:
+            yield from _numbers(v)
+    elif isinstance(value, dict):
+        for v in value.values():
+            yield from _numbers(v)
+
+
+# ------------------------------------------------------------------------------ plain files
+def load_typed(path: str | Path, schema: type) -> DictConfig:
+    """A yaml file read without Hydra (``configs/bench/*.yaml``, ``configs/planner/*.yaml``) with
+    ``schema`` applied: ``OmegaConf.merge(OmegaConf.structured(schema), yaml)``, then the checks of
+    its metadata. Raises ``ConfigError("<path>: <key>: ...")``. A top-level ``defaults`` list (Hydra's)
+    is dropped, so a group option can be read too."""
+    from escort_rl.config import ConfigError
+
+    loaded = OmegaConf.load(path)
+    if isinstance(loaded, DictConfig) and "defaults" in loaded:
+        loaded = OmegaConf.masked_copy(loaded, [k for k in loaded if k != "defaults"])
+    try:
+        cfg = OmegaConf.merge(OmegaConf.structured(schema), loaded)
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"{path}: {describe_error(err)}") from None
+    check_config(cfg, schema, prefix=f"{path}: ")
+    return cfg
+
+
+register()

@@ -1,0 +1,117 @@
+"""PPO on particle beliefs: TorchRL's ``ClipPPOLoss`` with ``GAE``, minibatch epochs from a
+``ReplayBuffer``, on a TorchRL collector.
+
+Read top to bottom: :class:`PPO` builds a DeepSets actor and a DeepSets critic (a ``ValueOperator``)
+reading the belief transform's keys, the loss and the optimiser. One iteration
+(:meth:`PPO.iteration`) reseeds and resets the envs, then runs ``env.max_steps / rollout_steps``
+PPO updates, each on a fresh batch of ``num_envs × rollout_steps`` frames:
+
+1. scale the rewards by ``reward_scale`` (the critic fits returns of order one);
+2. compute GAE advantages and value targets with the critic (no gradient);
+3. ``epochs`` passes over the batch in ``minibatches`` shuffled minibatches, each one Adam step on
+   ``loss_objective + loss_critic + loss_entropy`` with the gradient norm clipped.
+
+Episodes run on across the batches of an iteration (finished envs reset on their own); the reset at
+each iteration start makes every iteration reproducible from its seed alone, so resume is exact.
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+from omegaconf import DictConfig
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers import SamplerWithoutReplacement
+from torchrl.modules import ValueOperator
+from torchrl.objectives import ClipPPOLoss, ValueEstimators
+
+from escort_rl.modules import make_deepsets_policy
+from escort_rl.trainers.builders import belief_keys, build_actor, env_factory
+from escort_rl.trainers.scaffold import StagedCollector, episode_stats, make_collector
+
+
+def make_ppo_loss(actor, critic, cfg: DictConfig) -> ClipPPOLoss:
+    """``ClipPPOLoss`` over a DeepSets actor and critic reading ``cfg``'s belief keys, with GAE as its
+    value estimator. The loss reads the log-probability the policy wrote (``action_log_prob``)."""
+    t = cfg.trainer
+    particles_key, log_weights_key = belief_keys(cfg)
+    policy = make_deepsets_policy(actor, particles_key=particles_key, log_weights_key=log_weights_key)
+    value = ValueOperator(critic, in_keys=[particles_key, log_weights_key])
+    loss = ClipPPOLoss(policy, value, clip_epsilon=float(t.clip_epsilon), entropy_coeff=float(t.entropy_coef),
+                       critic_coeff=float(t.critic_coef), loss_critic_type="smooth_l1",
+                       normalize_advantage=True)
+    loss.set_keys(sample_log_prob="action_log_prob")
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=float(t.gamma), lmbda=float(t.gae_lambda))
+    return loss
+
+
+class PPO:
+    """Clipped PPO with GAE on the belief particles (see the module docstring)."""
+
+    def __init__(self, cfg: DictConfig, model) -> None:
+        t = cfg.trainer
+        self.cfg, self.model = cfg, model
+        self.actor = build_actor(cfg, model.state_dim, model.n_actions)
+        self.critic = build_actor(cfg, model.state_dim, 1)
+        self.loss = make_ppo_loss(self.actor, self.critic, cfg)
+        self.policy = make_deepsets_policy(self.actor, *belief_keys(cfg))  # what the collector runs
+        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
+        self.components = {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
+        self.rollout_steps = int(t.rollout_steps)
+        self.batches = -(-int(cfg.env.max_steps) // self.rollout_steps)  # PPO updates per iteration
+        frames = int(t.num_envs) * self.rollout_steps
+        self.minibatch = frames // int(t.minibatches)
+        self.buffer = ReplayBuffer(storage=LazyTensorStorage(frames), sampler=SamplerWithoutReplacement(),
+                                   batch_size=self.minibatch)
+        self.collectors = StagedCollector(cfg, lambda c: make_collector(
+            c, lambda n, s: env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=False))
+
+    def update(self, batch) -> dict:
+        """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled); returns mean losses."""
+        t = self.cfg.trainer
+        with torch.no_grad():
+            self.loss.value_estimator(batch)
+        self.buffer.empty()
+        self.buffer.extend(batch.reshape(-1))
+        sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
+                "clip_fraction": 0.0, "grad_norm": 0.0}
+        steps = 0
+        for _ in range(int(t.epochs)):
+            for _ in range(int(t.minibatches)):
+                out = self.loss(self.buffer.sample())
+                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                self.optimizer.zero_grad(set_to_none=True)
+                total.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(t.max_grad_norm))
+                self.optimizer.step()
+                for key in sums:
+                    value = grad_norm if key == "grad_norm" else out.get(key, None)
+                    if value is not None:
+                        sums[key] += float(value.detach())
+                steps += 1
+        return {k: v / steps for k, v in sums.items()}
+
+    def iteration(self, index: int, seed: int) -> dict:
+        collector = self.collectors.for_iteration(index)
+        collector.set_seed(seed)
+        collector.reset()
+        stats, seen, collect_s, frames = {}, [], 0.0, 0
+        for _ in range(self.batches):
+            t0 = time.perf_counter()
+            batch = self.collectors.next()
+            collect_s += time.perf_counter() - t0
+            batch = batch.reshape(-1, batch.shape[-1])  # [E, T]
+            seen.append(batch.select(("next", "reward"), ("next", "done"), ("next", "terminated"),
+                                     ("next", "true_state")).clone())
+            frames += batch.numel()
+            batch["next", "reward"] = batch["next", "reward"] * float(self.cfg.trainer.reward_scale)
+            for key, value in self.update(batch).items():
+                stats[key] = stats.get(key, 0.0) + value / self.batches
+            if int(self.cfg.collector.workers) > 1:
+                collector.update_policy_weights_()
+        episodes = episode_stats(torch.cat(seen, dim=1), self.model)
+        return {"frames": frames, **episodes, **stats, "fps": frames / max(collect_s, 1e-9)}
+
+    def close(self) -> None:
+        self.collectors.close()

@@ -1,0 +1,221 @@
+"""Recurrent PPO on raw observations: a GRU actor-critic (:mod:`escort_rl.modules.recurrent`) with
+TorchRL's ``ClipPPOLoss`` and ``GAE`` in recurrent mode, on a TorchRL collector. The model-free
+baseline to a belief: the GRU's hidden state is the agent's memory, and no filter runs.
+
+Read top to bottom: :func:`make_recurrent_env` builds the env (``POMDPEnv`` with ``InitTracker`` and
+the GRU's primer; no belief transform), :class:`RecurrentPPO` the actor-critic, the loss and the
+optimiser. One iteration (:meth:`RecurrentPPO.iteration`) reseeds and resets the envs (the hidden
+states go back to zero), then runs ``ceil(env.max_steps / rollout_steps)`` PPO updates, each on a
+fresh batch ``[E, T]`` of ``num_envs × rollout_steps`` frames, in time order:
+
+1. scale the rewards by ``reward_scale``;
+2. compute GAE advantages and value targets (no gradient) with the value network in recurrent mode
+   over the whole batch: each row runs the GRU along time from the hidden state the collector
+   stored at its first step, restarting from zero where an episode starts (``is_init``);
+3. ``epochs`` passes, each over the E rows split into ``minibatches`` random groups of whole rows
+   (time is never shuffled: the GRU needs the sequence), one Adam step per group on
+   ``loss_objective + loss_critic + loss_entropy`` in recurrent mode, gradient norm clipped.
+
+The hidden state the collector carries from one batch to the next is the one the policy had when it
+acted; the loss restarts each row from it (truncated backpropagation through time at the batch
+boundary). Episodes run on across the batches of an iteration; the reset at each iteration start
+makes every iteration reproducible from its seed alone, so resume is exact.
+"""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.modules import set_recurrent_mode
+from torchrl.objectives import ClipPPOLoss, ValueEstimators
+
+from escort_rl.config import ConfigError
+from escort_rl.envs import POMDPEnv
+from escort_rl.modules.recurrent import make_recurrent_actor_critic, make_recurrent_primer
+from escort_rl.trainers.builders import build_model, input_scaling
+from escort_rl.trainers.scaffold import StagedCollector, episode_stats, make_collector
+
+DEFAULT_HIDDEN = 64
+
+
+# ------------------------------------------------------------------------------------ building
+def observation_scaling(cfg: DictConfig, model) -> tuple[list[float], list[float]]:
+    """The standardisation ``(o − loc) / scale`` of the observation, from the env group's per-state
+    ``input_loc`` / ``input_scale`` (:func:`escort_rl.trainers.builders.input_scaling`):
+
+    - a model whose observation is its position (``len(model.position_dims) == obs_dim``, e.g.
+      Light-Dark 10D: a noisy 5-D position) takes the entries of ``position_dims``;
+    - a model without ``position_dims`` whose observation is no longer than its state takes the first
+      ``obs_dim`` entries;
+    - any other observation (Kidnapped Robot's landmark readings, Multi-Target Tracking's agent
+      position and detections) is not a slice of the state: it is left as is (loc 0, scale 1).
+
+    Returns two lists of ``obs_dim`` floats."""
+    loc, scale = input_scaling(cfg)
+    d, m = int(model.state_dim), int(model.obs_dim)
+    loc = [float(loc)] * d if not isinstance(loc, (list, tuple)) else [float(x) for x in loc]
+    scale = [float(scale)] * d if not isinstance(scale, (list, tuple)) else [float(x) for x in scale]
+    dims = getattr(model, "position_dims", None)
+    if dims is not None and len(dims) == m:
+        idx = [int(i) for i in dims]
+    elif dims is None and m <= d:
+        idx = list(range(m))
+    else:
+        return [0.0] * m, [1.0] * m
+    return [loc[i] for i in idx], [scale[i] for i in idx]
+
+
+def recurrent_hidden(cfg: DictConfig) -> int:
+    """``trainer.hidden``: the width of the GRU and of its encoder and heads."""
+    return int(cfg.trainer.get("hidden", DEFAULT_HIDDEN))
+
+
+def build_recurrent_actor_critic(cfg: DictConfig, model):
+    """``(policy, value, primer)`` of :func:`escort_rl.modules.recurrent.make_recurrent_actor_critic`
+    for ``model`` with ``trainer.hidden`` and :func:`observation_scaling`."""
+    loc, scale = observation_scaling(cfg, model)
+    policy, value, primer = make_recurrent_actor_critic(model.obs_dim, model.n_actions, hidden=recurrent_hidden(cfg),
+                                                        obs_loc=loc, obs_scale=scale)
+    return policy.to(cfg.device), value.to(cfg.device), primer
+
+
+def make_recurrent_env(cfg: DictConfig, num_envs: int, seed: int | None = None) -> TransformedEnv:
+    """``TransformedEnv(POMDPEnv(model, (num_envs,)), Compose(InitTracker(), primer))``: the raw
+    observations, ``is_init`` and the GRU's hidden state ``recurrent_state`` ``[num_envs, 1, H]``
+    (zeros at every reset of an env, partial resets included). No belief transform. Building it
+    draws nothing from torch's generator.
+
+    Module-level, so ``functools.partial(make_recurrent_env, cfg, n, seed)`` is picklable (spawned
+    collector and ``ParallelEnv`` workers build it), like :func:`escort_rl.trainers.builders.make_env`."""
+    model = build_model(cfg.env, cfg.device)
+    base = POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
+    return TransformedEnv(base, Compose(InitTracker(), make_recurrent_primer(recurrent_hidden(cfg))))
+
+
+def recurrent_env_factory(cfg: DictConfig, num_envs: int, seed: int | None = None):
+    """A picklable zero-argument factory for :func:`make_recurrent_env` (the config made plain)."""
+    plain = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    return partial(make_recurrent_env, plain, num_envs, seed)
+
+
+def make_recurrent_ppo_loss(policy, value, cfg: DictConfig) -> ClipPPOLoss:
+    """``ClipPPOLoss`` over the recurrent policy and value network, with GAE as its value estimator
+    (``ClipPPOLoss`` finds the parameters the two share and counts them once). Call the loss and its
+    value estimator under ``set_recurrent_mode(True)`` on batches ``[E, T]``."""
+    t = cfg.trainer
+    loss = ClipPPOLoss(policy, value, clip_epsilon=float(t.clip_epsilon), entropy_coeff=float(t.entropy_coef),
+                       critic_coeff=float(t.critic_coef), loss_critic_type="smooth_l1",
+                       normalize_advantage=True)
+    loss.set_keys(sample_log_prob="action_log_prob")
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=float(t.gamma), lmbda=float(t.gae_lambda),
+                              deactivate_vmap=True)
+    return loss
+
+
+def validate_recurrent_ppo_config(cfg: DictConfig) -> None:
+    t = cfg.trainer
+    if t.get("warm_start_filter", None) or int(t.get("warm_start_iterations", 0) or 0) > 0:
+        raise ConfigError("trainer.warm_start_filter: trainer=recurrent_ppo runs on raw observations (no belief "
+                          f"filter to warm start), got {t.get('warm_start_filter')}; set it to null and "
+                          "trainer.warm_start_iterations=0")
+    per_worker = int(t.num_envs) // int(cfg.collector.workers)
+    if int(t.minibatches) > int(t.num_envs):
+        raise ConfigError(f"trainer.minibatches: minibatches are whole env rows, so at most trainer.num_envs "
+                          f"({t.num_envs}), got {t.minibatches}")
+    if per_worker < 1:
+        raise ConfigError(f"collector.workers: at most trainer.num_envs ({t.num_envs}), got {cfg.collector.workers}")
+    if recurrent_hidden(cfg) < 1:
+        raise ConfigError(f"trainer.hidden: must be a positive int, got {recurrent_hidden(cfg)}")
+
+
+# ------------------------------------------------------------------------------------ training
+class RecurrentPPO:
+    """Clipped PPO with GAE and a GRU actor-critic on the raw observations (see the module
+    docstring). Components: ``actor`` (the policy), ``critic`` (the value network; it shares the
+    encoder and the GRU with the policy) and ``optimizer``."""
+
+    def __init__(self, cfg: DictConfig, model) -> None:
+        validate_recurrent_ppo_config(cfg)
+        t = cfg.trainer
+        self.cfg, self.model = cfg, model
+        self.policy, self.value, _ = build_recurrent_actor_critic(cfg, model)
+        self.loss = make_recurrent_ppo_loss(self.policy, self.value, cfg)
+        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
+        self.components = {"actor": self.policy, "critic": self.value, "optimizer": self.optimizer}
+        self.rollout_steps = int(t.rollout_steps)
+        self.batches = -(-int(cfg.env.max_steps) // self.rollout_steps)  # PPO updates per iteration
+        frames = int(t.num_envs) * self.rollout_steps
+        self.collectors = StagedCollector(cfg, lambda c: make_collector(
+            c, lambda n, s: recurrent_env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=False))
+
+    def update(self, batch: TensorDictBase) -> dict:
+        """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled, time last); returns the
+        mean losses."""
+        t = self.cfg.trainer
+        with torch.no_grad(), set_recurrent_mode(True):
+            self.loss.value_estimator(batch)
+        groups = int(t.minibatches)
+        sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
+                "clip_fraction": 0.0, "grad_norm": 0.0}
+        steps = 0
+        for _ in range(int(t.epochs)):
+            for rows in torch.randperm(batch.shape[0]).tensor_split(groups):
+                with set_recurrent_mode(True):
+                    out = self.loss(batch[rows])
+                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                self.optimizer.zero_grad(set_to_none=True)
+                total.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(t.max_grad_norm))
+                self.optimizer.step()
+                for key in sums:
+                    value = grad_norm if key == "grad_norm" else out.get(key, None)
+                    if value is not None:
+                        sums[key] += float(value.detach())
+                steps += 1
+        return {k: v / steps for k, v in sums.items()}
+
+    def iteration(self, index: int, seed: int) -> dict:
+        collector = self.collectors.for_iteration(index)
+        collector.set_seed(seed)
+        collector.reset()
+        stats, seen, collect_s, frames = {}, [], 0.0, 0
+        for _ in range(self.batches):
+            t0 = time.perf_counter()
+            batch = self.collectors.next()
+            collect_s += time.perf_counter() - t0
+            batch = batch.reshape(-1, batch.shape[-1])  # [E, T]; a MultiSyncCollector's is [K, E/K, T]
+            batch.names = [None, "time"]
+            seen.append(batch.select(("next", "reward"), ("next", "done"), ("next", "terminated"),
+                                     ("next", "true_state")).clone())
+            frames += batch.numel()
+            batch["next", "reward"] = batch["next", "reward"] * float(self.cfg.trainer.reward_scale)
+            for key, value in self.update(batch).items():
+                stats[key] = stats.get(key, 0.0) + value / self.batches
+            if int(self.cfg.collector.workers) > 1:
+                collector.update_policy_weights_()
+        episodes = episode_stats(torch.cat(seen, dim=1), self.model)
+        return {"frames": frames, **episodes, **stats, "fps": frames / max(collect_s, 1e-9)}
+
+    def close(self) -> None:
+        self.collectors.close()
+
+
+# ------------------------------------------------------------------------------------ evaluation
+def load_recurrent_policy(cfg: DictConfig, checkpoint):
+    """The trained recurrent policy of a checkpoint (eval mode), to run in :func:`make_recurrent_env`."""
+    from escort_rl.trainers.checkpointing import load_checkpoint
+
+    policy, value, _ = build_recurrent_actor_critic(cfg, build_model(cfg.env, cfg.device))
+    load_checkpoint(checkpoint, actor=policy, critic=value)
+    policy.eval()
+    return policy
+
+
+def no_state_estimate(rollout: TensorDictBase, model) -> torch.Tensor:
+    """``[E, T, state_dim]`` of NaN: a recurrent policy has no belief, so no position error."""
+    return torch.full((*rollout.batch_size, model.state_dim), float("nan"))

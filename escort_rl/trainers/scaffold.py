@@ -1,0 +1,210 @@
+"""The training scaffold: one loop that owns a run, whatever the algorithm.
+
+The scaffold owns the run directory (``config.yaml``, ``checkpoints/``, ``logs/``, ``history.json``),
+per-iteration seeding, resume, checkpoint rotation, the logger, the progress bar and the history
+(kept once, in the trainer state that every checkpoint carries). An algorithm is a small object with
+
+- ``components``: the modules and optimisers a checkpoint holds (``{"actor": ..., "optimizer": ...}``);
+- ``iteration(index, seed) -> dict``: collect and learn for iteration ``index`` (0-based), seeded
+  with ``seed``; return its scalars, with
+  ``"frames"`` (this iteration's frames) and the episode statistics of :func:`episode_stats`;
+- ``close()``: shut collectors and envs down.
+
+Every iteration ``i`` is seeded with :func:`iteration_seed` (torch's global generator and the
+envs), so a resumed run collects exactly the data an uninterrupted run would have, and reaches the
+same parameters.
+
+Example::
+
+    >>> algorithm = PPO(cfg, model)                       # doctest: +SKIP
+    >>> run_dir = run_training(cfg, algorithm, model)     # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Protocol
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from torchrl.checkpoint import CheckpointRotation
+from torchrl.collectors import Collector, MultiSyncCollector
+from tqdm import tqdm
+
+from escort_rl.trainers.checkpointing import checkpoint_dir, load_checkpoint, save_checkpoint
+
+
+class Algorithm(Protocol):
+    """What :func:`run_training` drives (see the module docstring)."""
+
+    components: dict
+
+    def iteration(self, index: int, seed: int) -> dict: ...
+
+    def close(self) -> None: ...
+
+
+def iteration_seed(base: int, iteration: int) -> int:
+    """The seed of iteration ``i``: every iteration is reproducible on its own, so a resumed run
+    collects exactly the data an uninterrupted run would have."""
+    return (int(base) * 1_000_003 + int(iteration) * 7_919) % (2**31 - 1)
+
+
+def make_logger(cfg: DictConfig, run_dir: Path):
+    """TorchRL's CSV logger (or TensorBoard with ``logger.backend=tensorboard``) under ``run_dir/logs``."""
+    from torchrl.record.loggers import CSVLogger
+
+    if cfg.logger.backend == "tensorboard":
+        from torchrl.record.loggers import TensorboardLogger
+
+        return TensorboardLogger(exp_name="logs", log_dir=str(run_dir))
+    return CSVLogger(exp_name="logs", log_dir=str(run_dir))
+
+
+def make_collector(cfg: DictConfig, factory, policy, frames_per_batch: int, reset_at_each_iter: bool):
+    """A TorchRL ``Collector`` (``collector.workers=1``) or ``MultiSyncCollector`` (K workers, each
+    running ``trainer.num_envs / K`` envs) over ``factory(num_envs, seed)``, without a frame limit:
+    the scaffold decides when to stop."""
+    workers = int(cfg.collector.workers)
+    common = dict(frames_per_batch=frames_per_batch, total_frames=-1, reset_at_each_iter=reset_at_each_iter,
+                  device=cfg.device, auto_register_policy_transforms=False)
+    if workers == 1:
+        return Collector(factory(int(cfg.trainer.num_envs), int(cfg.seed)), policy, **common)
+    per_worker = int(cfg.trainer.num_envs) // workers
+    factories = [factory(per_worker, int(cfg.seed) + 7919 * k) for k in range(workers)]
+    return MultiSyncCollector(factories, policy, cat_results="stack", **common)
+
+
+def collection_config(cfg: DictConfig, index: int) -> DictConfig:
+    """The config whose belief filter collects iteration ``index``: the run's own, or during the warm
+    start (``index < trainer.warm_start_iterations``) the filter named by ``trainer.warm_start_filter``
+    (a ``configs/filter/`` name). Policies over particles move between filters."""
+    name = cfg.trainer.get("warm_start_filter", None)
+    if not name or index >= int(cfg.trainer.get("warm_start_iterations", 0)):
+        return cfg
+    from escort_rl.config import compose
+
+    warm = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    OmegaConf.set_struct(warm, False)
+    warm.filter = compose([f"filter={name}"]).filter
+    return warm
+
+
+class StagedCollector:
+    """The collector of the current stage (warm start or main) of a run: :meth:`for_iteration`
+    builds it on first use through ``build(cfg)`` and shuts the previous stage's down."""
+
+    def __init__(self, cfg: DictConfig, build) -> None:
+        self.cfg, self.build = cfg, build
+        self.collector, self.iterator, self.stage = None, None, None
+
+    def for_iteration(self, index: int):
+        stage_cfg = collection_config(self.cfg, index)
+        stage = "main" if stage_cfg is self.cfg else "warm"
+        if stage != self.stage:
+            self.close()
+            self.collector, self.stage = self.build(stage_cfg), stage
+            self.iterator = iter(self.collector)
+        return self.collector
+
+    def next(self):
+        return next(self.iterator)
+
+    def close(self) -> None:
+        if self.collector is not None:
+            self.collector.shutdown()
+            self.collector = None
+
+
+def episode_stats(batch: TensorDictBase, model) -> dict:
+    """Mean return, final distance to goal and success rate of the episodes that end in ``batch``
+    ``[E, T]`` (episode returns by one ``index_add`` over episode ids; an episode that started before
+    the batch counts only its steps inside it)."""
+    done = batch["next", "done"].squeeze(-1)
+    reward = batch["next", "reward"].squeeze(-1)
+    e, t = done.shape
+    episode_in_row = torch.cumsum(done.long(), dim=1) - done.long()  # [E, T]
+    episode_id = torch.arange(e, device=done.device).unsqueeze(1) * t + episode_in_row
+    returns = torch.zeros(e * t, dtype=reward.dtype, device=reward.device).index_add_(
+        0, episode_id.flatten(), reward.flatten())
+    rows, steps = done.nonzero(as_tuple=True)  # the last step of every finished episode
+    if rows.numel() == 0:
+        return {"episode_return": float("nan"), "final_distance": float("nan"), "success_rate": float("nan"),
+                "episodes": 0}
+    final_state = batch["next", "true_state"][rows, steps]
+    distance = (model.distance_to_goal(final_state) if hasattr(model, "distance_to_goal")
+                else torch.full((rows.numel(),), float("nan")))
+    return {
+        "episode_return": float(returns[episode_id[rows, steps]].mean()),
+        "final_distance": float(distance.mean()),
+        "success_rate": float(batch["next", "terminated"].squeeze(-1)[rows, steps].float().mean()),
+        "episodes": int(rows.numel()),
+    }
+
+
+def _fresh_state() -> dict:
+    return {"iteration": 0, "frames": 0, "seconds": 0.0, "history": []}
+
+
+def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | None = None, progress: bool = True,
+                 desc: str = "train", watch: tuple[str, ...] = ("episode_return", "final_distance",
+                                                                 "success_rate")) -> Path:
+    """Drive ``algorithm`` for ``cfg.trainer.iterations`` iterations; returns the run directory.
+
+    Writes ``config.yaml``, ``checkpoints/`` (every ``trainer.checkpoint_every`` iterations and after
+    the last, keeping ``trainer.keep_checkpoints``), TorchRL logger output under ``logs/`` and
+    ``history.json`` into ``cfg.output_dir``. ``resume_state`` (``{"path": checkpoint}``) restores
+    the components and the trainer state and continues where that checkpoint stopped.
+    """
+    run_dir = Path(cfg.output_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    torch.manual_seed(int(cfg.seed))
+    components = algorithm.components
+    state = _fresh_state()
+    if resume_state is not None:
+        saved = load_checkpoint(resume_state["path"], **components)["trainer_state"]
+        state = {**_fresh_state(), **{k: saved[k] for k in ("iteration", "frames", "history") if k in saved},
+                 "seconds": float(saved.get("seconds", 0.0))}
+    n_iter = int(cfg.trainer.iterations)
+    if state["iteration"] >= n_iter:
+        return run_dir
+    rotation = CheckpointRotation(checkpoint_dir(run_dir), keep_last=int(cfg.trainer.keep_checkpoints))
+    config_dict = OmegaConf.to_container(cfg, resolve=True)
+    every = int(cfg.trainer.checkpoint_every)
+    logger = make_logger(cfg, run_dir)
+    bar = tqdm(total=n_iter, initial=state["iteration"], desc=desc, disable=not progress, dynamic_ncols=True)
+    try:
+        for it in range(state["iteration"], n_iter):
+            seed = iteration_seed(cfg.seed, it)
+            torch.manual_seed(seed)
+            t0 = time.perf_counter()
+            stats = algorithm.iteration(it, seed)
+            seconds = time.perf_counter() - t0
+            state["iteration"] = it + 1
+            state["frames"] += int(stats.pop("frames"))
+            state["seconds"] += seconds
+            record = {"iteration": it + 1, "frames": state["frames"], **stats,
+                      "fps": stats.get("fps", float("nan")), "seconds": seconds,
+                      "wall_seconds": state["seconds"]}
+            bad = [k for k, v in record.items() if isinstance(v, float) and k.startswith("loss") and not math.isfinite(v)]
+            if bad:
+                raise FloatingPointError(f"training: non-finite {', '.join(bad)} at iteration {it + 1}; lower "
+                                         "trainer.lr or check the model's rewards (last checkpoint kept)")
+            bar.set_postfix({k: f"{record[k]:.2f}" for k in watch if k in record})
+            bar.update(1)
+            state["history"].append(record)
+            for key, value in record.items():
+                if key != "iteration":
+                    logger.log_scalar(key, value, step=it + 1)
+            if (it + 1) % every == 0 or it + 1 == n_iter:
+                save_checkpoint(rotation, it + 1, state, config_dict, **components)
+    finally:
+        bar.close()
+        algorithm.close()
+    (run_dir / "history.json").write_text(json.dumps(state["history"], indent=1))
+    return run_dir
