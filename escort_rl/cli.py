@@ -105,8 +105,9 @@ def _parser() -> argparse.ArgumentParser:
     dom.add_argument("--domains", nargs="+", default=None,
                      help="env configs (default: lightdark10d kidnapped20d mtt20d)")
     dom.add_argument("--methods", nargs="+", default=None, help="filter configs (default: escort escort_nocorr "
-                     "escort_notemp escort_noproj svgd sir; protocol b adds the planner rows pomcpow_sir pomcpow_escort "
-                     "and the learned belief dvrl), or dvrl (trained first in <output>/runs with protocol b's budget)")
+                     "escort_notemp escort_noproj svgd sir; protocol b adds the planner rows pomcpow_sir "
+                     "pomcpow_escort, the scripted rows scripted_sir scripted_escort, the learned belief dvrl and the recurrent policy "
+                     "recurrent_ppo), or dvrl (trained first in <output>/runs with protocol b's budget)")
     dom.add_argument("--seeds", type=int, default=None, help="seeds 0..S-1, run as one batch (default 30)")
     dom.add_argument("--particles", type=int, default=None, help="N for every method (default 100)")
     dom.add_argument("--steps", type=int, default=None, help="steps per trajectory (default: env.max_steps)")
@@ -205,8 +206,7 @@ def _bench_closed_loop(args) -> None:
 
     quick = dict(domains=["lightdark10d", "kidnapped20d", "mtt20d"], methods=["escort", "svgd", "sir"], seeds=2,
                  particles=20, steps=10, filter_set=[], threads=1, train_iterations=1, train_envs=2)
-    full = dict(domains=list(dom.DEFAULT_DOMAINS), methods=[*dom.DEFAULT_METHODS, *cl.load_settings()["planners"],
-                                                               *cl.load_settings()["learned"]],
+    full = dict(domains=list(dom.DEFAULT_DOMAINS), methods=cl.default_methods(),
                 seeds=None, particles=None, steps=None, filter_set=[], threads=None, train_iterations=None,
                 train_envs=None)
     kw = {k: getattr(args, k) if getattr(args, k) is not None else (quick if args.quick else full)[k] for k in full}

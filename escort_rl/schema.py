@@ -383,6 +383,7 @@ class PPOConfig(TrainerConfig):
     minibatches: int = _f(MISSING, ge=1)
     critic_coef: float = _f(MISSING, ge=0)
     reward_scale: float = _f(MISSING, gt=0)
+    critic_input: str = _f("belief", choices=["belief", "state"])
     warm_start_filter: Optional[str] = _f(None, check=check_filter_name)
     warm_start_iterations: int = _f(0, ge=0)
 
@@ -485,9 +486,15 @@ class ClosedLoopBenchConfig:
     eval_seed: int = MISSING
     particles: int = _f(MISSING, ge=1)
     greedy: bool = MISSING
+    # the trainer of the filter rows (a DeepSets policy on a filter's belief); None: config.yaml's
+    trainer: Optional[str] = _f(None, choices=["ppo", "reinforce"])
     train: Dict[str, TrainBudgetConfig] = MISSING
     planners: Dict[str, PlannerRowConfig] = MISSING
+    # scripted rows have the planner rows' shape: {filter: <a configs/filter/ name>}
+    scripted: Dict[str, PlannerRowConfig] = MISSING
     learned: Dict[str, LearnedRowConfig] = MISSING
+    # recurrent rows (no belief) have the learned rows' shape: {trainer: <a configs/trainer/ name>}
+    recurrent: Dict[str, LearnedRowConfig] = MISSING
 
 
 @dataclass

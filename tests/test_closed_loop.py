@@ -28,7 +28,7 @@ def test_trains_each_method_evaluates_and_resumes(tmp_path, capsys):
     assert result["methods"] == ["sir", "escort", "random"]
     for m in ("sir", "escort"):
         r = rows[m]
-        assert r["failed"] is None and r["policy"] == "trained"
+        assert r["failed"] is None and r["policy"] == "trained" and r["trainer"] == "ppo"  # the yaml's trainer
         assert r["train"]["iterations"] == 1 and r["train"]["frames"] == 2 * 5 and r["train"]["resumed_from_iteration"] == 0
         assert (out / "runs" / "lightdark10d" / m / "checkpoints").is_dir()
         s = r["summary"]
@@ -127,3 +127,121 @@ def test_dvrl_row_trains_its_own_belief_and_reports_the_readout_error(tmp_path):
     cfg_text = (tmp_path / "runs" / "lightdark10d" / "dvrl" / "config.yaml").read_text()
     assert "algorithm: dvrl_a2c" in cfg_text
     assert "| DVRL (learned belief, readout) |" in cl.closed_loop_markdown(result)
+
+
+# ------------------------------------------------------------------------------ baseline rows
+def test_the_registry_knows_every_row_and_the_defaults_include_the_baselines():
+    settings = cl.load_settings()
+    spec = {m: cl.method_spec(m, settings) for m in ("sir", "scripted_sir", "scripted_escort", "pomcpow_sir",
+                                                     "dvrl", "recurrent_ppo", cl.RANDOM)}
+    assert spec["sir"] == {"kind": "trained", "section": None, "filter": "sir", "trainer": "ppo"}
+    assert spec["scripted_escort"]["kind"] == "scripted" and spec["scripted_escort"]["filter"] == "escort"
+    assert spec["pomcpow_sir"]["kind"] == "planner"
+    assert spec["dvrl"]["kind"] == spec["recurrent_ppo"]["kind"] == "learned"
+    assert spec["recurrent_ppo"]["trainer"] == "recurrent_ppo" and spec["recurrent_ppo"]["section"] == "recurrent"
+    defaults = cl.default_methods()
+    assert {"scripted_sir", "scripted_escort", "recurrent_ppo", "dvrl", "pomcpow_sir", "sir"} <= set(defaults)
+    assert len(set(defaults)) == len(defaults) and cl.RANDOM not in defaults
+    # protocol (a)'s learned beliefs stay beliefs: the recurrent policy has none
+    from escort_rl.bench.domains import learned_methods
+
+    assert "recurrent_ppo" not in learned_methods() and "dvrl" in learned_methods()
+    # the checks accept the new names and still refuse unknown ones
+    with pytest.raises(ValueError, match="--methods: unknown method 'scripted_nowhere'"):
+        cl.run_closed_loop(["lightdark10d"], ["scripted_nowhere"], "unused")
+    with pytest.raises(ValueError, match="'random' is always run"):
+        cl.run_closed_loop(["lightdark10d"], ["scripted_sir", "random"], "unused")
+    with pytest.raises(ValueError, match="--filter-set"):
+        cl.run_closed_loop(["lightdark10d"], ["recurrent_ppo"], "unused", filter_set=(("num_steps", "2"),))
+
+
+def test_a_section_name_may_not_shadow_another_row(monkeypatch):
+    settings = cl.load_settings()
+    settings["scripted"] = {**settings["scripted"], "sir": {"filter": "sir"}}
+    with pytest.raises(ValueError, match="'sir' in scripted is also a filter config"):
+        cl.named_rows(settings)
+    settings["scripted"] = {"dvrl": {"filter": "sir"}}
+    with pytest.raises(ValueError, match="'dvrl' in learned is also the scripted section"):
+        cl.named_rows(settings)
+
+
+def test_filter_rows_use_the_yamls_trainer_with_whole_episode_batches(tmp_path, monkeypatch):
+    settings = cl.load_settings()
+    assert settings["trainer"] == "ppo"
+    for d in DEFAULT_DOMAINS:  # the budget's frames keep their meaning: rollout_steps divides the episode
+        cfg = cl.run_config(d, "sir", 7, "unused", settings["train"][d], trainer=settings["trainer"])
+        assert cfg.trainer.algorithm == "ppo" and cfg.env.max_steps % cfg.trainer.rollout_steps == 0
+        assert cfg.trainer.num_envs == settings["train"][d]["num_envs"]
+    assert [cl.batch_length(t, 125) for t in (500, 200, 100, 6, 127)] == [125, 100, 100, 6, 127]
+    cfg = cl.run_config("lightdark10d", "sir", 7, "unused", {"num_envs": 2, "rollout_steps": 3}, steps=6,
+                        trainer="ppo")
+    assert cfg.trainer.rollout_steps == 3  # a budget that sets it wins
+    cfg = cl.run_config("lightdark10d", "sir", 7, "unused", {"num_envs": 2}, steps=6, trainer="recurrent_ppo")
+    assert cfg.trainer.minibatches == 2 and cfg.trainer.rollout_steps == 6  # minibatches are whole env rows
+
+    # without the key: the config's default trainer (REINFORCE), as before
+    monkeypatch.setattr(cl, "load_settings", lambda: {k: v for k, v in settings.items() if k != "trainer"})
+    result = cl.run_closed_loop(["lightdark10d"], ["sir"], tmp_path, episodes=2, n=8, steps=6, threads=1,
+                                train_overrides={"iterations": 1, "num_envs": 2})
+    assert result["trainer"] == "reinforce" and result["trainers"] == {"sir": "reinforce"}
+    assert result["rows"][0]["trainer"] == "reinforce" and result["rows"][0]["train"]["frames"] == 2 * 6
+    assert "DeepSets policy (REINFORCE)" in cl.closed_loop_markdown(result)
+
+
+def test_a_bad_trainer_in_the_yaml_names_the_key(tmp_path, monkeypatch):
+    from escort_rl.config import ConfigError
+
+    bad = tmp_path / "closed_loop.yaml"
+    bad.write_text(cl.settings_path().read_text().replace("trainer: ppo", "trainer: dvrl_a2c"))
+    monkeypatch.setattr(cl, "settings_path", lambda: bad)
+    with pytest.raises(ConfigError, match="trainer: must be one of ppo, reinforce; got 'dvrl_a2c'"):
+        cl.load_settings()
+
+
+def test_scripted_rows_train_nothing_and_do_not_apply_to_kidnapped_robot(tmp_path):
+    result = cl.run_closed_loop(["lightdark10d", "kidnapped20d"], ["scripted_sir", "scripted_escort"], tmp_path,
+                                episodes=2, n=8, steps=8, threads=1, filter_set=(("num_steps", "2"),))
+    rows = {(r["domain"], r["method"]): r for r in result["rows"]}
+    for m, f in (("scripted_sir", "sir"), ("scripted_escort", "escort")):
+        r = rows[("lightdark10d", m)]
+        assert r["policy"] == "scripted" and r["filter"] == f and r["failed"] is None and r["train"] is None
+        s = r["summary"]
+        assert s["episodes"] == 2 and 0 <= s["success_rate"] <= 1 and math.isfinite(s["final_distance"])
+        assert math.isfinite(s["final_position_error"]) and len(r["error_over_time"]) == 8
+        assert not (tmp_path / "runs" / "lightdark10d" / m / "checkpoints").exists()  # nothing trained
+        kr = rows[("kidnapped20d", m)]
+        assert kr["failed"]["not_applicable"] and "summary" not in kr
+        assert kr["failed"]["message"].startswith("not applicable: no scripted controller for KidnappedRobot20D")
+    assert result["filter_set"]["scripted_escort"] == {"num_steps": "2"} and result["filter_set"]["scripted_sir"] == {}
+    assert rows[("kidnapped20d", "random")]["failed"] is None  # the domain's other rows still run
+    # nothing trained, so a rerun reuses the saved evaluation
+    again = cl.run_closed_loop(["lightdark10d"], ["scripted_sir"], tmp_path, episodes=2, n=8, steps=8, threads=1)
+    assert again["rows"][0]["evaluation_reused"]
+    md = cl.closed_loop_markdown(result)
+    assert "| scripted PD (sir belief mean) | " in md and "| scripted PD (escort belief mean) | " in md
+    assert "## Not applicable (n/a)" in md and "- scripted_sir on kidnapped20d: no scripted controller" in md
+    assert "## Failed runs" not in md
+    success = md.split("## Success rate")[1].split("##")[0]
+    line = next(ln for ln in success.splitlines() if ln.startswith("| scripted PD (sir belief mean) |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert "±" in cells[1] and cells[2] == "n/a"
+
+
+def test_recurrent_row_trains_a_gru_and_has_no_position_error(tmp_path):
+    result = cl.run_closed_loop(["lightdark10d"], ["recurrent_ppo"], tmp_path, episodes=2, n=8, steps=6, threads=1,
+                                train_overrides={"iterations": 1, "num_envs": 2})
+    r = {row["method"]: row for row in result["rows"]}["recurrent_ppo"]
+    assert r["policy"] == "learned" and r["trainer"] == "recurrent_ppo" and r["filter"] == "none"
+    assert r["failed"] is None and r["train"]["frames"] == 2 * 6 and r["train"]["iterations"] == 1
+    s = r["summary"]
+    assert s["episodes"] == 2 and math.isfinite(s["episode_return"]) and 0 <= s["success_rate"] <= 1
+    assert math.isnan(s["final_position_error"]) and all(math.isnan(e) for e in r["error_over_time"])
+    cfg_text = (tmp_path / "runs" / "lightdark10d" / "recurrent_ppo" / "config.yaml").read_text()
+    assert "algorithm: recurrent_ppo" in cfg_text
+    assert result["recurrent"] == {"recurrent_ppo": {"trainer": "recurrent_ppo"}} and result["learned"] == {}
+    md = cl.closed_loop_markdown(result)
+    label = "| recurrent_ppo (GRU on observations, no belief) |"
+    error = md.split("## Final position error")[1].split("##")[0]
+    assert f"{label} — |" in error  # NaN prints as a dash
+    assert label in md.split("## Return")[1] and "12 frames" in md.split("Training cost")[1]
+    cl.plot_closed_loop_error(result, "lightdark10d", tmp_path / "error.png")  # a row without a curve is skipped

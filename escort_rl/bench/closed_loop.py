@@ -1,16 +1,33 @@
 """The domain benchmark, protocol (b) "closed loop" (SPEC §6).
 
-For each domain and method (a filter config name under ``configs/filter/``) the project's REINFORCE
-trainer trains a DeepSets policy on that filter's beliefs, with the budget of
-``configs/bench/closed_loop.yaml`` (per domain, the same for every method: equal frames), and the
-trained policy then drives its own filter for ``episodes`` evaluation episodes: env seeds
-``eval_seed + 0 .. episodes - 1``, the same for every method, run as one batch. A uniform-random
-policy on the SIR belief is each domain's reference row (its actions ignore the belief, so only its
-position error depends on the filter). Planner rows (``planners`` in the yaml, e.g. ``pomcpow_sir``)
-train nothing: POMCPOW with ``configs/planner/<domain>.yaml`` plans every decision on the named
-filter's belief. Learned-belief rows (``learned``, e.g. ``dvrl``) train DVRL with its own trainer and
-the same budget; their position error is that of DVRL's state readout (see
-:mod:`escort_rl.trainers.dvrl_a2c`).
+For each domain and method (a filter config name under ``configs/filter/``) the trainer named by
+``trainer`` in ``configs/bench/closed_loop.yaml`` (PPO; without the key, the config's default,
+REINFORCE) trains a DeepSets policy on that filter's beliefs, with the yaml's budget (per domain, the
+same for every method: equal frames), and the trained policy then drives its own filter for
+``episodes`` evaluation episodes: env seeds ``eval_seed + 0 .. episodes - 1``, the same for every
+method, run as one batch. A uniform-random policy on the SIR belief is each domain's reference row
+(its actions ignore the belief, so only its position error depends on the filter). The other rows
+are named in the yaml (:func:`method_spec`):
+
+- planner rows (``planners``, e.g. ``pomcpow_sir``) train nothing: POMCPOW with
+  ``configs/planner/<domain>.yaml`` plans every decision on the named filter's belief;
+- scripted rows (``scripted``, e.g. ``scripted_sir``) train nothing: the domain's PD controller
+  (:class:`escort_rl.planners.ScriptedBeliefController`) acts on the named filter's belief mean. A
+  domain without one (Kidnapped Robot: no goal) gives a row marked not applicable, with the reason;
+- learned-belief rows (``learned``, e.g. ``dvrl``) train DVRL with its own trainer and the same
+  budget; their position error is that of DVRL's state readout (see :mod:`escort_rl.trainers.dvrl_a2c`);
+- recurrent rows (``recurrent``, e.g. ``recurrent_ppo``) train a GRU on the raw observations with
+  their own trainer and the same budget: no belief, so no position error (NaN, printed "—").
+
+Learned and recurrent rows are both of the ``learned`` policy kind (their own trainer, evaluated by
+:func:`escort_rl.trainers.evaluate.trained_policy`); only the ``learned`` section is a learned
+*belief* (protocol (a) reads it, see :func:`escort_rl.bench.domains.learned_methods`).
+
+Equal frames: every trainer's iteration is ``num_envs`` episodes of ``env.max_steps`` steps, so the
+budget ``{iterations, num_envs}`` means the same frames for every trained row. PPO and recurrent PPO
+update every ``rollout_steps`` steps; :func:`run_config` sets ``rollout_steps`` to a divisor of the
+episode length (:func:`batch_length`) and recurrent PPO's ``minibatches`` (whole env rows) to at most
+``num_envs``, unless the budget sets them.
 
 Metrics, mean ± standard error over the episodes: the final and time-averaged position error
 ``‖E_b[pos] − pos_true‖₂`` (the definition of protocol (a), ``escort_rl.models.position_error``), the
@@ -36,11 +53,20 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from escort_rl.bench.domains import _belief_failures, applied_filter_set, check_at_least_one, check_names
-from escort_rl.trainers.evaluate import trained_policy
+from escort_rl.bench.domains import (DEFAULT_METHODS, _belief_failures, applied_filter_set, available_methods,
+                                     check_at_least_one, check_names)
+from escort_rl.trainers.evaluate import scripted_policy, trained_policy
 
 RANDOM = "random"
 REFERENCE_FILTER = "sir"  # the belief the random-policy row is scored on
+# the yaml's sections of named rows -> the row's policy kind (recurrent rows are trained by their own
+# trainer and evaluated like the learned belief; they only lack a belief)
+SECTIONS = {"planners": "planner", "scripted": "scripted", "learned": "learned", "recurrent": "learned"}
+
+
+class NotApplicable(ValueError):
+    """A row that cannot run on a domain (a scripted row where the domain has no controller); the
+    benchmark records it with the reason instead of failing."""
 
 
 def settings_path() -> Path:
@@ -50,8 +76,58 @@ def settings_path() -> Path:
 
 
 def load_settings() -> dict:
-    """``configs/bench/closed_loop.yaml`` as a plain dict."""
-    return OmegaConf.to_container(OmegaConf.load(settings_path()), resolve=True)
+    """``configs/bench/closed_loop.yaml`` as a plain dict, checked against
+    :class:`escort_rl.schema.ClosedLoopBenchConfig` (a bad value raises ``ConfigError`` naming the key)."""
+    from escort_rl.schema import ClosedLoopBenchConfig, load_typed
+
+    return OmegaConf.to_container(load_typed(settings_path(), ClosedLoopBenchConfig), resolve=True)
+
+
+def method_spec(method: str, settings: dict) -> dict:
+    """What a row name means: ``{"kind", "section", "filter", "trainer"}``.
+
+    ``kind``: ``random``, ``planner``, ``scripted``, ``learned`` (the ``learned`` and ``recurrent``
+    sections) or ``trained`` (any other name: a filter config, trained with the yaml's ``trainer``).
+    ``filter``: the filter config the row's run config names (the belief a planner or scripted row acts
+    on; the unused :data:`REFERENCE_FILTER` for learned rows, whose belief is their own or none).
+    ``trainer``: the trainer config (``None``: the config's default)."""
+    if method == RANDOM:
+        return {"kind": RANDOM, "section": None, "filter": REFERENCE_FILTER, "trainer": settings.get("trainer")}
+    for section, kind in SECTIONS.items():
+        row = (settings.get(section) or {}).get(method)
+        if row is not None:
+            return {"kind": kind, "section": section,
+                    "filter": row["filter"] if "filter" in row else REFERENCE_FILTER,
+                    "trainer": row.get("trainer", settings.get("trainer"))}
+    return {"kind": "trained", "section": None, "filter": method, "trainer": settings.get("trainer")}
+
+
+def named_rows(settings: dict) -> list[str]:
+    """The row names of the yaml's sections (planners, scripted, learned, recurrent), in order.
+    Raises ``ValueError`` for a name in two sections or one that shadows a filter config."""
+    names, filters = {}, set(available_methods())
+    for section in SECTIONS:
+        for m in settings.get(section) or {}:
+            if m in names or m in filters or m == RANDOM:
+                other = f"the {names[m]} section" if m in names else "a filter config" if m in filters else "a row"
+                raise ValueError(f"{settings_path().name}: '{m}' in {section} is also {other}; rename it")
+            names[m] = section
+    return list(names)
+
+
+def default_methods(settings: dict | None = None) -> list[str]:
+    """Protocol (b)'s default rows (the random row is always added): the filters of protocol (a),
+    then every row of the yaml's sections."""
+    return [*DEFAULT_METHODS, *named_rows(settings if settings is not None else load_settings())]
+
+
+def batch_length(steps: int, rollout_steps: int) -> int:
+    """The PPO batch length for an episode of ``steps`` steps, so that an iteration is exactly
+    ``num_envs × steps`` frames: ``rollout_steps`` when it divides ``steps``, else the largest divisor
+    of ``steps`` in ``[rollout_steps / 2, rollout_steps]``, else ``steps`` (one batch per iteration)."""
+    if steps <= rollout_steps:
+        return steps
+    return next((d for d in range(rollout_steps, (rollout_steps + 1) // 2 - 1, -1) if steps % d == 0), steps)
 
 
 def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict,
@@ -59,7 +135,9 @@ def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict,
     """The training config of one (domain, method) run: ``env=domain filter=method`` with the
     budget ``train`` (trainer keys), the ``filter_set`` keys the
     method's filter has, and ``steps`` (when given) as the episode length. ``trainer``: a config of
-    ``configs/trainer/`` (default: the config's, REINFORCE)."""
+    ``configs/trainer/`` (default: the config's, REINFORCE). A trainer with ``rollout_steps`` (PPO,
+    recurrent PPO) gets :func:`batch_length` unless ``train`` sets it, and recurrent PPO at most
+    ``num_envs`` minibatches (they are whole env rows) unless ``train`` sets them."""
     from escort_rl.config import compose
 
     overrides = [f"env={domain}", f"filter={method}", f"num_particles={n}", f"output_dir={run_dir}",
@@ -68,7 +146,13 @@ def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict,
     overrides += [f"filter.{k}={v}" for k, v in applied_filter_set(method, filter_set).items()]
     if steps is not None:
         overrides.append(f"env.max_steps={steps}")
-    return compose(overrides)
+    cfg = compose(overrides)
+    t = cfg.trainer
+    if "rollout_steps" in t and "rollout_steps" not in train:
+        t.rollout_steps = batch_length(int(cfg.env.max_steps), int(t.rollout_steps))
+    if t.get("algorithm") == "recurrent_ppo" and "minibatches" not in train:
+        t.minibatches = min(int(t.minibatches), int(t.num_envs))
+    return cfg
 
 
 def _comparable(config: dict) -> dict:
@@ -104,6 +188,25 @@ def train_run(cfg, progress: bool = False) -> dict:
             "seconds": float(sum(h["seconds"] for h in history)), "resumed_from_iteration": resumed_from,
             "checkpoint": display_path(Path(final["path"])),
             "last_iteration_return": float(history[-1]["episode_return"]) if history else float("nan")}
+
+
+def scripted_row_policy(cfg):
+    """The domain's scripted controller on the belief mean of ``cfg``'s filter
+    (:func:`escort_rl.trainers.evaluate.scripted_policy`); raises :class:`NotApplicable` with the
+    reason where the domain has none."""
+    from escort_rl.planners import scripted_controller_for
+    from escort_rl.trainers.builders import build_model
+
+    model = build_model(cfg.env, cfg.device)
+    policy = scripted_policy(cfg, model)
+    if policy is None:
+        try:
+            scripted_controller_for(model)
+            reason = f"no scripted controller for {type(model).__name__}"
+        except ValueError as e:
+            reason = str(e).splitlines()[0].removeprefix("scripted_controller_for: ")
+        raise NotApplicable(f"not applicable: {reason}")
+    return policy
 
 
 def planner_policy(cfg, domain: str, seed: int):
@@ -157,6 +260,10 @@ def _evaluation_key(cfg, kind: str, domain: str, episodes: int, eval_seed: int, 
         from escort_rl.planners import load_planner_config
 
         key["planner"] = load_planner_config(domain)
+    if kind == "scripted":
+        from escort_rl.planners.scripted import DEFAULT_GAIN_V
+
+        key["controller"] = {"gain_v": DEFAULT_GAIN_V}
     return json.loads(json.dumps(key))
 
 
@@ -183,20 +290,25 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
                     threads: int | None = None, progress=None, train_progress: bool = False) -> dict:
     """Protocol (b) for every method on every domain, plus a random-policy row per domain.
 
-    ``episodes``, ``n``: default from ``configs/bench/closed_loop.yaml``. ``steps``: episode length
-    (default: each env's ``max_steps``). ``train_overrides``: trainer keys set for every domain (e.g.
-    ``{"iterations": 2}``) on top of the yaml's per-domain budget. ``filter_set``: (key, value) pairs
-    set on every method's filter config that has the key. ``progress(row)`` is called per row.
-    Writes the runs under ``output/runs``; returns the result (rows and settings)."""
+    ``methods``: filter configs (trained with the yaml's ``trainer``) and the rows of the yaml's
+    sections (:func:`method_spec`). ``episodes``, ``n``: default from ``configs/bench/closed_loop.yaml``.
+    ``steps``: episode length (default: each env's ``max_steps``). ``train_overrides``: trainer keys
+    set for every domain (e.g. ``{"iterations": 2}``) on top of the yaml's per-domain budget.
+    ``filter_set``: (key, value) pairs set on every method's filter config that has the key.
+    ``progress(row)`` is called per row. Writes the runs under ``output/runs``; returns the result
+    (rows and settings). A row that fails (a diverged belief) or does not apply (a scripted row on a
+    domain without a controller) has ``failed = {"message": ...}`` (with ``"not_applicable": True``
+    for the latter) and no metrics."""
     domains, methods = list(domains), list(methods)
     filter_set = tuple(tuple(kv) for kv in filter_set)
     settings = load_settings()
-    planners = settings.get("planners") or {}
-    learned = settings.get("learned") or {}
-    check_names(domains, list(dict.fromkeys(planners[m]["filter"] if m in planners else REFERENCE_FILTER
-                                            if m in learned else m for m in methods)), filter_set)
+    named_rows(settings)  # the sections' names are distinct
+    specs = {m: method_spec(m, settings) for m in [*methods, RANDOM]}
+    check_names(domains, list(dict.fromkeys(specs[m]["filter"] for m in methods)), filter_set)
     if len(set(methods)) != len(methods):
         raise ValueError("--methods: a method is listed twice")
+    if RANDOM in methods:
+        raise ValueError(f"--methods: '{RANDOM}' is always run; leave it out")
     episodes = int(episodes if episodes is not None else settings["episodes"])
     n = int(n if n is not None else settings["particles"])
     check_at_least_one(seeds=episodes, particles=n, steps=steps, threads=threads)
@@ -208,39 +320,46 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
     if threads is not None:
         torch.set_num_threads(threads)
     t_start = time.perf_counter()
-    rows = []
+    rows, trainers, filter_trainer = [], {}, None
+    eval_seed, greedy = int(settings["eval_seed"]), bool(settings["greedy"])
     try:
         for d in domains:
             budget = {**settings["train"][d], **(train_overrides or {})}
             for m in [*methods, RANDOM]:
-                kind = (RANDOM if m == RANDOM else "planner" if m in planners else "learned" if m in learned
-                        else "trained")
-                # the learned-belief rows' filter config is unused (their belief is their own)
-                method = {RANDOM: REFERENCE_FILTER, "planner": planners.get(m, {}).get("filter"),
-                          "learned": REFERENCE_FILTER, "trained": m}[kind]
-                cfg = run_config(d, method, n, output / "runs" / d / m, budget,
-                                 filter_set if kind != "learned" else (), steps,
-                                 trainer=learned[m]["trainer"] if kind == "learned" else None)
-                row = {"domain": d, "method": m, "filter": m if kind == "learned" else method, "particles": n,
-                       "episodes": episodes, "steps": int(cfg.env.max_steps), "policy": kind, "train": None,
-                       "failed": None}
+                spec = specs[m]
+                kind = spec["kind"]
+                # the learned rows' filter config is unused (their belief is their own, or none)
+                cfg = run_config(d, spec["filter"], n, output / "runs" / d / m, budget,
+                                 filter_set if kind != "learned" else (), steps, trainer=spec["trainer"])
+                trains = kind in ("trained", "learned")
+                if trains:
+                    trainers[m] = str(cfg.trainer.algorithm)
+                if kind == RANDOM:  # the filter rows' trainer (resolved: the config's when the yaml has none)
+                    filter_trainer = str(cfg.trainer.algorithm)
+                belief = {"learned": m, "recurrent": "none"}.get(spec["section"], spec["filter"])
+                row = {"domain": d, "method": m, "filter": belief, "particles": n, "episodes": episodes,
+                       "steps": int(cfg.env.max_steps), "policy": kind,
+                       "trainer": trainers.get(m) if trains else None, "train": None, "failed": None}
                 try:
                     policy = make = estimates = None
-                    if kind in ("trained", "learned"):
+                    if kind == "scripted":
+                        policy = scripted_row_policy(cfg)  # NotApplicable before anything runs
+                    if trains:
                         row["train"] = train_run(cfg, progress=train_progress)
-                    key = _evaluation_key(cfg, kind, d, episodes, int(settings["eval_seed"]),
-                                          bool(settings["greedy"]), (row["train"] or {}).get("checkpoint"))
+                    key = _evaluation_key(cfg, kind, d, episodes, eval_seed, greedy,
+                                          (row["train"] or {}).get("checkpoint"))
                     evaluation = _saved_evaluation(Path(cfg.output_dir), key)
                     row["evaluation_reused"] = evaluation is not None
                     if evaluation is None:
-                        if kind in ("trained", "learned"):
+                        if trains:
                             policy, make, estimates = trained_policy(cfg, row["train"]["checkpoint"])
                         elif kind == "planner":
-                            policy = planner_policy(cfg, d, int(settings["eval_seed"]))
-                        evaluation = evaluate_run(cfg, policy, episodes, int(settings["eval_seed"]),
-                                                  bool(settings["greedy"]), make, estimates)
+                            policy = planner_policy(cfg, d, eval_seed)
+                        evaluation = evaluate_run(cfg, policy, episodes, eval_seed, greedy, make, estimates)
                         _save_evaluation(Path(cfg.output_dir), key, evaluation)
                     row.update(evaluation)
+                except NotApplicable as e:
+                    row["failed"] = {"message": str(e).splitlines()[0], "not_applicable": True}
                 except _belief_failures() as e:
                     row["failed"] = {"message": str(e).splitlines()[0]}
                 rows.append(row)
@@ -248,23 +367,46 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
                     progress(row)
     finally:
         torch.set_num_threads(previous_threads)
+    sections = {section: {m: settings[section][m] for m in methods if specs[m]["section"] == section}
+                for section in SECTIONS}
     return {"protocol": "b: closed loop", "domains": domains, "methods": [*methods, RANDOM], "episodes": episodes,
-            "particles": n, "eval_seed": int(settings["eval_seed"]), "greedy": bool(settings["greedy"]),
+            "particles": n, "eval_seed": eval_seed, "greedy": greedy,
+            "trainer": filter_trainer, "trainers": trainers,
             "train_budget": {d: {**settings["train"][d], **(train_overrides or {})} for d in domains},
-            "filter_set": {m: applied_filter_set(planners[m]["filter"] if m in planners else m, filter_set)
-                           for m in methods if m not in learned},
-            "planners": {m: planners[m] for m in methods if m in planners},
-            "learned": {m: learned[m] for m in methods if m in learned},
+            "filter_set": {m: applied_filter_set(specs[m]["filter"], filter_set)
+                           for m in methods if specs[m]["kind"] != "learned"},
+            **sections,
             "torch_threads": torch.get_num_threads() if threads is None else threads,
             "seconds": time.perf_counter() - t_start, "rows": rows}
 
 
 # ---------------------------------------------------------------------------------------- reporting
+def _failed_cell(row: dict) -> str:
+    return "n/a" if row["failed"].get("not_applicable") else "failed"
+
+
 def _cell(row: dict, key: str, digits: int = 3) -> str:
     if row["failed"]:
-        return "failed"
+        return _failed_cell(row)
     m, se = row["summary"][key], row["summary"][f"{key}_se"]
     return "—" if m is None or math.isnan(m) else f"{m:.{digits}f} ± {se:.{digits}f}"
+
+
+def _label(result: dict, m: str) -> str:
+    """A row's name in the tables."""
+    planner, scripted = result.get("planners", {}).get(m), result.get("scripted", {}).get(m)
+    recurrent = result.get("recurrent", {}).get(m)
+    if m == RANDOM:
+        return f"random policy ({REFERENCE_FILTER} belief)"
+    if planner:
+        return f"POMCPOW ({planner['filter']} belief)"
+    if scripted:
+        return f"scripted PD ({scripted['filter']} belief mean)"
+    if m in result.get("learned", {}):
+        return f"{m.upper()} (learned belief, readout)"
+    if recurrent:
+        return f"{m} (GRU on observations, no belief)"
+    return m
 
 
 def _table(result: dict, cell) -> list[str]:
@@ -272,17 +414,14 @@ def _table(result: dict, cell) -> list[str]:
     by = {(r["domain"], r["method"]): r for r in result["rows"]}
     lines = ["| method | " + " | ".join(domains) + " |", "| --- | " + " | ".join("---" for _ in domains) + " |"]
     for m in result["methods"]:
-        planner = result.get("planners", {}).get(m)
-        label = (f"random policy ({REFERENCE_FILTER} belief)" if m == RANDOM
-                 else f"POMCPOW ({planner['filter']} belief)" if planner
-                 else f"{m.upper()} (learned belief, readout)" if m in result.get("learned", {}) else m)
-        lines.append(f"| {label} | " + " | ".join(cell(by[(d, m)]) if (d, m) in by else "—" for d in domains) + " |")
+        cells = (cell(by[(d, m)]) if (d, m) in by else "—" for d in domains)
+        lines.append(f"| {_label(result, m)} | " + " | ".join(cells) + " |")
     return lines
 
 
 def _time_cell(row: dict) -> str:
     if row["failed"]:
-        return "failed"
+        return _failed_cell(row)
     cell = f"{1e3 * row['seconds_per_step']:.1f} ({row['first_step_seconds']:.1f} s)"
     if "seconds_per_decision" in row:
         cell += f"; {1e3 * row['seconds_per_decision']:.1f} ms per decision"
@@ -299,18 +438,27 @@ def _train_cell(row: dict) -> str:
 def closed_loop_markdown(result: dict) -> str:
     budgets = "; ".join(f"{d}: " + ", ".join(f"{k}={v}" for k, v in b.items()) for d, b in result["train_budget"].items())
     changed = [f"{m}: " + ", ".join(f"{k}={v}" for k, v in kv.items()) for m, kv in result["filter_set"].items() if kv]
+    trainer = result.get("trainer") or "reinforce"
+    trainer = {"ppo": "PPO", "reinforce": "REINFORCE"}.get(trainer, trainer)
+    others = [f"- {text}" for section, text in (
+        ("planners", "POMCPOW rows train nothing: the planner decides on its filter's belief."),
+        ("scripted", "Scripted rows train nothing: the domain's PD controller drives its filter's belief mean "
+                     "toward the goal (n/a where the domain has no controller: no goal)."),
+        ("learned", "The DVRL row trains DVRL, a learned belief, by A2C plus its ELBO at the same frames; its "
+                    "position error is that of a readout head fitted to the training trajectories' true states."),
+        ("recurrent", "Recurrent rows train a GRU policy on the raw observations (recurrent PPO) at the same "
+                      "frames: no belief, so no position error (—).")) if result.get(section)]
+    others += [""] if others else []
     lines = [
         "# Domain benchmark, protocol (b): closed loop",
         "",
-        f"Each filter method trains its own DeepSets policy (REINFORCE, the project trainer) on its own beliefs "
-        "(POMCPOW rows train nothing: the planner decides on its filter's belief; the DVRL row trains DVRL, "
-        "a learned belief, by A2C plus its ELBO at the same frames, and its position error is that of a "
-        "readout head fitted to the training trajectories' true states), N = "
+        f"Each filter method trains its own DeepSets policy ({trainer}) on its own beliefs, N = "
         f"{result['particles']} particles, then drives it on {result['episodes']} evaluation episodes (env seeds "
         f"{result['eval_seed']} + 0..{result['episodes'] - 1}, the same for every method; policy "
         f"{'greedy' if result['greedy'] else 'sampled'}). Mean ± standard error over the episodes. Training budget "
         f"per domain (trainer keys, equal for every method): {budgets}.",
         "",
+        *others,
         *([f"Filter settings changed from the configs: {'; '.join(changed)}.", ""] if changed else []),
         "## Final position error",
         "",
@@ -346,10 +494,15 @@ def closed_loop_markdown(result: dict) -> str:
         *_table(result, _train_cell),
         "",
     ]
-    failed = [r for r in result["rows"] if r["failed"]]
+    failed = [r for r in result["rows"] if r["failed"] and not r["failed"].get("not_applicable")]
     if failed:
         lines += ["## Failed runs", ""] + [f"- {r['method']} on {r['domain']}: {r['failed']['message']}"
                                            for r in failed] + [""]
+    skipped = [r for r in result["rows"] if r["failed"] and r["failed"].get("not_applicable")]
+    if skipped:
+        lines += ["## Not applicable (n/a)", ""] + [
+            f"- {r['method']} on {r['domain']}: {r['failed']['message'].removeprefix('not applicable: ')}"
+            for r in skipped] + [""]
     return "\n".join(lines)
 
 
@@ -363,6 +516,8 @@ def plot_closed_loop_error(result: dict, domain: str, path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for row in (r for r in result["rows"] if r["domain"] == domain and not r["failed"]):
         curve = row["error_over_time"]
+        if all(c is None or math.isnan(c) for c in curve):
+            continue  # no belief (a recurrent policy): no position error
         ax.plot(range(1, len(curve) + 1), curve, label=row["method"], lw=1.2)
     ax.set_xlabel("step")
     ax.set_ylabel("position error ‖E_b[pos] − pos_true‖₂")

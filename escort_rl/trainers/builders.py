@@ -113,6 +113,18 @@ def input_scaling(cfg: DictConfig) -> tuple:
     return plain(cfg.env.input_loc), plain(cfg.env.input_scale)
 
 
+def build_critic(cfg: DictConfig, model) -> tuple:
+    """The value network of ``trainer.critic_input`` and the keys it reads: ``belief`` (default), a
+    DeepSets network on the particles; ``state``, an MLP on the simulator's ``true_state``
+    (asymmetric actor-critic: only training reads it, the policy still acts on the belief)."""
+    from escort_rl.modules.critics import StateValueNet
+
+    if cfg.trainer.get("critic_input", "belief") == "state":
+        loc, scale = input_scaling(cfg)
+        return StateValueNet(model.state_dim, int(cfg.actor.hidden), loc, scale), ["true_state"]
+    return build_actor(cfg, model.state_dim, 1), list(belief_keys(cfg))
+
+
 def build_actor(cfg: DictConfig, state_dim: int, n_actions: int) -> DeepSetsActor:
     """A :class:`DeepSetsActor` of width ``actor.hidden`` with the env group's input scaling."""
     loc, scale = input_scaling(cfg)

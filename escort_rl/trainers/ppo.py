@@ -27,17 +27,18 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from escort_rl.modules import make_deepsets_policy
-from escort_rl.trainers.builders import belief_keys, build_actor, env_factory
+from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory
 from escort_rl.trainers.scaffold import StagedCollector, episode_stats, make_collector
 
 
-def make_ppo_loss(actor, critic, cfg: DictConfig) -> ClipPPOLoss:
-    """``ClipPPOLoss`` over a DeepSets actor and critic reading ``cfg``'s belief keys, with GAE as its
-    value estimator. The loss reads the log-probability the policy wrote (``action_log_prob``)."""
+def make_ppo_loss(actor, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:
+    """``ClipPPOLoss`` over a DeepSets actor reading ``cfg``'s belief keys and a critic reading
+    ``critic_keys`` (default: the belief keys), with GAE as its value estimator. The loss reads the
+    log-probability the policy wrote (``action_log_prob``)."""
     t = cfg.trainer
     particles_key, log_weights_key = belief_keys(cfg)
     policy = make_deepsets_policy(actor, particles_key=particles_key, log_weights_key=log_weights_key)
-    value = ValueOperator(critic, in_keys=[particles_key, log_weights_key])
+    value = ValueOperator(critic, in_keys=critic_keys or [particles_key, log_weights_key])
     loss = ClipPPOLoss(policy, value, clip_epsilon=float(t.clip_epsilon), entropy_coeff=float(t.entropy_coef),
                        critic_coeff=float(t.critic_coef), loss_critic_type="smooth_l1",
                        normalize_advantage=True)
@@ -53,8 +54,8 @@ class PPO:
         t = cfg.trainer
         self.cfg, self.model = cfg, model
         self.actor = build_actor(cfg, model.state_dim, model.n_actions)
-        self.critic = build_actor(cfg, model.state_dim, 1)
-        self.loss = make_ppo_loss(self.actor, self.critic, cfg)
+        self.critic, critic_keys = build_critic(cfg, model)
+        self.loss = make_ppo_loss(self.actor, self.critic, cfg, critic_keys)
         self.policy = make_deepsets_policy(self.actor, *belief_keys(cfg))  # what the collector runs
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
         self.components = {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
