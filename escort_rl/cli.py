@@ -437,7 +437,8 @@ def main(argv: list[str] | None = None) -> int:
             from escort_rl.trainers.checkpointing import resolve_checkpoint
 
             out = Path(args.output) if args.output else resolve_checkpoint(args.checkpoint).parent.parent / "evaluation"
-            print(json.dumps({k: result[k] for k in ("trained", "random")}, indent=1))
+            _ = result
+            print((out / "summary.md").read_text())
             print(f"results: {out.resolve()}")
     except (ConfigError, CheckpointLoadError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -241,6 +241,8 @@ class LightDark10DEnvConfig:
     input_loc: Any = _f(MISSING, check=check_number_or_list)
     input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
     model: LightDark10DModelConfig = _sub(LightDark10DModelConfig)
+    # model keys of the training envs' start distribution with trainer.exploring_starts=true
+    exploring_starts: Optional[Dict[str, Any]] = _f(None)
 
 
 @dataclass
@@ -252,6 +254,8 @@ class KidnappedRobot20DEnvConfig:
     input_loc: Any = _f(MISSING, check=check_number_or_list)
     input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
     model: KidnappedRobot20DModelConfig = _sub(KidnappedRobot20DModelConfig)
+    # model keys of the training envs' start distribution with trainer.exploring_starts=true
+    exploring_starts: Optional[Dict[str, Any]] = _f(None)
 
 
 @dataclass
@@ -263,6 +267,8 @@ class MultiTargetTracking20DEnvConfig:
     input_loc: Any = _f(MISSING, check=check_number_or_list)
     input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
     model: MultiTargetTracking20DModelConfig = _sub(MultiTargetTracking20DModelConfig)
+    # model keys of the training envs' start distribution with trainer.exploring_starts=true
+    exploring_starts: Optional[Dict[str, Any]] = _f(None)
 
 
 ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "kidnapped20d": KidnappedRobot20DEnvConfig,
@@ -367,6 +373,7 @@ class ReinforceConfig(TrainerConfig):
     baseline: str = _f(MISSING, choices=["time", "learned"], stage="train")
     reward_scale: float = _f(MISSING, gt=0)
     minibatch_size: int = _f(MISSING, ge=1)
+    exploring_starts: bool = _f(False)
     warm_start_filter: Optional[str] = _f(None, check=check_filter_name)
     warm_start_iterations: int = _f(0, ge=0)
 
@@ -384,6 +391,7 @@ class PPOConfig(TrainerConfig):
     critic_coef: float = _f(MISSING, ge=0)
     reward_scale: float = _f(MISSING, gt=0)
     critic_input: str = _f("belief", choices=["belief", "state"])
+    exploring_starts: bool = _f(False)
     warm_start_filter: Optional[str] = _f(None, check=check_filter_name)
     warm_start_iterations: int = _f(0, ge=0)
 

@@ -105,3 +105,18 @@ def test_ppo_resume_is_exact(tmp_path):
     ha = load_checkpoint(straight)["trainer_state"]["history"]
     hb = load_checkpoint(resumed)["trainer_state"]["history"]
     assert [h["episode_return"] for h in ha] == [h["episode_return"] for h in hb]
+
+
+def test_collection_config_applies_exploring_starts_and_the_warm_start_filter():
+    from escort_rl.trainers.scaffold import collection_config
+
+    cfg = compose([*TINY_PPO, "filter=escort", "trainer.warm_start_filter=sir", "trainer.warm_start_iterations=2",
+                   "trainer.exploring_starts=true"])
+    warm, main = collection_config(cfg, 1), collection_config(cfg, 2)
+    assert warm.filter.kind == "sir" and main.filter.kind == "escort"
+    for c in (warm, main):
+        assert (c.env.model.start_low, c.env.model.start_high) == (0.0, 10.0)
+        assert c.env.model.goal == cfg.env.model.goal  # the other env keys are kept
+    assert (cfg.env.model.start_low, cfg.env.model.start_high) == (0.0, 2.0)  # evaluation's env unchanged
+    plain = compose([*TINY_PPO, "trainer.exploring_starts=false"])
+    assert collection_config(plain, 0) is plain

@@ -127,6 +127,9 @@ def test_evaluate_writes_reports(tmp_path):
 
     metrics = json.loads((tmp_path / "ev" / "metrics.json").read_text())
     assert metrics["trained"]["episodes"] == 3 and metrics["random"]["episodes"] == 3
+    assert metrics["scripted"]["episodes"] == 3  # the PD controller on the same filter's belief
+    summary = (tmp_path / "ev" / "summary.md").read_text()
+    assert "| trained |" in summary and "| scripted |" in summary and "| random |" in summary
 
 
 def test_episode_stats_by_hand():

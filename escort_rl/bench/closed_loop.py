@@ -152,6 +152,8 @@ def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict,
         t.rollout_steps = batch_length(int(cfg.env.max_steps), int(t.rollout_steps))
     if t.get("algorithm") == "recurrent_ppo" and "minibatches" not in train:
         t.minibatches = min(int(t.minibatches), int(t.num_envs))
+    if t.get("warm_start_filter") and "warm_start_filter" not in train:
+        t.warm_start_filter = None  # each row trains on its own filter's beliefs only
     return cfg
 
 

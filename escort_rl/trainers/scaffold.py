@@ -80,18 +80,30 @@ def make_collector(cfg: DictConfig, factory, policy, frames_per_batch: int, rese
 
 
 def collection_config(cfg: DictConfig, index: int) -> DictConfig:
-    """The config whose belief filter collects iteration ``index``: the run's own, or during the warm
-    start (``index < trainer.warm_start_iterations``) the filter named by ``trainer.warm_start_filter``
-    (a ``configs/filter/`` name). Policies over particles move between filters."""
-    name = cfg.trainer.get("warm_start_filter", None)
-    if not name or index >= int(cfg.trainer.get("warm_start_iterations", 0)):
-        return cfg
-    from escort_rl.config import compose
+    """The config of the envs that collect iteration ``index``.
 
-    warm = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    OmegaConf.set_struct(warm, False)
-    warm.filter = compose([f"filter={name}"]).filter
-    return warm
+    - ``trainer.exploring_starts=true`` applies the env group's ``exploring_starts`` (model keys,
+      e.g. Light-Dark's ``{start_low: 0.0, start_high: 10.0}``) to the training envs only: a start
+      distribution wider than the evaluation's, so that training visits the states near and past the
+      goal from the first iteration (the evaluation keeps the env group's own start distribution).
+    - During the warm start (``index < trainer.warm_start_iterations``) the belief filter is the one
+      named by ``trainer.warm_start_filter`` (a ``configs/filter/`` name): policies over particles
+      move between filters.
+    """
+    name = cfg.trainer.get("warm_start_filter", None)
+    warm = bool(name) and index < int(cfg.trainer.get("warm_start_iterations", 0))
+    starts = cfg.env.get("exploring_starts", None) if cfg.trainer.get("exploring_starts", False) else None
+    if not warm and not starts:
+        return cfg
+    out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    OmegaConf.set_struct(out, False)
+    if starts:
+        out.env.model = OmegaConf.merge(out.env.model, starts)
+    if warm:
+        from escort_rl.config import compose
+
+        out.filter = compose([f"filter={name}"]).filter
+    return out
 
 
 class StagedCollector:
@@ -103,11 +115,11 @@ class StagedCollector:
         self.collector, self.iterator, self.stage = None, None, None
 
     def for_iteration(self, index: int):
-        stage_cfg = collection_config(self.cfg, index)
-        stage = "main" if stage_cfg is self.cfg else "warm"
+        name = self.cfg.trainer.get("warm_start_filter", None)
+        stage = "warm" if name and index < int(self.cfg.trainer.get("warm_start_iterations", 0)) else "main"
         if stage != self.stage:
             self.close()
-            self.collector, self.stage = self.build(stage_cfg), stage
+            self.collector, self.stage = self.build(collection_config(self.cfg, index)), stage
             self.iterator = iter(self.collector)
         return self.collector
 
