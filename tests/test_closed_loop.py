@@ -179,13 +179,13 @@ def test_filter_rows_use_the_yamls_trainer_with_whole_episode_batches(tmp_path, 
     cfg = cl.run_config("lightdark10d", "sir", 7, "unused", {"num_envs": 2}, steps=6, trainer="recurrent_ppo")
     assert cfg.trainer.minibatches == 2 and cfg.trainer.rollout_steps == 6  # minibatches are whole env rows
 
-    # without the key: the config's default trainer (REINFORCE), as before
+    # without the key: the config's default trainer (PPO)
     monkeypatch.setattr(cl, "load_settings", lambda: {k: v for k, v in settings.items() if k != "trainer"})
     result = cl.run_closed_loop(["lightdark10d"], ["sir"], tmp_path, episodes=2, n=8, steps=6, threads=1,
                                 train_overrides={"iterations": 1, "num_envs": 2})
-    assert result["trainer"] == "reinforce" and result["trainers"] == {"sir": "reinforce"}
-    assert result["rows"][0]["trainer"] == "reinforce" and result["rows"][0]["train"]["frames"] == 2 * 6
-    assert "DeepSets policy (REINFORCE)" in cl.closed_loop_markdown(result)
+    assert result["trainer"] == "ppo" and result["trainers"] == {"sir": "ppo"}
+    assert result["rows"][0]["trainer"] == "ppo" and result["rows"][0]["train"]["frames"] == 2 * 6
+    assert "DeepSets policy (PPO)" in cl.closed_loop_markdown(result)
 
 
 def test_a_bad_trainer_in_the_yaml_names_the_key(tmp_path, monkeypatch):

@@ -39,7 +39,7 @@ def test_default_config_is_typed():
     assert OmegaConf.get_type(cfg.env) is schema.LightDark10DEnvConfig
     assert OmegaConf.get_type(cfg.env.model) is schema.LightDark10DModelConfig
     assert OmegaConf.get_type(cfg.filter) is schema.ESCORTConfig
-    assert OmegaConf.get_type(cfg.trainer) is schema.ReinforceConfig
+    assert OmegaConf.get_type(cfg.trainer) is schema.PPOConfig
     assert OmegaConf.get_type(cfg.dvrl) is schema.DVRLConfig
     assert cfg.overrides is None and cfg.resume is None
 
@@ -191,7 +191,7 @@ def test_a_yaml_key_the_schema_lacks_is_named(config_copy):
                                               "PPOConfig lacks")
     text = (config_copy / "trainer" / "reinforce.yaml").read_text()
     (config_copy / "trainer" / "reinforce.yaml").write_text(text.replace("iterations: 20", "iterations: many"))
-    assert _error([]).startswith("config: trainer.iterations: expected an int, got 'many'")
+    assert _error(["trainer=reinforce"]).startswith("config: trainer.iterations: expected an int, got 'many'")
 
 
 # ------------------------------------------------------------------------------ before training
@@ -208,11 +208,11 @@ def test_train_validation_checks_configs_without_types():
 
 
 def test_train_validation_checks_the_train_stage_and_divisibility():
-    cfg = compose(["trainer.baseline=mean"])  # composes: checked before training only
+    cfg = compose(["trainer=reinforce", "trainer.baseline=mean"])  # composes: checked before training only
     with pytest.raises(ConfigError, match=r"^trainer.baseline: must be one of time, learned"):
         validate_train_config(cfg)
     with pytest.raises(ConfigError, match=r"^collector.workers: trainer.num_envs \(16\)"):
-        validate_train_config(compose(["collector.workers=3"]))
+        validate_train_config(compose(["trainer=reinforce", "collector.workers=3"]))
 
 
 # ------------------------------------------------------------------------------ the command
@@ -270,7 +270,7 @@ def test_resume_of_a_config_saved_without_overrides():
 
 def test_train_records_overrides_and_resumes_with_another_filter(tmp_path, capsys):
     run = tmp_path / "run"
-    tiny = ["trainer.num_envs=2", "env.max_steps=4", "num_particles=8", "actor.hidden=8",
+    tiny = ["trainer=reinforce", "trainer.num_envs=2", "env.max_steps=4", "num_particles=8", "actor.hidden=8",
             "trainer.minibatch_size=64", "trainer.checkpoint_every=1", "filter.compile=false",
             "filter.num_steps=2", "trainer.iterations=1", f"output_dir={run}"]
     assert main(["train", "--quiet", *tiny]) == 0

@@ -87,7 +87,13 @@ def test_ppo_trains_with_renamed_keys_and_warm_start(tmp_path):
 
 
 def _params(run) -> dict:
-    actor, critic = DeepSetsActor(10, 10, hidden=8), DeepSetsActor(10, 1, hidden=8)
+    from omegaconf import OmegaConf
+
+    from escort_rl.models import LightDark10D
+    from escort_rl.trainers.builders import build_actor, build_critic
+
+    cfg = OmegaConf.create(load_checkpoint(run)["config"])
+    actor, (critic, _) = build_actor(cfg, 10, 10), build_critic(cfg, LightDark10D())
     load_checkpoint(run, actor=actor, critic=critic)
     return {**{f"a.{k}": v for k, v in actor.state_dict().items()}, **{f"c.{k}": v for k, v in critic.state_dict().items()}}
 
@@ -118,5 +124,5 @@ def test_collection_config_applies_exploring_starts_and_the_warm_start_filter():
         assert (c.env.model.start_low, c.env.model.start_high) == (0.0, 10.0)
         assert c.env.model.goal == cfg.env.model.goal  # the other env keys are kept
     assert (cfg.env.model.start_low, cfg.env.model.start_high) == (0.0, 2.0)  # evaluation's env unchanged
-    plain = compose([*TINY_PPO, "trainer.exploring_starts=false"])
+    plain = compose([*TINY_PPO, "trainer.exploring_starts=false", "trainer.warm_start_filter=null"])
     assert collection_config(plain, 0) is plain

@@ -42,7 +42,7 @@ def tiny_cfg(*overrides: str, hidden: int = HIDDEN):
 def test_observation_scaling_takes_the_position_part():
     cfg = tiny_cfg()
     loc, scale = observation_scaling(cfg, build_model(cfg.env))
-    assert loc == [4.0] * 5 and scale == [4.0] * 5  # Light-Dark 10D observes its 5-D position
+    assert loc == [8.0] * 5 and scale == [2.0] * 5  # Light-Dark 10D observes its 5-D position
     mtt = tiny_cfg("env=mtt20d")
     loc, scale = observation_scaling(mtt, build_model(mtt.env))
     assert loc == [0.0] * 14 and scale == [1.0] * 14  # not a slice of the state: left as is

@@ -50,7 +50,7 @@ def test_corrupt_checkpoint_gives_one_line_error(tmp_path, capsys):
         if f.is_file() and f.suffix in (".memmap", ".json"):
             f.write_bytes(b"\x00garbage")
     with pytest.raises(CheckpointLoadError, match="^checkpoint: cannot load"):
-        load_checkpoint(ckpt, actor=DeepSetsActor(10, 10, hidden=16))
+        load_checkpoint(ckpt, actor=DeepSetsActor(10, 10, hidden=16, encoder_layers=1))
     assert main(["evaluate", "--checkpoint", str(run), "--episodes", "2"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: checkpoint:") and "\n" not in err
@@ -62,7 +62,7 @@ def test_missing_checkpoint_path(capsys):
 
 
 def _actor_params(run: Path) -> dict:
-    actor = DeepSetsActor(10, 10, hidden=16)
+    actor = DeepSetsActor(10, 10, hidden=16, encoder_layers=1)
     load_checkpoint(run, actor=actor)
     return {k: v.clone() for k, v in actor.state_dict().items()}
 
@@ -113,8 +113,8 @@ def test_two_collector_workers_and_learned_baseline(tmp_path):
     history = state["trainer_state"]["history"]
     assert all(h["episodes"] == 4 for h in history)  # 4 envs split over 2 workers, one episode each
     assert all(math.isfinite(h["loss_actor"]) for h in history)
-    critic = DeepSetsActor(10, 1, hidden=16)
-    load_checkpoint(run, actor=DeepSetsActor(10, 10, hidden=16), critic=critic)
+    critic = DeepSetsActor(10, 1, hidden=16, encoder_layers=1)
+    load_checkpoint(run, actor=DeepSetsActor(10, 10, hidden=16, encoder_layers=1), critic=critic)
 
 
 def test_evaluate_writes_reports(tmp_path):

@@ -135,7 +135,7 @@ def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict,
     """The training config of one (domain, method) run: ``env=domain filter=method`` with the
     budget ``train`` (trainer keys), the ``filter_set`` keys the
     method's filter has, and ``steps`` (when given) as the episode length. ``trainer``: a config of
-    ``configs/trainer/`` (default: the config's, REINFORCE). A trainer with ``rollout_steps`` (PPO,
+    ``configs/trainer/`` (default: the config's, PPO). A trainer with ``rollout_steps`` (PPO,
     recurrent PPO) gets :func:`batch_length` unless ``train`` sets it, and recurrent PPO at most
     ``num_envs`` minibatches (they are whole env rows) unless ``train`` sets them."""
     from escort_rl.config import compose
