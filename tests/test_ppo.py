@@ -126,3 +126,38 @@ def test_collection_config_applies_exploring_starts_and_the_warm_start_filter():
     assert (cfg.env.model.start_low, cfg.env.model.start_high) == (0.0, 2.0)  # evaluation's env unchanged
     plain = compose([*TINY_PPO, "trainer.exploring_starts=false", "trainer.warm_start_filter=null"])
     assert collection_config(plain, 0) is plain
+
+
+def test_a_short_run_improves_the_return():
+    """12 PPO iterations (23k frames, 60-step episodes) raise the mean return of sampled actions on the
+    same 128 seeded evaluation episodes. Measured over training seeds 0-19: the paired gain was 3.8 to
+    6.1 (s.e. about 0.08 each); the test asks for more than 1 and 5 standard errors."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from escort_rl.trainers.builders import build_model, make_env
+    from escort_rl.trainers.ppo import PPO
+    from escort_rl.trainers.scaffold import iteration_seed
+
+    cfg = compose(["trainer=ppo", "filter=sir", "num_particles=16", "trainer.num_envs=32", "env.max_steps=60",
+                   "trainer.rollout_steps=30", "trainer.warm_start_filter=null", "actor.hidden=32", "seed=7"])
+
+    def returns(policy):
+        env = make_env(cfg, 128, seed=123)
+        torch.manual_seed(123)
+        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+            rollout = env.rollout(60, policy, break_when_any_done=False)
+        reward, done = rollout["next", "reward"].squeeze(-1), rollout["next", "done"].squeeze(-1)
+        first_episode = (torch.cumsum(done.long(), 1) - done.long()) == 0
+        return (reward * first_episode).sum(1)
+
+    torch.manual_seed(7)
+    algo = PPO(cfg, build_model(cfg.env))
+    before = returns(algo.policy)
+    for it in range(12):
+        seed = iteration_seed(7, it)
+        torch.manual_seed(seed)
+        algo.iteration(it, seed)
+    algo.close()
+    gain = returns(algo.policy) - before
+    se = gain.std() / gain.numel() ** 0.5
+    assert gain.mean() > 1.0 and gain.mean() > 5 * se, (float(gain.mean()), float(se))

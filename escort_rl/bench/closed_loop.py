@@ -2,7 +2,7 @@
 
 For each domain and method (a filter config name under ``configs/filter/``) the trainer named by
 ``trainer`` in ``configs/bench/closed_loop.yaml`` (PPO; without the key, the config's default,
-REINFORCE) trains a DeepSets policy on that filter's beliefs, with the yaml's budget (per domain, the
+PPO) trains a DeepSets policy on that filter's beliefs, with the yaml's budget (per domain, the
 same for every method: equal frames), and the trained policy then drives its own filter for
 ``episodes`` evaluation episodes: env seeds ``eval_seed + 0 .. episodes - 1``, the same for every
 method, run as one batch. A uniform-random policy on the SIR belief is each domain's reference row
