@@ -17,10 +17,14 @@ from escort_rl.trainers.evaluate import display_path
 
 
 def run_label(config: dict) -> str:
-    """``"dvrl"`` for a DVRL run, else ``"<filter> + DeepSets"``."""
-    if config.get("trainer", {}).get("algorithm") == "dvrl_a2c":
+    """``"dvrl"`` for a DVRL run, ``"GRU on observations (recurrent_ppo)"`` for the recurrent
+    baseline, else ``"<filter> + DeepSets (<algorithm>)"``."""
+    algorithm = config.get("trainer", {}).get("algorithm", "reinforce")
+    if algorithm == "dvrl_a2c":
         return "dvrl"
-    return f"{config.get('filter', {}).get('name', '?')} + DeepSets"
+    if algorithm == "recurrent_ppo":
+        return "GRU on observations (recurrent_ppo)"
+    return f"{config.get('filter', {}).get('name', '?')} + DeepSets ({algorithm})"
 
 
 def load_history(run: str | Path) -> dict:

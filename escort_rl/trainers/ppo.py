@@ -59,10 +59,10 @@ class PPO:
         self.policy = make_deepsets_policy(self.actor, *belief_keys(cfg))  # what the collector runs
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
         self.components = {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
-        self.rollout_steps = int(t.rollout_steps)
+        self.rollout_steps = min(int(t.rollout_steps), int(cfg.env.max_steps))  # never past one episode
         self.batches = -(-int(cfg.env.max_steps) // self.rollout_steps)  # PPO updates per iteration
         frames = int(t.num_envs) * self.rollout_steps
-        self.minibatch = frames // int(t.minibatches)
+        self.minibatch = max(1, frames // int(t.minibatches))
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(frames), sampler=SamplerWithoutReplacement(),
                                    batch_size=self.minibatch)
         self.collectors = StagedCollector(cfg, lambda c: make_collector(

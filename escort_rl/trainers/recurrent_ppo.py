@@ -147,7 +147,7 @@ class RecurrentPPO:
         self.loss = make_recurrent_ppo_loss(self.policy, self.value, cfg)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
         self.components = {"actor": self.policy, "critic": self.value, "optimizer": self.optimizer}
-        self.rollout_steps = int(t.rollout_steps)
+        self.rollout_steps = min(int(t.rollout_steps), int(cfg.env.max_steps))  # never past one episode
         self.batches = -(-int(cfg.env.max_steps) // self.rollout_steps)  # PPO updates per iteration
         frames = int(t.num_envs) * self.rollout_steps
         self.collectors = StagedCollector(cfg, lambda c: make_collector(
