@@ -44,7 +44,8 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--episodes", type=int, default=None, help="number of episodes (default: evaluate.episodes)")
     ev.add_argument("--output", default=None, help="output folder (default: RUN_DIR/evaluation)")
     ev.add_argument("--greedy", action=argparse.BooleanOptionalAction, default=None,
-                    help="take the most probable action instead of sampling (default: evaluate.greedy)")
+                    help="--greedy: the most probable action; --no-greedy: sample from the policy "
+                    "(default: evaluate.greedy, true)")
     sub.add_parser("describe", help="print the Light-Dark 10D process-noise correlations (paper vs used)",
                    description="The paper's correlations are not PSD; this prints the nearest correlation "
                    "matrix that the model uses.")
