@@ -232,43 +232,40 @@ class MultiTargetTracking20DModelConfig:
 
 
 @dataclass
-class LightDark10DEnvConfig:
-    """``configs/env/lightdark10d.yaml``."""
+class EnvConfig:
+    """The keys every env group option has."""
 
-    name: str = _f("lightdark10d", choices=["lightdark10d"])
+    name: str = _f(MISSING)
     max_steps: int = _f(MISSING, ge=1)
     # (x - input_loc) / input_scale per state dimension: a number or one per dimension
     input_loc: Any = _f(MISSING, check=check_number_or_list)
     input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
-    model: LightDark10DModelConfig = _sub(LightDark10DModelConfig)
     # model keys of the training envs' start distribution with trainer.exploring_starts=true
     exploring_starts: Optional[Dict[str, Any]] = _f(None)
 
 
 @dataclass
-class KidnappedRobot20DEnvConfig:
+class LightDark10DEnvConfig(EnvConfig):
+    """``configs/env/lightdark10d.yaml``."""
+
+    name: str = _f("lightdark10d", choices=["lightdark10d"])
+    model: LightDark10DModelConfig = _sub(LightDark10DModelConfig)
+
+
+@dataclass
+class KidnappedRobot20DEnvConfig(EnvConfig):
     """``configs/env/kidnapped20d.yaml``."""
 
     name: str = _f("kidnapped20d", choices=["kidnapped20d"])
-    max_steps: int = _f(MISSING, ge=1)
-    input_loc: Any = _f(MISSING, check=check_number_or_list)
-    input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
     model: KidnappedRobot20DModelConfig = _sub(KidnappedRobot20DModelConfig)
-    # model keys of the training envs' start distribution with trainer.exploring_starts=true
-    exploring_starts: Optional[Dict[str, Any]] = _f(None)
 
 
 @dataclass
-class MultiTargetTracking20DEnvConfig:
+class MultiTargetTracking20DEnvConfig(EnvConfig):
     """``configs/env/mtt20d.yaml``."""
 
     name: str = _f("mtt20d", choices=["mtt20d"])
-    max_steps: int = _f(MISSING, ge=1)
-    input_loc: Any = _f(MISSING, check=check_number_or_list)
-    input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
     model: MultiTargetTracking20DModelConfig = _sub(MultiTargetTracking20DModelConfig)
-    # model keys of the training envs' start distribution with trainer.exploring_starts=true
-    exploring_starts: Optional[Dict[str, Any]] = _f(None)
 
 
 ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "kidnapped20d": KidnappedRobot20DEnvConfig,

@@ -68,19 +68,36 @@ class PPO:
         self.collectors = StagedCollector(cfg, lambda c: make_collector(
             c, lambda n, s: env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=False))
 
-    def update(self, batch) -> dict:
-        """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled); returns mean losses."""
-        t = self.cfg.trainer
+    # The hooks a variant overrides (RecurrentPPO: whole env rows, recurrent mode).
+    def prepare(self, batch):
+        """A collected batch as ``[E, T]``."""
+        return batch.reshape(-1, batch.shape[-1])
+
+    def estimate_advantages(self, batch) -> None:
+        """Write GAE's ``advantage`` and ``value_target`` into ``batch`` (no gradient)."""
         with torch.no_grad():
             self.loss.value_estimator(batch)
+
+    def minibatches(self, batch):
+        """One epoch's minibatches: ``minibatches`` shuffled draws of frames without replacement."""
         self.buffer.empty()
         self.buffer.extend(batch.reshape(-1))
+        return (self.buffer.sample() for _ in range(int(self.cfg.trainer.minibatches)))
+
+    def loss_terms(self, minibatch):
+        return self.loss(minibatch)
+
+    def update(self, batch) -> dict:
+        """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled): GAE, then ``epochs`` passes
+        of one Adam step per minibatch; returns the mean losses."""
+        t = self.cfg.trainer
+        self.estimate_advantages(batch)
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
                 "clip_fraction": 0.0, "grad_norm": 0.0}
         steps = 0
         for _ in range(int(t.epochs)):
-            for _ in range(int(t.minibatches)):
-                out = self.loss(self.buffer.sample())
+            for minibatch in self.minibatches(batch):
+                out = self.loss_terms(minibatch)
                 total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
                 self.optimizer.zero_grad(set_to_none=True)
                 total.backward()
@@ -102,7 +119,7 @@ class PPO:
             t0 = time.perf_counter()
             batch = self.collectors.next()
             collect_s += time.perf_counter() - t0
-            batch = batch.reshape(-1, batch.shape[-1])  # [E, T]
+            batch = self.prepare(batch)  # [E, T]
             seen.append(batch.select(("next", "reward"), ("next", "done"), ("next", "terminated"),
                                      ("next", "true_state")).clone())
             frames += batch.numel()

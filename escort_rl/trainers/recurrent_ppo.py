@@ -24,7 +24,6 @@ makes every iteration reproducible from its seed alone, so resume is exact.
 
 from __future__ import annotations
 
-import time
 from functools import partial
 
 import torch
@@ -38,7 +37,8 @@ from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
 from escort_rl.modules.recurrent import make_recurrent_actor_critic, make_recurrent_primer
 from escort_rl.trainers.builders import build_model, input_scaling
-from escort_rl.trainers.scaffold import StagedCollector, episode_stats, make_collector
+from escort_rl.trainers.ppo import PPO
+from escort_rl.trainers.scaffold import StagedCollector, make_collector
 
 DEFAULT_HIDDEN = 64
 
@@ -134,12 +134,13 @@ def validate_recurrent_ppo_config(cfg: DictConfig) -> None:
 
 
 # ------------------------------------------------------------------------------------ training
-class RecurrentPPO:
+class RecurrentPPO(PPO):
     """Clipped PPO with GAE and a GRU actor-critic on the raw observations (see the module
-    docstring). Components: ``actor`` (the policy), ``critic`` (the value network; it shares the
-    encoder and the GRU with the policy) and ``optimizer``."""
+    docstring): :class:`~escort_rl.trainers.ppo.PPO`'s update and iteration, with whole env rows as
+    minibatches and the loss in recurrent mode. Components: ``actor`` (the policy), ``critic`` (the
+    value network; it shares the encoder and the GRU with the policy) and ``optimizer``."""
 
-    def __init__(self, cfg: DictConfig, model) -> None:
+    def __init__(self, cfg: DictConfig, model) -> None:  # noqa: D107 - no call to PPO.__init__: other networks
         validate_recurrent_ppo_config(cfg)
         t = cfg.trainer
         self.cfg, self.model = cfg, model
@@ -153,56 +154,22 @@ class RecurrentPPO:
         self.collectors = StagedCollector(cfg, lambda c: make_collector(
             c, lambda n, s: recurrent_env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=False))
 
-    def update(self, batch: TensorDictBase) -> dict:
-        """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled, time last); returns the
-        mean losses."""
-        t = self.cfg.trainer
+    def prepare(self, batch: TensorDictBase) -> TensorDictBase:
+        batch = batch.reshape(-1, batch.shape[-1])  # [E, T]; a MultiSyncCollector's is [K, E/K, T]
+        batch.names = [None, "time"]
+        return batch
+
+    def estimate_advantages(self, batch: TensorDictBase) -> None:
         with torch.no_grad(), set_recurrent_mode(True):
             self.loss.value_estimator(batch)
-        groups = int(t.minibatches)
-        sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
-                "clip_fraction": 0.0, "grad_norm": 0.0}
-        steps = 0
-        for _ in range(int(t.epochs)):
-            for rows in torch.randperm(batch.shape[0]).tensor_split(groups):
-                with set_recurrent_mode(True):
-                    out = self.loss(batch[rows])
-                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
-                self.optimizer.zero_grad(set_to_none=True)
-                total.backward()
-                grad_norm = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(t.max_grad_norm))
-                self.optimizer.step()
-                for key in sums:
-                    value = grad_norm if key == "grad_norm" else out.get(key, None)
-                    if value is not None:
-                        sums[key] += float(value.detach())
-                steps += 1
-        return {k: v / steps for k, v in sums.items()}
 
-    def iteration(self, index: int, seed: int) -> dict:
-        collector = self.collectors.for_iteration(index)
-        collector.set_seed(seed)
-        collector.reset()
-        stats, seen, collect_s, frames = {}, [], 0.0, 0
-        for _ in range(self.batches):
-            t0 = time.perf_counter()
-            batch = self.collectors.next()
-            collect_s += time.perf_counter() - t0
-            batch = batch.reshape(-1, batch.shape[-1])  # [E, T]; a MultiSyncCollector's is [K, E/K, T]
-            batch.names = [None, "time"]
-            seen.append(batch.select(("next", "reward"), ("next", "done"), ("next", "terminated"),
-                                     ("next", "true_state")).clone())
-            frames += batch.numel()
-            batch["next", "reward"] = batch["next", "reward"] * float(self.cfg.trainer.reward_scale)
-            for key, value in self.update(batch).items():
-                stats[key] = stats.get(key, 0.0) + value / self.batches
-            if int(self.cfg.collector.workers) > 1:
-                collector.update_policy_weights_()
-        episodes = episode_stats(torch.cat(seen, dim=1), self.model)
-        return {"frames": frames, **episodes, **stats, "fps": frames / max(collect_s, 1e-9)}
+    def minibatches(self, batch: TensorDictBase):
+        """One epoch's minibatches: the E rows in ``minibatches`` random groups (time is never shuffled)."""
+        return (batch[rows] for rows in torch.randperm(batch.shape[0]).tensor_split(int(self.cfg.trainer.minibatches)))
 
-    def close(self) -> None:
-        self.collectors.close()
+    def loss_terms(self, minibatch: TensorDictBase):
+        with set_recurrent_mode(True):
+            return self.loss(minibatch)
 
 
 # ------------------------------------------------------------------------------------ evaluation
