@@ -314,19 +314,13 @@ class SVGDConfig:
 
 
 @dataclass
-class ESCORTConfig:
-    """``configs/filter/escort*.yaml``: ``escort_rl.belief.ESCORTFilter``'s arguments."""
+class ESCORTConfig(SVGDConfig):
+    """``configs/filter/escort*.yaml``: ``escort_rl.belief.ESCORTFilter``'s arguments:
+    SVGD's and the two regularisers'."""
 
     _target_: str = "escort_rl.belief.ESCORTFilter"
     name: str = "escort"
     kind: str = _f("escort", choices=["escort"])
-    num_steps: int = _f(50, ge=0)
-    step_size: float = _f(0.1, gt=0)
-    step_decay: float = _f(0.0, ge=0)
-    adagrad_alpha: float = _f(0.9, ge=0, lt=1)
-    repulsion: str = _f("plain", choices=["plain", "enhanced"])
-    bandwidth_every: int = _f(10, ge=1)
-    bandwidth_scale: float = _f(1.0, gt=0)
     lambda_corr: float = _f(0.1, ge=0)
     lambda_temp: float = _f(0.1, ge=0)
     n_proj: int = _f(5, ge=1)
@@ -335,11 +329,8 @@ class ESCORTConfig:
     projection_every: int = _f(10, ge=1)
     corr_form: str = _f("velocity", choices=["velocity", "position"])
     temp_schedule: str = _f("anneal", choices=["anneal", "constant"])
-    temp_clip: float = 10.0
+    temp_clip: float = _f(10.0, gt=0)
     likelihood_pull: float = _f(0.0, ge=0)
-    prior: str = _prior()
-    jitter: Optional[float] = _jitter()
-    compile: bool = False
 
 
 FILTER_SCHEMAS = {"sir": SIRConfig, "svgd": SVGDConfig, "escort": ESCORTConfig}
@@ -362,21 +353,27 @@ class TrainerConfig:
 
 
 @dataclass
-class ReinforceConfig(TrainerConfig):
-    """``configs/trainer/reinforce.yaml``."""
+class BeliefTrainerConfig(TrainerConfig):
+    """The keys of the trainers that collect on a belief filter's beliefs (PPO, REINFORCE)."""
 
-    algorithm: str = _f("reinforce", choices=["reinforce"])
-    # checked before training only: a config naming another baseline still composes
-    baseline: str = _f(MISSING, choices=["time", "learned"], stage="train")
     reward_scale: float = _f(MISSING, gt=0)
-    minibatch_size: int = _f(MISSING, ge=1)
     exploring_starts: bool = _f(False)
     warm_start_filter: Optional[str] = _f(None, check=check_filter_name)
     warm_start_iterations: int = _f(0, ge=0)
 
 
 @dataclass
-class PPOConfig(TrainerConfig):
+class ReinforceConfig(BeliefTrainerConfig):
+    """``configs/trainer/reinforce.yaml``."""
+
+    algorithm: str = _f("reinforce", choices=["reinforce"])
+    # checked before training only: a config naming another baseline still composes
+    baseline: str = _f(MISSING, choices=["time", "learned"], stage="train")
+    minibatch_size: int = _f(MISSING, ge=1)
+
+
+@dataclass
+class PPOConfig(BeliefTrainerConfig):
     """``configs/trainer/ppo.yaml``."""
 
     algorithm: str = _f("ppo", choices=["ppo"])
@@ -386,11 +383,7 @@ class PPOConfig(TrainerConfig):
     epochs: int = _f(MISSING, ge=1)
     minibatches: int = _f(MISSING, ge=1)
     critic_coef: float = _f(MISSING, ge=0)
-    reward_scale: float = _f(MISSING, gt=0)
     critic_input: str = _f("belief", choices=["belief", "state"])
-    exploring_starts: bool = _f(False)
-    warm_start_filter: Optional[str] = _f(None, check=check_filter_name)
-    warm_start_iterations: int = _f(0, ge=0)
 
 
 @dataclass
