@@ -78,11 +78,15 @@ class PPO:
         with torch.no_grad():
             self.loss.value_estimator(batch)
 
-    def minibatches(self, batch):
-        """One epoch's minibatches: ``minibatches`` shuffled draws of frames without replacement."""
+    def fill(self, batch):
+        """What the epochs draw minibatches from: the batch's frames in the replay buffer."""
         self.buffer.empty()
         self.buffer.extend(batch.reshape(-1))
-        return (self.buffer.sample() for _ in range(int(self.cfg.trainer.minibatches)))
+        return self.buffer
+
+    def minibatches(self, source):
+        """One epoch's minibatches: ``minibatches`` shuffled draws of frames without replacement."""
+        return (source.sample() for _ in range(int(self.cfg.trainer.minibatches)))
 
     def loss_terms(self, minibatch):
         return self.loss(minibatch)
@@ -92,11 +96,12 @@ class PPO:
         of one Adam step per minibatch; returns the mean losses."""
         t = self.cfg.trainer
         self.estimate_advantages(batch)
+        source = self.fill(batch)
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
                 "clip_fraction": 0.0, "grad_norm": 0.0}
         steps = 0
         for _ in range(int(t.epochs)):
-            for minibatch in self.minibatches(batch):
+            for minibatch in self.minibatches(source):
                 out = self.loss_terms(minibatch)
                 total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
                 self.optimizer.zero_grad(set_to_none=True)

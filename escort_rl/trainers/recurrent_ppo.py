@@ -163,6 +163,9 @@ class RecurrentPPO(PPO):
         with torch.no_grad(), set_recurrent_mode(True):
             self.loss.value_estimator(batch)
 
+    def fill(self, batch: TensorDictBase) -> TensorDictBase:
+        return batch
+
     def minibatches(self, batch: TensorDictBase):
         """One epoch's minibatches: the E rows in ``minibatches`` random groups (time is never shuffled)."""
         return (batch[rows] for rows in torch.randperm(batch.shape[0]).tensor_split(int(self.cfg.trainer.minibatches)))

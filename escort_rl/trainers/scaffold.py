@@ -79,6 +79,11 @@ def make_collector(cfg: DictConfig, factory, policy, frames_per_batch: int, rese
     return MultiSyncCollector(factories, policy, cat_results="stack", **common)
 
 
+def in_warm_start(cfg: DictConfig, index: int) -> bool:
+    """Whether iteration ``index`` collects on ``trainer.warm_start_filter``'s beliefs."""
+    return bool(cfg.trainer.get("warm_start_filter", None)) and index < int(cfg.trainer.get("warm_start_iterations", 0))
+
+
 def collection_config(cfg: DictConfig, index: int) -> DictConfig:
     """The config of the envs that collect iteration ``index``.
 
@@ -90,8 +95,7 @@ def collection_config(cfg: DictConfig, index: int) -> DictConfig:
       named by ``trainer.warm_start_filter`` (a ``configs/filter/`` name): policies over particles
       move between filters.
     """
-    name = cfg.trainer.get("warm_start_filter", None)
-    warm = bool(name) and index < int(cfg.trainer.get("warm_start_iterations", 0))
+    warm = in_warm_start(cfg, index)
     starts = cfg.env.get("exploring_starts", None) if cfg.trainer.get("exploring_starts", False) else None
     if not warm and not starts:
         return cfg
@@ -102,7 +106,7 @@ def collection_config(cfg: DictConfig, index: int) -> DictConfig:
     if warm:
         from escort_rl.config import compose
 
-        out.filter = compose([f"filter={name}"]).filter
+        out.filter = compose([f"filter={cfg.trainer.warm_start_filter}"]).filter
     return out
 
 
@@ -115,8 +119,7 @@ class StagedCollector:
         self.collector, self.iterator, self.stage = None, None, None
 
     def for_iteration(self, index: int):
-        name = self.cfg.trainer.get("warm_start_filter", None)
-        stage = "warm" if name and index < int(self.cfg.trainer.get("warm_start_iterations", 0)) else "main"
+        stage = "warm" if in_warm_start(self.cfg, index) else "main"
         if stage != self.stage:
             self.close()
             self.collector, self.stage = self.build(collection_config(self.cfg, index)), stage
