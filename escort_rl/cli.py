@@ -308,6 +308,20 @@ def _quiet_compiler_notices() -> None:
     warnings.filterwarnings("ignore", message=r"`torch\._prims_common\.check` is deprecated", category=FutureWarning)
 
 
+# Count arguments of the subcommands: each must be a positive int (or a list of them).
+POSITIVE_ARGUMENTS = ("episodes", "repeats", "dims", "particles", "batches", "workers", "num_envs", "steps",
+                      "seeds", "threads", "num_steps")
+
+
+def check_positive_arguments(args) -> None:
+    """Raise ``ValueError`` naming the first count argument that is zero or negative."""
+    for name in POSITIVE_ARGUMENTS:
+        value = getattr(args, name, None)
+        for v in (value if isinstance(value, list) else [value]):
+            if isinstance(v, int) and not isinstance(v, bool) and v < 1:
+                raise ValueError(f"--{name.replace('_', '-')}: must be a positive int, got {v}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     _quiet_compiler_notices()
@@ -315,6 +329,7 @@ def main(argv: list[str] | None = None) -> int:
     from escort_rl.trainers.checkpointing import CheckpointLoadError
 
     try:
+        check_positive_arguments(args)
         if args.command == "config":
             from omegaconf import OmegaConf
 

@@ -3,6 +3,8 @@
 import json
 import math
 
+import pytest
+
 from escort_rl.bench.cost import fit_exponent, svgd_flops
 from escort_rl.cli import main
 
@@ -72,3 +74,16 @@ def test_synthetic_bandwidth_scale_reaches_the_filters(tmp_path):
     assert a["filter_kwargs"] == {} and b["filter_kwargs"] == {"bandwidth_scale": 0.1}
     assert a["rows"][0]["per_seed"]["sliced_w1"] != b["rows"][0]["per_seed"]["sliced_w1"]
     assert "`bandwidth_scale=0.1`" in (tmp_path / "b" / "synthetic.md").read_text()
+
+
+@pytest.mark.parametrize("argv, name", [
+    (["evaluate", "--checkpoint", "unused", "--episodes", "0"], "--episodes"),
+    (["evaluate", "--checkpoint", "unused", "--episodes", "-3"], "--episodes"),
+    (["bench", "cost", "--repeats", "0"], "--repeats"),
+    (["bench", "cost", "--dims", "4", "-4"], "--dims"),
+    (["bench", "throughput", "--workers", "0"], "--workers"),
+])
+def test_count_arguments_get_one_line_naming_them(argv, name, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: {name}: must be a positive int") and "\n" not in err

@@ -250,3 +250,13 @@ def test_smoothed_prior_survives_an_ill_conditioned_spread():
     factor = robust_cholesky(bad)
     assert torch.isfinite(factor).all()
     torch.testing.assert_close(factor @ factor.transpose(-1, -2), bad, atol=1e-3, rtol=1e-3)
+
+
+@pytest.mark.parametrize("kwargs, name", [
+    ({"step_size": float("inf")}, "step_size"), ({"step_size": float("nan")}, "step_size"),
+    ({"lambda_temp": float("inf")}, "lambda_temp"), ({"jitter": float("nan")}, "jitter"),
+    ({"temp_clip": -1.0}, "temp_clip"), ({"temp_clip": float("inf")}, "temp_clip"),
+])
+def test_non_finite_or_out_of_range_arguments_are_refused(kwargs, name):
+    with pytest.raises(ValueError, match=f"^ESCORTFilter.{name}: must be"):
+        ESCORTFilter(**kwargs)

@@ -416,3 +416,12 @@ def test_validate_rejects_out_of_range_actions(valid_inputs, bad_value):
     with pytest.raises(ValueError) as info:
         SIRFilter().update(model, belief, action, obs, gen(0))
     assert str(info.value).startswith("action:")
+
+
+def test_non_finite_roughening_is_refused():
+    import math as _math
+
+    for bad in (float("inf"), float("nan"), -1.0):
+        with pytest.raises(ValueError, match="^SIRFilter.roughening: must be a finite number >= 0"):
+            SIRFilter(roughening=bad)
+    assert _math.isfinite(SIRFilter(roughening=0.2).roughening)

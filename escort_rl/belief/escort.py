@@ -159,7 +159,13 @@ class ESCORTFilter(BeliefFilter):
             ("prior", prior in ("smoothed", "exact"), "'smoothed' or 'exact'"),
             ("jitter", jitter is None or jitter >= 0, "None or >= 0"),
             ("compile", isinstance(compile, bool), "True or False"),
+            ("temp_clip", math.isfinite(temp_clip) and temp_clip > 0, "a finite number > 0"),
         ]
+        for name in ("step_size", "step_decay", "bandwidth_scale", "lambda_corr", "lambda_temp", "likelihood_pull",
+                     "jitter"):
+            value = locals()[name]
+            if value is not None and not math.isfinite(value):
+                raise ValueError(f"{type(self).__name__}.{name}: must be a finite number, got {value!r}")
         for name, ok, what in checks:
             if not ok:
                 raise ValueError(f"{type(self).__name__}.{name}: must be {what}, got {locals()[name]!r}")

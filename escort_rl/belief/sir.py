@@ -44,9 +44,9 @@ class SIRFilter(BeliefFilter):
 
     def __init__(self, resample_threshold: float = 0.5, roughening: float = 0.0) -> None:
         if not 0.0 <= resample_threshold <= 1.0:
-            raise ValueError(f"resample_threshold: must be in [0, 1], got {resample_threshold}")
-        if roughening < 0:
-            raise ValueError(f"roughening: must be >= 0, got {roughening}")
+            raise ValueError(f"SIRFilter.resample_threshold: must be in [0, 1], got {resample_threshold}")
+        if not (math.isfinite(roughening) and roughening >= 0):
+            raise ValueError(f"SIRFilter.roughening: must be a finite number >= 0, got {roughening}")
         self.resample_threshold = resample_threshold
         self.roughening = roughening
 
