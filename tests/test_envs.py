@@ -319,3 +319,12 @@ def test_every_domain_passes_torchrl_check_env_specs(domain):
     td = env.rollout(6, cyclic_policy(model.n_actions))
     assert td["next", "observation"].shape == (3, 6, model.obs_dim)
     assert torch.isfinite(td["next", "observation"]).all()
+
+
+@pytest.mark.parametrize("batch_size", [(0,), (-1,), (2, 0)])
+def test_empty_or_negative_batch_sizes_get_one_line(batch_size):
+    from escort_rl.envs import POMDPEnv
+    from escort_rl.models import LightDark10D
+
+    with pytest.raises(ValueError, match=r"^POMDPEnv.batch_size: every size must be a positive int"):
+        POMDPEnv(LightDark10D(), batch_size=batch_size)

@@ -260,3 +260,18 @@ def test_smoothed_prior_survives_an_ill_conditioned_spread():
 def test_non_finite_or_out_of_range_arguments_are_refused(kwargs, name):
     with pytest.raises(ValueError, match=f"^ESCORTFilter.{name}: must be"):
         ESCORTFilter(**kwargs)
+
+
+@pytest.mark.parametrize("filt", [ESCORTFilter(num_steps=2), SVGDFilter(num_steps=2)], ids=["escort", "svgd"])
+def test_float64_observations_update_a_float32_belief(filt):
+    from escort_rl.models import LightDark10D
+
+    model = LightDark10D()
+    belief = filt.init(model, (2,), 8, torch.Generator().manual_seed(0))
+    action = torch.zeros(2, dtype=torch.long)
+    obs = model.observe(model.transition(model.initial_state((2,)), action), action)
+    g = torch.Generator().manual_seed(1)
+    out64 = filt.update(model, belief, action, obs.double(), g)
+    out32 = filt.update(model, belief, action, obs, torch.Generator().manual_seed(1))
+    assert out64.particles.dtype == torch.float32
+    torch.testing.assert_close(out64.particles, out32.particles)

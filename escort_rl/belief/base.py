@@ -53,6 +53,8 @@ class BeliefFilter(ABC):
         Returns the posterior belief with particles ``[*B, N, d]``.
         """
         validate_update_inputs(model, belief, action, observation)
+        if observation.dtype != belief.particles.dtype:  # e.g. float64 observations of a float32 belief
+            observation = observation.to(belief.particles.dtype)
         return self._update(model, belief, action, observation, generator)
 
     @abstractmethod

@@ -38,7 +38,10 @@ class POMDPEnv(EnvBase):
     def __init__(self, model, batch_size=(1,), device=None, seed: int | None = None,
                  max_steps: int | None = None) -> None:
         check_model(model)
-        batch_size = torch.Size(batch_size if not isinstance(batch_size, int) else (batch_size,))
+        batch_size = tuple(batch_size) if not isinstance(batch_size, int) else (batch_size,)
+        if not all(isinstance(b, int) and b >= 1 for b in batch_size):
+            raise ValueError(f"POMDPEnv.batch_size: every size must be a positive int, got {batch_size}")
+        batch_size = torch.Size(batch_size)
         super().__init__(device=device if device is not None else "cpu", batch_size=batch_size)
         if max_steps is not None and max_steps < 1:
             raise ValueError(f"max_steps: must be a positive int or None, got {max_steps}")
