@@ -393,3 +393,17 @@ def test_collectors_give_identical_particles_to_a_single_process_run():
     got = torch.cat([b["next", "particles"] for b in batches], dim=-3)  # time is the 3rd-last dim
     assert got.shape == (2, 2, steps, 20, 10)
     assert torch.equal(got, reference)
+
+
+def test_a_model_with_other_actions_is_refused_when_the_transform_joins_the_env():
+    from torchrl.envs import TransformedEnv
+
+    from escort_rl.belief import SIRFilter
+    from escort_rl.envs import POMDPEnv
+    from escort_rl.models import LightDark10D
+
+    class FourActions(LightDark10D):
+        n_actions = 4
+
+    with pytest.raises(ValueError, match=r"^BeliefTransform.model: model.n_actions is 4 but the env's 'action' has 10"):
+        TransformedEnv(POMDPEnv(LightDark10D(), batch_size=(2,)), BeliefTransform(FourActions(), SIRFilter(), 8))

@@ -94,6 +94,13 @@ class BeliefTransform(Transform):
         }
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        self._check_env(observation_spec)
+        for key, spec in self._belief_specs(observation_spec.shape, observation_spec.device).items():
+            observation_spec[key] = spec
+        return observation_spec
+
+    def _check_env(self, observation_spec: Composite) -> None:
+        """Refuse a model whose ``obs_dim``, ``state_dim`` or ``n_actions`` differ from the env's."""
         obs_spec = observation_spec.get(self.observation_key, None)
         if obs_spec is None:
             raise KeyError(
@@ -111,9 +118,24 @@ class BeliefTransform(Transform):
                 f"BeliefTransform.model: model.state_dim is {self.model.state_dim} but the env's "
                 f"'true_state' has last dimension {true_state.shape[-1]}; pass the env's model"
             )
-        for key, spec in self._belief_specs(observation_spec.shape, observation_spec.device).items():
-            observation_spec[key] = spec
-        return observation_spec
+        self._check_actions()
+
+    def _check_actions(self) -> None:
+        """Refuse a model whose ``n_actions`` differs from the env's action spec."""
+        parent = getattr(self, "parent", None)
+        action_spec = parent.full_action_spec.get(self.action_key, None) if parent is not None else None
+        n = getattr(action_spec, "n", None)
+        if n is not None and int(n) != int(self.model.n_actions):
+            raise ValueError(
+                f"BeliefTransform.model: model.n_actions is {self.model.n_actions} but the env's "
+                f"'{self.action_key}' has {n} actions; pass the env's model"
+            )
+
+    def set_container(self, container) -> None:
+        super().set_container(container)
+        parent = getattr(self, "parent", None)
+        if parent is not None:  # check when the transform joins an env, not at its first reset
+            self._check_env(parent.full_observation_spec)
 
     def transform_state_spec(self, state_spec: Composite) -> Composite:
         for key, spec in self._belief_specs(state_spec.shape, state_spec.device).items():
