@@ -45,6 +45,7 @@ from escort_rl.modules.dvrl_networks import StateReadout
 from escort_rl.trainers.builders import build_model, input_scaling
 from escort_rl.trainers.checkpointing import load_checkpoint
 from escort_rl.trainers.scaffold import episode_stats
+from escort_rl.trainers.validation import validate_train_config
 
 EPISODE_KEYS = (("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "true_state"))
 
@@ -69,28 +70,7 @@ def make_dvrl_env(cfg: DictConfig, num_envs: int, seed: int | None = None) -> Tr
 
 
 def validate_dvrl_config(cfg: DictConfig) -> None:
-    t, loss = cfg.trainer, cfg.dvrl.get("loss") or {}
-    checks = [
-        ("trainer.iterations", t.iterations >= 1, "a positive int"),
-        ("trainer.num_envs", t.num_envs >= 1, "a positive int"),
-        ("trainer.lr", t.lr > 0, "a positive float"),
-        ("trainer.readout_lr", t.readout_lr > 0, "a positive float"),
-        ("trainer.gamma", 0 < t.gamma <= 1, "in (0, 1]"),
-        ("trainer.entropy_coef", t.entropy_coef >= 0, "non-negative"),
-        ("trainer.checkpoint_every", t.checkpoint_every >= 1, "a positive int"),
-        ("trainer.keep_checkpoints", t.keep_checkpoints >= 1, "a positive int"),
-        ("env.max_steps", cfg.env.max_steps is not None and cfg.env.max_steps >= 1, "a positive int"),
-    ]
-    for key, ok, what in checks:
-        if not ok:
-            raise ConfigError(f"{key}: must be {what}, got {OmegaConf.select(cfg, key)}")
-    for key, positive in (("encoding_loss_coef", False), ("value_loss_coef", False), ("bptt_steps", True),
-                          ("reward_scale", False)):
-        value = loss.get(key)
-        if value is None or value < 0 or (positive and (value < 1 or int(value) != value)) or \
-                (key == "reward_scale" and value == 0):
-            raise ConfigError(f"dvrl.loss.{key}: must be {'a positive int' if positive else 'a non-negative float'}"
-                              f", got {value}; set it in configs/dvrl/{cfg.dvrl.name}.yaml")
+    validate_train_config(cfg)  # types and ranges, from the schema (dvrl.loss.* included)
     if int(cfg.collector.workers) != 1:
         raise ConfigError(f"collector.workers: trainer=dvrl_a2c steps its envs in this process (it needs the "
                           f"gradients of the acting particles), got {cfg.collector.workers}; set collector.workers=1")

@@ -129,8 +129,6 @@ def validate_recurrent_ppo_config(cfg: DictConfig) -> None:
                           f"({t.num_envs}), got {t.minibatches}")
     if per_worker < 1:
         raise ConfigError(f"collector.workers: at most trainer.num_envs ({t.num_envs}), got {cfg.collector.workers}")
-    if recurrent_hidden(cfg) < 1:
-        raise ConfigError(f"trainer.hidden: must be a positive int, got {recurrent_hidden(cfg)}")
 
 
 # ------------------------------------------------------------------------------------ training
