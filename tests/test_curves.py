@@ -24,3 +24,11 @@ def test_curves_of_a_dvrl_and_a_deepsets_run(tmp_path, capsys):
     capsys.readouterr()
     assert main(["bench", "curves", str(tmp_path / "nowhere"), "--output", str(out)]) == 2
     assert "nowhere" in capsys.readouterr().err
+
+
+def test_legend_names_the_directory_only_where_labels_repeat():
+    from escort_rl.bench.curves import legend_labels
+
+    runs = [{"label": "dvrl", "run": "a/dvrl"}, {"label": "sir + DeepSets (ppo)", "run": "a/p1"},
+            {"label": "sir + DeepSets (ppo)", "run": "b/p2"}]
+    assert legend_labels(runs) == ["dvrl", "sir + DeepSets (ppo) (p1)", "sir + DeepSets (ppo) (p2)"]

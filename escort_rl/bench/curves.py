@@ -38,6 +38,13 @@ def load_history(run: str | Path) -> dict:
             "env": saved["config"]["env"]["name"], "history": history}
 
 
+def legend_labels(runs: list[dict]) -> list[str]:
+    """Each run's label, with its directory name added only where two runs share a label."""
+    labels = [run["label"] for run in runs]
+    return [f"{label} ({Path(run['run']).name})" if labels.count(label) > 1 else label
+            for label, run in zip(labels, runs)]
+
+
 def plot_learning_curves(runs: list[dict], path: Path) -> Path:
     """Return, final distance to goal and (where recorded) ELBO per step against frames, one line per run."""
     import matplotlib
@@ -48,12 +55,13 @@ def plot_learning_curves(runs: list[dict], path: Path) -> Path:
     panels = [("episode_return", "mean episode return"), ("final_distance", "final distance to goal"),
               ("elbo", "ELBO per step (DVRL)")]
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+    labels = legend_labels(runs)
     for i, run in enumerate(runs):
         frames = [h["frames"] for h in run["history"]]
         for ax, (key, _) in zip(axes, panels):
             values = [h.get(key, math.nan) for h in run["history"]]
             if any(not math.isnan(v) for v in values):
-                ax.plot([f / 1000 for f in frames], values, marker=".", label=f"{run['label']} ({Path(run['run']).name})", color=f"C{i}")
+                ax.plot([f / 1000 for f in frames], values, marker=".", label=labels[i], color=f"C{i}")
     for ax, (_, name) in zip(axes, panels):
         ax.set_xlabel("frames (thousands)")
         ax.set_ylabel(name)
