@@ -74,6 +74,13 @@ def _parser() -> argparse.ArgumentParser:
                       help="also time ESCORT and SVGD with compile=True (each shape compiles once first)")
     cost.add_argument("--max-pairs", type=float, default=1e7,
                       help="skip (d, N, B) with B·N² above this (default 1e7 skips N=1000 at B=32 on a CPU)")
+    cost.add_argument("--training", type=int, nargs="+", default=[], metavar="B",
+                      help="also measure PPO training frames/s on SIR, SVGD and ESCORT beliefs at these batch sizes")
+    cost.add_argument("--training-steps", type=int, default=100,
+                      help="episode length of the training rows (3 iterations of B x this many frames)")
+    cost.add_argument("--warmup", action="store_true",
+                      help="also time the first compiled ESCORT update in fresh processes, cold and from the cache")
+    cost.add_argument("--no-updates", action="store_true", help="skip the per-update grid (training/warm-up rows only)")
     cost.add_argument("--output", default="outputs/bench/cost", help="folder for cost.md and cost.json")
     syn = bench_sub.add_parser("synthetic", help="fit the paper's GMM targets: ESCORT, NoCorr, SVGD, SIR, oracle",
                                description="Static-target benchmark (paper Table 2 layout): MMD², W1, sliced W1, "
@@ -310,7 +317,7 @@ def _quiet_compiler_notices() -> None:
 
 # Count arguments of the subcommands: each must be a positive int (or a list of them).
 POSITIVE_ARGUMENTS = ("episodes", "repeats", "dims", "particles", "batches", "workers", "num_envs", "steps",
-                      "seeds", "threads", "num_steps")
+                      "seeds", "threads", "num_steps", "training", "training_steps")
 
 
 def check_positive_arguments(args) -> None:
@@ -360,11 +367,16 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{row['filter']:>15} d={row['d']:<4} N={row['N']:<5} B={row['B']:<3} "
                       f"{1e3 * row['seconds']:9.2f} ms", flush=True)
 
-            result = run_cost_benchmark(**grid, repeats=args.repeats, num_steps=args.num_steps,
-                                        device=args.device, progress=show, max_pairs=args.max_pairs,
-                                        compile=args.compile)
             out = Path(args.output)
             out.mkdir(parents=True, exist_ok=True)
+            result = {} if args.no_updates else run_cost_benchmark(
+                **grid, repeats=args.repeats, num_steps=args.num_steps, device=args.device, progress=show,
+                max_pairs=args.max_pairs, compile=args.compile)
+            if args.training or args.warmup:
+                from escort_rl.bench.training_cost import training_cost_rows
+
+                result.update(training_cost_rows(args.training, out / "training_runs", args.training_steps,
+                                                 args.warmup, progress=print))
             (out / "cost.json").write_text(json.dumps(result, indent=1))
             (out / "cost.md").write_text(cost_markdown(result))
             print(cost_markdown(result))

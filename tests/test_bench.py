@@ -87,3 +87,23 @@ def test_count_arguments_get_one_line_naming_them(argv, name, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"error: {name}: must be a positive int") and "\n" not in err
+
+
+def test_training_cost_rows_measure_every_filter(tmp_path, monkeypatch):
+    """The training rows of ``bench cost``: one PPO run per filter and batch size (compile off here to
+    keep the test short), frames/s over the iterations after the first, and the table with ratios to SIR."""
+    from escort_rl.bench.cost import cost_markdown
+    from escort_rl.bench.training_cost import TRAINING_FILTERS, training_cost_rows
+
+    for name in ("svgd", "escort"):
+        monkeypatch.setitem(TRAINING_FILTERS, name, [*TRAINING_FILTERS[name], "filter.compile=false"])
+    result = training_cost_rows([2], tmp_path, max_steps=4, iterations=2, overrides=("num_particles=8",))
+    rows = result["training"]
+    assert [r["filter"] for r in rows] == list(TRAINING_FILTERS) and result["warmup"] is None
+    assert all(r["B"] == 2 and r["frames"] == 2 * 4 and r["frames_per_second"] > 0 for r in rows)
+    table = cost_markdown(result)
+    assert "| 2 | sir |" in table and "| 1.000 |" in table and "| 2 | escort |" in table
+    from escort_rl.bench.training_cost import training_throughput
+
+    with pytest.raises(ValueError, match="filter: 'pf'"):
+        training_throughput("pf", 2, tmp_path / "x")

@@ -134,6 +134,17 @@ def run_cost_benchmark(dims=(10, 20, 50, 100, 200), particles=(100, 1000), batch
 
 
 def cost_markdown(result: dict) -> str:
+    """The update-cost tables and, where measured, the training-throughput rows and compile warm-up
+    (:mod:`escort_rl.bench.training_cost`)."""
+    parts = [update_cost_markdown(result)] if result.get("rows") else ["# Cost of belief updates", ""]
+    if result.get("training") or result.get("warmup"):
+        from escort_rl.bench.training_cost import training_cost_markdown
+
+        parts.append(training_cost_markdown(result.get("training", []), result.get("warmup")))
+    return "\n".join(parts)
+
+
+def update_cost_markdown(result: dict) -> str:
     lines = [
         "# Cost of one belief update",
         "",
