@@ -10,13 +10,14 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector, MultiSyncCollector
-from torchrl.envs import ParallelEnv, SerialEnv, TransformedEnv
+from torchrl.envs import Compose, ParallelEnv, SerialEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from escort_rl.belief import ParticleBelief, SIRFilter
 from escort_rl.envs import POMDPEnv
 from escort_rl.models import LightDark10D, LinearGaussian
 from escort_rl.transforms import BeliefTransform
+from escort_rl.transforms.belief_transform import derive_seed
 
 # ---------------------------------------------------------------------------------------------
 # Module-level factories and policies: multi-process tests pickle them (spawn start method).
@@ -72,6 +73,23 @@ def belief_policy() -> TensorDictModule:
 # (env seed, filter seed) per sub-env / worker; filter seed None shares the base env's generator
 ENV_SEEDS = ((11, 101), (12, None))
 FACTORIES = [functools.partial(make_belief_env, e, f) for e, f in ENV_SEEDS]
+
+
+def make_base_env(env_seed: int, batch: int = 2, max_steps: int | None = 8) -> POMDPEnv:
+    """A bare POMDPEnv: the sub-env of a batched env with the BeliefTransform on top."""
+    return POMDPEnv(LightDark10D(), batch_size=(batch,), seed=env_seed, max_steps=max_steps)
+
+
+BASE_FACTORIES = [functools.partial(make_base_env, 11), functools.partial(make_base_env, 12)]
+
+
+def belief_on_top(kind, filter_seed, num_particles: int = 20) -> TransformedEnv:
+    """TorchRL's usual placement: ``TransformedEnv(SerialEnv/ParallelEnv(...), BeliefTransform(...))``."""
+    kwargs = {"mp_start_method": "spawn"} if kind is ParallelEnv else {}
+    return TransformedEnv(
+        kind(2, BASE_FACTORIES, **kwargs),
+        BeliefTransform(LightDark10D(), SIRFilter(), num_particles, seed=filter_seed),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -309,6 +327,101 @@ def test_set_seed_reseeds_the_filter():
     assert torch.equal(a["next", "particles"], b["next", "particles"])
 
 
+def _seeded_rollout(env, seed: int, steps: int = 6) -> TensorDict:
+    env.set_seed(seed)
+    return env.rollout(steps, cyclic_policy(), break_when_any_done=False)
+
+
+def test_env_set_seed_twice_reproduces_a_transform_with_its_own_seed():
+    """BeliefTransform(seed=5): env.set_seed(s) restarts its generator, so the same s reproduces
+    the particles however often it is called, on this env or on a fresh one."""
+    env = make_belief_env(0, 5)
+    a = _seeded_rollout(env, 3)
+    b = _seeded_rollout(env, 3)
+    assert torch.equal(a["next", "particles"], b["next", "particles"])
+    assert torch.equal(a["next", "particle_log_weights"], b["next", "particle_log_weights"])
+    fresh = make_belief_env(99, 5)  # other construction seed for the env, same transform seed
+    assert torch.equal(_seeded_rollout(fresh, 3)["next", "particles"], a["next", "particles"])
+    # another env seed, or another transform seed under the same env seed, gives other particles
+    assert not torch.equal(_seeded_rollout(env, 4)["next", "particles"], a["next", "particles"])
+    other_filter = _seeded_rollout(make_belief_env(0, 6), 3)
+    assert torch.equal(other_filter["true_state"], a["true_state"])
+    assert not torch.equal(other_filter["next", "particles"], a["next", "particles"])
+    # transform.set_seed gives the transform its constructor-like seed back: env.set_seed no longer
+    # applies, and the particles are those of a transform seeded with 5 that no env.set_seed reached
+    env.base_env.set_seed(3)
+    env.transform.set_seed(5)
+    c = env.rollout(6, cyclic_policy(), break_when_any_done=False)
+    ref = make_belief_env(0, 5)
+    ref.base_env.set_seed(3)
+    assert torch.equal(c["next", "particles"], ref.rollout(6, cyclic_policy(), break_when_any_done=False)["next", "particles"])
+    assert not torch.equal(c["next", "particles"], a["next", "particles"])
+
+
+def test_belief_seed_differs_from_the_env_seed():
+    """The filter's noise must not replay the env's noise: its seed is derived from the env seed,
+    differs from it and from the seeds a batched env hands its other sub-envs."""
+    from torchrl._utils import seed_generator
+
+    for s in (0, 1, 3, 12345):
+        seeds = {s, seed_generator(s), seed_generator(seed_generator(s))}
+        assert derive_seed(s, None) not in seeds
+        assert derive_seed(s, None) != derive_seed(s, 5)
+        assert derive_seed(s, 5) == derive_seed(s, 5)
+        assert 0 <= derive_seed(s, 5) < 2**63
+    env = make_belief_env(0, 5)
+    env.set_seed(3)
+    env.reset()
+    assert env.transform._generator.initial_seed() == derive_seed(3, 5)
+    assert env.base_env.generator.initial_seed() == 3
+
+
+@pytest.mark.parametrize("placement", ["compose", "append_transform"])
+def test_env_set_seed_reaches_a_transform_inside_a_compose(placement):
+    model = LightDark10D()
+    transform = BeliefTransform(model, SIRFilter(), 12, seed=5)
+    base = POMDPEnv(model, batch_size=(2,), seed=0, max_steps=8)
+    if placement == "compose":
+        env = TransformedEnv(base, Compose(StepCounter(), transform))
+    else:
+        env = TransformedEnv(base, StepCounter())
+        env.append_transform(transform)
+    a = _seeded_rollout(env, 3)["next", "particles"]
+    assert a.shape == (2, 6, 12, 10)
+    assert torch.equal(_seeded_rollout(env, 3)["next", "particles"], a)
+    assert not torch.equal(_seeded_rollout(env, 4)["next", "particles"], a)
+
+
+@pytest.mark.parametrize("filter_seed", [None, 5], ids=["no-transform-seed", "transform-seed-5"])
+def test_env_set_seed_seeds_a_transform_on_top_of_a_serial_env(filter_seed):
+    env = belief_on_top(SerialEnv, filter_seed)
+    try:
+        a = _seeded_rollout(env, 3)
+        assert a["next", "particles"].shape == (2, 2, 6, 20, 10)
+        assert torch.equal(_seeded_rollout(env, 3)["next", "particles"], a["next", "particles"])
+        assert torch.equal(_seeded_rollout(env, 3)["next", "particle_log_weights"],
+                           a["next", "particle_log_weights"])
+        assert not torch.equal(_seeded_rollout(env, 4)["next", "particles"], a["next", "particles"])
+    finally:
+        env.close()
+    fresh = belief_on_top(SerialEnv, filter_seed)  # a second, identically seeded run
+    try:
+        assert torch.equal(_seeded_rollout(fresh, 3)["next", "particles"], a["next", "particles"])
+    finally:
+        fresh.close()
+
+
+def test_env_set_seed_seeds_transforms_inside_the_sub_envs_of_a_serial_env():
+    """The transform in each sub-env (one with its own seed, one sharing its env's generator)."""
+    env = SerialEnv(2, FACTORIES)
+    try:
+        a = _seeded_rollout(env, 3, steps=10)
+        assert torch.equal(_seeded_rollout(env, 3, steps=10)["next", "particles"], a["next", "particles"])
+        assert not torch.equal(_seeded_rollout(env, 4, steps=10)["next", "particles"], a["next", "particles"])
+    finally:
+        env.close()
+
+
 # ---------------------------------------------------------------------------------------------
 # Reproducibility across processes
 # ---------------------------------------------------------------------------------------------
@@ -393,6 +506,100 @@ def test_collectors_give_identical_particles_to_a_single_process_run():
     got = torch.cat([b["next", "particles"] for b in batches], dim=-3)  # time is the 3rd-last dim
     assert got.shape == (2, 2, steps, 20, 10)
     assert torch.equal(got, reference)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("filter_seed", [None, 5], ids=["no-transform-seed", "transform-seed-5"])
+def test_env_set_seed_seeds_a_transform_on_top_of_a_parallel_env(filter_seed):
+    """ParallelEnv, the usual placement: env.set_seed(s) twice gives the same particles, and the
+    same as the same transform on top of a SerialEnv of the same sub-envs."""
+    parallel = belief_on_top(ParallelEnv, filter_seed)
+    try:
+        a = _seeded_rollout(parallel, 3, steps=10)
+        b = _seeded_rollout(parallel, 3, steps=10)
+        c = _seeded_rollout(parallel, 4, steps=10)
+    finally:
+        parallel.close()
+    serial = belief_on_top(SerialEnv, filter_seed)
+    try:
+        s = _seeded_rollout(serial, 3, steps=10)
+    finally:
+        serial.close()
+    assert a["next", "particles"].shape == (2, 2, 10, 20, 10)
+    assert bool(a["next", "truncated"].any())  # episodes restarted inside the rollout
+    assert torch.equal(a["next", "particles"], b["next", "particles"])
+    assert torch.equal(a["next", "particle_log_weights"], b["next", "particle_log_weights"])
+    assert torch.equal(a["next", "particles"], s["next", "particles"])
+    assert not torch.equal(a["next", "particles"], c["next", "particles"])
+
+
+@pytest.mark.slow
+def test_env_set_seed_seeds_transforms_inside_the_workers_of_a_parallel_env():
+    serial = SerialEnv(2, FACTORIES)
+    try:
+        s = _seeded_rollout(serial, 3, steps=10)
+    finally:
+        serial.close()
+    parallel = ParallelEnv(2, FACTORIES, mp_start_method="spawn")
+    try:
+        a = _seeded_rollout(parallel, 3, steps=10)
+        b = _seeded_rollout(parallel, 3, steps=10)
+    finally:
+        parallel.close()
+    assert torch.equal(a["next", "particles"], b["next", "particles"])
+    assert torch.equal(a["next", "particles"], s["next", "particles"])
+
+
+def _collect_after_seed(collector, seed: int, n_batches: int = 2) -> torch.Tensor:
+    """collector.set_seed(seed), then a reset (the collector reset its envs when it was built,
+    before any seed), then ``n_batches`` batches of particles."""
+    collector.set_seed(seed)
+    collector.reset()
+    out = []
+    for i, data in enumerate(collector):
+        out.append(data["next", "particles"].clone())
+        if i + 1 == n_batches:
+            break
+    return torch.cat(out, dim=-3)
+
+
+@pytest.mark.slow
+def test_collector_set_seed_seeds_a_transform_on_top_of_a_batched_env():
+    runs = {}
+    for kind in (SerialEnv, ParallelEnv):
+        collector = Collector(belief_on_top(kind, None), belief_policy(), frames_per_batch=2 * 2 * 6,
+                              total_frames=-1, auto_register_policy_transforms=False)
+        try:
+            runs[kind] = [_collect_after_seed(collector, s) for s in (7, 7, 8)]
+        finally:
+            collector.shutdown()
+    a, b, c = runs[ParallelEnv]
+    assert a.shape == (2, 2, 12, 20, 10)
+    assert torch.equal(a, b)
+    assert not torch.equal(a, c)
+    assert torch.equal(a, runs[SerialEnv][0])
+
+
+@pytest.mark.slow
+def test_multi_sync_collector_set_seed_seeds_the_workers_transforms():
+    """Each worker holds a transform on top of a SerialEnv with no seed of its own (it would draw
+    OS entropy): two identically seeded runs of a two-worker collector give the same particles."""
+
+    def run(seed: int) -> torch.Tensor:
+        collector = MultiSyncCollector(
+            [functools.partial(belief_on_top, SerialEnv, None)] * 2, belief_policy(),
+            frames_per_batch=2 * 4 * 6, total_frames=-1, cat_results="stack",
+            num_threads=torch.get_num_threads(), num_sub_threads=1, auto_register_policy_transforms=False,
+        )
+        try:
+            return _collect_after_seed(collector, seed)
+        finally:
+            collector.shutdown()
+
+    a = run(7)
+    assert a.shape == (2, 2, 2, 12, 20, 10)  # [worker, sub-env, batch, time, N, d]
+    assert torch.equal(a, run(7))
+    assert not torch.equal(a[0], a[1])  # the workers were seeded differently
 
 
 def test_a_model_with_other_actions_is_refused_when_the_transform_joins_the_env():

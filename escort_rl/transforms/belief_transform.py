@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import hashlib
+
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
-from torchrl.envs.transforms import Transform
+from torchrl.envs.transforms import Compose, Transform, TransformedEnv
 
 from escort_rl.belief.base import BeliefFilter
 from escort_rl.belief.particle_belief import ParticleBelief
@@ -31,10 +33,28 @@ class BeliefTransform(Transform):
         num_particles: ``N``.
         observation_key, action_key: where the observation and the action are read.
         particles_key, log_weights_key: where the belief is written.
-        seed: ``None`` (default) draws the filter's randomness from the base env's ``generator``
-            when it has one (as :class:`escort_rl.envs.POMDPEnv` does), so that ``env.set_seed(s)``
-            and ``collector.set_seed(s)`` seed the belief too; an int gives the transform its own
-            generator with that seed (see :meth:`set_seed`).
+        seed: the seed of the filter's randomness until the env is seeded (see below).
+
+    Seeding: ``env.set_seed(s)`` and ``collector.set_seed(s)`` seed the belief wherever the
+    transform sits, directly on a :class:`escort_rl.envs.POMDPEnv` or on top of a ``SerialEnv`` or
+    ``ParallelEnv``, and the same ``s`` reproduces the same particles, however often it is called:
+
+    - ``seed=None`` on a base env that holds its own ``generator`` in this process (as
+      :class:`escort_rl.envs.POMDPEnv` does): the filter draws from that generator, which
+      ``env.set_seed`` reseeds.
+    - Otherwise the transform has its own generator. ``env.set_seed(s)`` reseeds it with a seed
+      hashed from ``(s, seed)`` (see :func:`derive_seed`: unrelated to the seeds the env gives its
+      sub-envs, so the filter's noise does not replay the env's); before any ``env.set_seed`` it
+      is seeded with ``seed``, or from OS entropy when ``seed`` is ``None`` (as an unseeded
+      :class:`escort_rl.envs.POMDPEnv` is).
+
+    Draws made before the first ``set_seed`` follow the construction seeds only. A collector resets
+    its env when it is built, so reset it after ``collector.set_seed(s)`` (``collector.reset()``)
+    when the transform has no seed of its own and sits on a batched env.
+
+    TorchRL 0.14 gives transforms no seeding hook (``TransformedEnv.set_seed`` only seeds the base
+    env), so when the transform joins a ``TransformedEnv`` it wraps that env's ``set_seed`` to seed
+    the beliefs after the base env.
     """
 
     def __init__(
@@ -60,26 +80,58 @@ class BeliefTransform(Transform):
         self.observation_key, self.action_key = observation_key, action_key
         self.particles_key, self.log_weights_key = particles_key, log_weights_key
         self._seed = seed
+        self._env_seeded = False  # whether env.set_seed has reached the transform since `seed`
+        self._env_seed: int | None = None
         self._generator: torch.Generator | None = None
 
     # ------------------------------------------------------------------ randomness
     def set_seed(self, seed: int | None) -> None:
-        """Seed the generator used for the filter's randomness (on the env's device)."""
+        """Give the transform its own seed: its generator restarts from ``seed`` (``None``: OS
+        entropy, or the base env's generator where it has one), and an earlier ``env.set_seed``
+        no longer applies until the env is seeded again."""
         self._seed = seed
+        self._env_seeded = False
+        self._env_seed = None
         self._generator = None
 
+    def _set_seed(self, seed: int | None) -> None:
+        """Called by ``env.set_seed(seed)`` on the env that contains the transform: restart the
+        generator from a seed derived from ``seed`` and the transform's own seed (``seed=None``:
+        OS entropy, as the base env does)."""
+        self._env_seeded = True
+        self._env_seed = seed
+        self._generator = None
+
+    def _shared_generator(self, device) -> torch.Generator | None:
+        """The base env's generator, where the filter shares it (no seed of its own, a base env
+        holding a generator on ``device`` in this process)."""
+        if self._seed is not None:
+            return None
+        try:
+            container = self.container
+        except (AttributeError, ValueError):  # not (yet) in an env
+            return None
+        base_env = getattr(container, "base_env", container)
+        # read the instance dict: a batched env's attribute lookup would query its workers
+        shared = getattr(base_env, "__dict__", {}).get("generator", None)
+        if isinstance(shared, torch.Generator) and shared.device == torch.device(device):
+            return shared
+        return None
+
     def _get_generator(self, device: torch.device) -> torch.Generator:
-        if self._seed is None:
-            base_env = getattr(getattr(self, "container", None), "base_env", None)
-            shared = getattr(base_env, "generator", None)
-            if isinstance(shared, torch.Generator) and shared.device == torch.device(device):
-                return shared
-        if self._generator is None or self._generator.device != device:
+        shared = self._shared_generator(device)
+        if shared is not None:
+            return shared
+        if self._generator is None or self._generator.device != torch.device(device):
             self._generator = torch.Generator(device=device)
-            if self._seed is None:
+            if self._env_seeded:
+                seed = None if self._env_seed is None else derive_seed(self._env_seed, self._seed)
+            else:
+                seed = self._seed
+            if seed is None:
                 self._generator.seed()
             else:
-                self._generator.manual_seed(int(self._seed))
+                self._generator.manual_seed(int(seed))
         return self._generator
 
     def generator_state(self) -> torch.Tensor | None:
@@ -136,6 +188,12 @@ class BeliefTransform(Transform):
         parent = getattr(self, "parent", None)
         if parent is not None:  # check when the transform joins an env, not at its first reset
             self._check_env(parent.full_observation_spec)
+        try:
+            env = self.container
+        except ValueError:  # inside a Compose that has no env yet: Compose.set_container calls again
+            env = None
+        if isinstance(env, TransformedEnv):
+            _seed_beliefs_with_env(env)
 
     def transform_state_spec(self, state_spec: Composite) -> Composite:
         for key, spec in self._belief_specs(state_spec.shape, state_spec.device).items():
@@ -183,3 +241,41 @@ class BeliefTransform(Transform):
             "BeliefTransform is an environment transform: append it to a TransformedEnv, "
             "it cannot be applied to stored data"
         )
+
+
+def derive_seed(env_seed: int, own_seed: int | None) -> int:
+    """The belief generator's seed after ``env.set_seed(env_seed)``: a 63-bit hash of both seeds,
+    so that it differs from the seeds the env hands to its sub-envs."""
+    own = None if own_seed is None else int(own_seed)
+    digest = hashlib.sha256(f"escort_rl.BeliefTransform:{int(env_seed)}:{own}".encode()).digest()
+    return int.from_bytes(digest[:8], "little") & (2**63 - 1)
+
+
+def _belief_transforms(transform) -> list[BeliefTransform]:
+    if isinstance(transform, BeliefTransform):
+        return [transform]
+    if isinstance(transform, Compose):
+        return [t for sub in transform.transforms for t in _belief_transforms(sub)]
+    return []
+
+
+class _SetSeedWithBeliefs:
+    """Stands in for ``set_seed`` on a TransformedEnv holding a BeliefTransform: seeds the base env
+    as TransformedEnv.set_seed does, then every BeliefTransform of the env with the same seed.
+    A plain picklable object (no closure), so that the env can still be pickled or deep-copied."""
+
+    def __init__(self, env: TransformedEnv) -> None:
+        self.env = env
+
+    def __call__(self, seed: int | None = None, static_seed: bool = False) -> int | None:
+        env = self.env
+        out = type(env).set_seed(env, seed, static_seed=static_seed)
+        for transform in _belief_transforms(env.transform):
+            transform._set_seed(seed)
+        return out
+
+
+def _seed_beliefs_with_env(env: TransformedEnv) -> None:
+    hook = env.__dict__.get("set_seed")
+    if not (isinstance(hook, _SetSeedWithBeliefs) and hook.env is env):
+        env.__dict__["set_seed"] = _SetSeedWithBeliefs(env)
