@@ -49,11 +49,11 @@ def test_corrupt_checkpoint_gives_one_line_error(tmp_path, capsys):
     for f in (ckpt / "components").rglob("*"):
         if f.is_file() and f.suffix in (".memmap", ".json"):
             f.write_bytes(b"\x00garbage")
-    with pytest.raises(CheckpointLoadError, match="^checkpoint: cannot load"):
+    with pytest.raises(CheckpointLoadError, match=f"^checkpoint: '{ckpt}' is damaged \\(actor: "):
         load_checkpoint(ckpt, actor=DeepSetsActor(10, 10, hidden=16, encoder_layers=1))
     assert main(["evaluate", "--checkpoint", str(run), "--episodes", "2"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: checkpoint:") and "\n" not in err
+    assert err.startswith(f"error: checkpoint: no intact checkpoint left under '{run}'") and "\n" not in err
 
 
 def test_missing_checkpoint_path(capsys):
@@ -78,8 +78,7 @@ def test_killed_run_resumes_to_the_same_parameters(tmp_path):
     cmd = [sys.executable, "-m", "escort_rl.cli", "train", "--quiet", *args, f"output_dir={killed}"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     rotation = CheckpointRotation(killed / "checkpoints", keep_last=100)
-    deadline = time.time() + 120
-    while time.time() < deadline:
+    while True:  # the run ends by itself after 12 iterations, so this loop ends too
         latest = rotation.latest()
         if latest is not None and load_checkpoint(latest)["trainer_state"]["iteration"] >= 3:
             break

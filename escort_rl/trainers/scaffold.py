@@ -10,9 +10,17 @@ per-iteration seeding, resume, checkpoint rotation, the logger, the progress bar
   ``"frames"`` (this iteration's frames) and the episode statistics of :func:`episode_stats`;
 - ``close()``: shut collectors and envs down.
 
+An algorithm that collects through a :class:`StagedCollector` keeps it as ``collectors``, so that a
+collector worker process that dies ends the run with one line naming the worker and the last
+checkpoint (:class:`CollectorWorkerDied`).
+
 Every iteration ``i`` is seeded with :func:`iteration_seed` (torch's global generator and the
 envs), so a resumed run collects exactly the data an uninterrupted run would have, and reaches the
-same parameters.
+same parameters. A resume writes into the run directory that holds its checkpoint (never the
+``output_dir`` saved in a moved or copied run). Every start removes the temporary folders of a
+checkpoint write that a kill interrupted, and cuts the logs back to the iteration it starts from, so
+that every iteration is logged once. Checkpoints are verified before they are read (see
+:mod:`escort_rl.trainers.checkpointing`).
 
 Example::
 
@@ -24,6 +32,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import time
 from pathlib import Path
 from typing import Protocol
@@ -33,9 +43,16 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.checkpoint import CheckpointRotation
 from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.record.loggers import TensorboardLogger
 from tqdm import tqdm
 
-from escort_rl.trainers.checkpointing import checkpoint_dir, load_checkpoint, save_checkpoint
+from escort_rl.trainers.checkpointing import (
+    checkpoint_dir,
+    load_checkpoint,
+    remove_interrupted_writes,
+    run_dir_of,
+    save_checkpoint,
+)
 
 
 class Algorithm(Protocol):
@@ -54,14 +71,57 @@ def iteration_seed(base: int, iteration: int) -> int:
     return (int(base) * 1_000_003 + int(iteration) * 7_919) % (2**31 - 1)
 
 
-def make_logger(cfg: DictConfig, run_dir: Path):
-    """TorchRL's CSV logger (or TensorBoard with ``logger.backend=tensorboard``) under ``run_dir/logs``."""
+def truncate_scalar_logs(log_dir: Path, iteration: int) -> None:
+    """Cut every CSV scalar log under ``log_dir/scalars`` back to the rows of steps ``<= iteration``.
+
+    A run killed after its last checkpoint has logged iterations that its resume runs again; this
+    drops them (and a half-written last row), so that each iteration appears once. A file is
+    rewritten through a temporary file and a rename, so a kill here leaves the old or the new one."""
+    for path in sorted((Path(log_dir) / "scalars").glob("*.csv")):
+        lines = path.read_text().splitlines(keepends=True)
+        kept = [line for line in lines if _csv_step(line) is not None and _csv_step(line) <= iteration]
+        if kept != lines:
+            partial = path.with_name(path.name + ".truncating")
+            partial.write_text("".join(kept))
+            os.replace(partial, path)
+
+
+def _csv_step(line: str) -> int | None:
+    """The step of a complete ``step,value`` row of TorchRL's CSV logger (``None``: not one)."""
+    step, _, value = line.rstrip("\n").partition(",")
+    if not line.endswith("\n") or not value:
+        return None
+    try:
+        float(value)
+        return int(step)
+    except ValueError:
+        return None
+
+
+class ResumingTensorboardLogger(TensorboardLogger):
+    """TorchRL's TensorBoard logger whose writer drops the events at steps ``>= purge_step`` that an
+    earlier, interrupted session of the run wrote (``SummaryWriter(purge_step=...)``)."""
+
+    def __init__(self, exp_name: str, log_dir: str, purge_step: int) -> None:
+        self.purge_step = purge_step
+        super().__init__(exp_name=exp_name, log_dir=log_dir)
+
+    def _create_experiment(self):
+        from torch.utils.tensorboard import SummaryWriter
+
+        return SummaryWriter(log_dir=os.path.join(self.log_dir, self.exp_name), purge_step=self.purge_step)
+
+
+def make_logger(cfg: DictConfig, run_dir: Path, start_iteration: int = 0):
+    """TorchRL's CSV logger (or TensorBoard with ``logger.backend=tensorboard``) under ``run_dir/logs``,
+    for a run that starts after iteration ``start_iteration`` (0: a new run). The steps logged after
+    it by an earlier session are dropped (:func:`truncate_scalar_logs`; TensorBoard's
+    ``purge_step``), so that each iteration is logged once."""
     from torchrl.record.loggers import CSVLogger
 
     if cfg.logger.backend == "tensorboard":
-        from torchrl.record.loggers import TensorboardLogger
-
-        return TensorboardLogger(exp_name="logs", log_dir=str(run_dir))
+        return ResumingTensorboardLogger(exp_name="logs", log_dir=str(run_dir), purge_step=start_iteration + 1)
+    truncate_scalar_logs(run_dir / "logs", start_iteration)
     return CSVLogger(exp_name="logs", log_dir=str(run_dir))
 
 
@@ -165,6 +225,82 @@ def _fresh_state() -> dict:
     return {"iteration": 0, "frames": 0, "seconds": 0.0, "history": []}
 
 
+class CollectorWorkerDied(RuntimeError):
+    """A worker process of a multi-process collector ended during training (one line naming the
+    worker and the last checkpoint to resume from)."""
+
+
+def dead_workers(collector) -> list[tuple[int, int, int]]:
+    """``(index, pid, exit code)`` of each worker process of ``collector`` that has ended, the ones
+    not stopped by TorchRL itself (SIGTERM) first; empty for a single-process collector."""
+    found = []
+    for index, proc in enumerate(getattr(collector, "procs", None) or []):
+        try:
+            pid, code = proc.pid, proc.exitcode
+        except ValueError:  # closed: TorchRL stopped and closed this survivor after another worker died
+            continue
+        if code is not None:
+            found.append((index, pid, code))
+    return sorted(found, key=lambda w: w[2] == -signal.SIGTERM)
+
+
+def exit_description(code: int) -> str:
+    """``killed by SIGKILL`` for a negative exit code (the signal), else ``exited with code N``."""
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+def worker_death_message(worker: int, pid: int, code: int, iteration: int, last_checkpoint: Path | None,
+                         run_dir: Path) -> str:
+    """The one line a run ends with when collector worker ``worker`` died during ``iteration``
+    (1-based): which worker, how it ended, and the checkpoint to resume from."""
+    if last_checkpoint is None:
+        where = "no checkpoint was written yet; start the run again"
+    else:
+        where = f"the last checkpoint is '{last_checkpoint}'; resume with `escort-rl train resume={run_dir}`"
+    return f"collector: worker {worker} (pid {pid}) {exit_description(code)} during iteration {iteration}; {where}"
+
+
+def raise_if_worker_died(algorithm: Algorithm, iteration: int, last_checkpoint: Path | None, run_dir: Path) -> None:
+    """Raise :class:`CollectorWorkerDied` when a worker of ``algorithm``'s current collector (a
+    :class:`StagedCollector` named ``collectors``) has ended; called when an iteration fails."""
+    staged = getattr(algorithm, "collectors", None)
+    died = dead_workers(getattr(staged, "collector", None))
+    if died:
+        raise CollectorWorkerDied(worker_death_message(*died[0], iteration, last_checkpoint, run_dir))
+
+
+def resumed_run_dir(cfg: DictConfig, checkpoint: str | Path) -> Path:
+    """The directory a resume writes into: the run directory that holds ``checkpoint``, never the
+    ``output_dir`` saved with the run (a moved or copied run must not write into the original).
+    ``cfg.output_dir`` must name that directory; another one raises ``ConfigError``."""
+    from escort_rl.config import ConfigError
+
+    run_dir = run_dir_of(checkpoint)
+    if Path(cfg.output_dir).resolve() != run_dir.resolve():
+        raise ConfigError(f"output_dir: '{cfg.output_dir}' is not the run directory being resumed ('{run_dir}'); "
+                          "a resume writes into the run it continues: drop output_dir, or copy the run "
+                          "directory and resume the copy")
+    return run_dir
+
+
+def restore(cfg: DictConfig, components: dict, resume_state: dict | None) -> tuple[dict, Path, Path | None]:
+    """The trainer state a run starts from, its run directory and the checkpoint it resumes (``None``
+    for a new run). ``resume_state["path"]`` (a checkpoint or a run directory) restores
+    ``components`` in place; see :func:`escort_rl.trainers.checkpointing.load_checkpoint`."""
+    if resume_state is None:
+        return _fresh_state(), Path(cfg.output_dir), None
+    loaded = load_checkpoint(resume_state["path"], **components)
+    saved = loaded["trainer_state"]
+    state = {**_fresh_state(), **{k: saved[k] for k in ("iteration", "frames", "history") if k in saved},
+             "seconds": float(saved.get("seconds", 0.0))}
+    return state, resumed_run_dir(cfg, loaded["path"]), Path(loaded["path"])
+
+
 def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | None = None, progress: bool = True,
                  desc: str = "train", watch: tuple[str, ...] = ("episode_return", "final_distance",
                                                                  "success_rate")) -> Path:
@@ -172,33 +308,42 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
 
     Writes ``config.yaml``, ``checkpoints/`` (every ``trainer.checkpoint_every`` iterations and after
     the last, keeping ``trainer.keep_checkpoints``), TorchRL logger output under ``logs/`` and
-    ``history.json`` into ``cfg.output_dir``. ``resume_state`` (``{"path": checkpoint}``) restores
-    the components and the trainer state and continues where that checkpoint stopped.
+    ``history.json`` into the run directory: ``cfg.output_dir`` for a new run.
+
+    ``resume_state`` (``{"path": checkpoint or run directory}``) restores the components and the
+    trainer state and continues where that checkpoint stopped (a run directory falls back past a
+    damaged newest checkpoint, with a warning). A resume writes into the run directory that holds
+    the checkpoint, which ``cfg.output_dir`` must name (``ConfigError`` otherwise). At the start,
+    the temporary folders of a checkpoint write interrupted by a kill are removed, and the logs are
+    cut back to the iteration the run starts from, so that each iteration is logged once.
+
+    A collector worker process that dies ends the run with :class:`CollectorWorkerDied`, one line
+    naming the worker and the last checkpoint.
     """
-    run_dir = Path(cfg.output_dir)
+    components = algorithm.components
+    state, run_dir, last_checkpoint = restore(cfg, components, resume_state)
     run_dir.mkdir(parents=True, exist_ok=True)
+    remove_interrupted_writes(checkpoint_dir(run_dir))
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
     torch.manual_seed(int(cfg.seed))
-    components = algorithm.components
-    state = _fresh_state()
-    if resume_state is not None:
-        saved = load_checkpoint(resume_state["path"], **components)["trainer_state"]
-        state = {**_fresh_state(), **{k: saved[k] for k in ("iteration", "frames", "history") if k in saved},
-                 "seconds": float(saved.get("seconds", 0.0))}
     n_iter = int(cfg.trainer.iterations)
     if state["iteration"] >= n_iter:
         return run_dir
     rotation = CheckpointRotation(checkpoint_dir(run_dir), keep_last=int(cfg.trainer.keep_checkpoints))
     config_dict = OmegaConf.to_container(cfg, resolve=True)
     every = int(cfg.trainer.checkpoint_every)
-    logger = make_logger(cfg, run_dir)
+    logger = make_logger(cfg, run_dir, state["iteration"])
     bar = tqdm(total=n_iter, initial=state["iteration"], desc=desc, disable=not progress, dynamic_ncols=True)
     try:
         for it in range(state["iteration"], n_iter):
             seed = iteration_seed(cfg.seed, it)
             torch.manual_seed(seed)
             t0 = time.perf_counter()
-            stats = algorithm.iteration(it, seed)
+            try:
+                stats = algorithm.iteration(it, seed)
+            except Exception:
+                raise_if_worker_died(algorithm, it + 1, last_checkpoint, run_dir)
+                raise
             seconds = time.perf_counter() - t0
             state["iteration"] = it + 1
             state["frames"] += int(stats.pop("frames"))
@@ -217,7 +362,7 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
                 if key != "iteration":
                     logger.log_scalar(key, value, step=it + 1)
             if (it + 1) % every == 0 or it + 1 == n_iter:
-                save_checkpoint(rotation, it + 1, state, config_dict, **components)
+                last_checkpoint = save_checkpoint(rotation, it + 1, state, config_dict, **components)
     finally:
         bar.close()
         algorithm.close()
