@@ -1,6 +1,7 @@
 """Particle beliefs and the filters that update them: SIR, SVGD and ESCORT."""
 
 from escort_rl.belief.base import BeliefFilter, validate_update_inputs
+from escort_rl.belief.checks import NonFiniteError
 from escort_rl.belief.escort import ESCORTFilter, SVGDFilter
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.sir import SIRFilter, systematic_resample_indices
@@ -8,6 +9,7 @@ from escort_rl.belief.sir import SIRFilter, systematic_resample_indices
 __all__ = [
     "BeliefFilter",
     "ESCORTFilter",
+    "NonFiniteError",
     "SVGDFilter",
     "ParticleBelief",
     "SIRFilter",

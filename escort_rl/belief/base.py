@@ -2,6 +2,13 @@
 
 A filter is stateless apart from its configuration: the belief is passed in and returned.
 Filters know nothing of TorchRL; they see plain tensors and a model (SPEC §2).
+
+Filters never return NaN or inf silently. With ``check_finite`` on (the default), ``init`` and
+``update`` raise :class:`~escort_rl.belief.checks.NonFiniteError` (a ``ValueError``) naming the
+culprit: a non-finite ``belief.particles`` or ``belief.log_weights`` in the input, a model method that
+returned NaN or inf (``-inf`` from a log-density is a zero likelihood, and allowed), or a result that
+overflowed. The checks cost one host synchronisation per update when all is finite
+(:class:`~escort_rl.belief.checks.FiniteGuard`).
 """
 
 from __future__ import annotations
@@ -11,12 +18,28 @@ from abc import ABC, abstractmethod
 import torch
 from torch import Tensor
 
+from escort_rl.belief.checks import FiniteGuard
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.models.protocol import check_model
 
 
 class BeliefFilter(ABC):
-    """Base class: ``init`` draws the prior, ``update`` folds in one (action, observation) pair."""
+    """Base class: ``init`` draws the prior, ``update`` folds in one (action, observation) pair.
+
+    Attributes:
+        check_finite: check that the input belief, what the model's methods return and the result
+            are finite, and raise a ``ValueError`` naming the culprit if not (default ``True``). The
+            check costs one host synchronisation per update; turn it off (``filt.check_finite =
+            False``) only where the caller validates the beliefs and the model elsewhere.
+    """
+
+    @property
+    def check_finite(self) -> bool:
+        return self.__dict__.get("_check_finite", True)
+
+    @check_finite.setter
+    def check_finite(self, value: bool) -> None:
+        self._check_finite = validate_check_finite(type(self).__name__, value)
 
     def init(
         self,
@@ -38,6 +61,9 @@ class BeliefFilter(ABC):
                 f"model.initial_belief: returned last dimension {particles.shape[-1]}, "
                 f"but model.state_dim is {model.state_dim}"
             )
+        guard = FiniteGuard(type(self).__name__, tuple(batch_shape), enabled=self.check_finite)
+        guard.model_values("model.initial_belief", particles)
+        guard.verify()
         return ParticleBelief.uniform(particles)
 
     def update(
@@ -50,12 +76,20 @@ class BeliefFilter(ABC):
     ) -> ParticleBelief:
         """Fold in ``action`` ``[*B]`` (integer) and the next ``observation`` ``[*B, obs_dim]``.
 
-        Returns the posterior belief with particles ``[*B, N, d]``.
+        Returns the posterior belief with particles ``[*B, N, d]``. With ``check_finite``, raises
+        ``NonFiniteError`` (a ``ValueError``) naming ``belief.particles``, ``belief.log_weights`` or the
+        model method that gave a NaN or inf, after one host synchronisation.
         """
         validate_update_inputs(model, belief, action, observation)
         if observation.dtype != belief.particles.dtype:  # e.g. float64 observations of a float32 belief
             observation = observation.to(belief.particles.dtype)
-        return self._update(model, belief, action, observation, generator)
+        guard = FiniteGuard(type(self).__name__, belief.batch_shape, enabled=self.check_finite)
+        guard.input_belief(belief)
+        with guard.diagnosing():  # a NaN that makes a factorisation fail is named, not a deep traceback
+            posterior = self._update(model, belief, action, observation, generator, guard=guard)
+        guard.result(posterior)
+        guard.verify()
+        return posterior
 
     @abstractmethod
     def _update(
@@ -65,7 +99,11 @@ class BeliefFilter(ABC):
         action: Tensor,
         observation: Tensor,
         generator: torch.Generator | None,
-    ) -> ParticleBelief: ...
+        *,
+        guard: FiniteGuard | None = None,
+    ) -> ParticleBelief:
+        """The update itself, on validated inputs. It records what the model's methods return in
+        ``guard`` (``None``: no checks), which :meth:`update` then verifies with one host sync."""
 
 
 def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observation: Tensor) -> None:
@@ -98,3 +136,10 @@ def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observ
             f"observation: contains NaN or Inf (flat batch indices {bad.tolist()[:8]}); "
             "filters need finite observations"
         )
+
+
+def validate_check_finite(owner: str, value: object) -> bool:
+    """``value`` if it is a bool, else ``ValueError`` naming ``{owner}.check_finite``."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{owner}.check_finite: must be True or False, got {value!r}")
+    return value

@@ -22,6 +22,14 @@ import torch
 from torch import Tensor
 
 from escort_rl.belief.base import BeliefFilter
+from escort_rl.belief.checks import (
+    OFF,
+    FiniteGuard,
+    log_density_channels,
+    log_density_flags,
+    value_channels,
+    value_flags,
+)
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists, svgd_direction
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.prior import SmoothedPrior
@@ -36,44 +44,96 @@ from escort_rl.belief.projections import (
 )
 
 COMPILE_CACHE_ENTRIES = 64  # compiled variants kept per function (see ESCORTFilter._compiled)
-MAX_SCORE = 1e6  # scores are clamped to ±MAX_SCORE; AdaGrad normalises the step anyway
+MAX_SCORE = 1e6  # finite scores are clamped to ±MAX_SCORE; AdaGrad normalises the step anyway
+
+ScoreTerm = Callable[[Tensor], tuple[Tensor, Tensor]]
+"""A score with its health flags: ``x`` ``[*B, N, d]`` -> ``(score [*B, N, d], flags bool [*B, N, C])``,
+where flag ``c`` marks the particles at which the score's source gave a NaN or an inf (see
+:mod:`escort_rl.belief.checks`); it comes with ``C`` ``(lead, fix)`` message pairs."""
+
+Channels = tuple[tuple[str, str], ...]
 
 
-def autograd_score(log_density: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
-    """``∇_x Σ log_density(x)`` by autograd, whatever the caller's grad mode. Log-densities of ``−inf`` (or NaN) are replaced by ``−1e30``
-    first, so they contribute a zero gradient, not NaN. ``x`` ``[*B, N, d]`` -> ``[*B, N, d]``."""
+def autograd_score(log_density: Callable[[Tensor], Tensor], x: Tensor,
+                   with_value: bool = False) -> Tensor | tuple[Tensor, Tensor]:
+    """``∇_x Σ log_density(x)`` by autograd, whatever the caller's grad mode. ``x`` ``[*B, N, d]`` ->
+    ``[*B, N, d]``; with ``with_value``, also the log-density ``[*B, N]`` (detached).
 
-    def total(z: Tensor) -> Tensor:
+    Where the log-density is not finite the gradient is 0: ``−inf`` is a zero density, flat, and NaN
+    or ``+inf`` is an error the caller detects from the value (:func:`~escort_rl.belief.checks.log_density_flags`).
+    Such values are replaced by ``−1e30`` before the sum, so they do not turn the other particles'
+    gradients into NaN.
+    """
+
+    def total(z: Tensor) -> tuple[Tensor, Tensor]:
         lp = log_density(z)
-        return torch.where(torch.isfinite(lp), lp, torch.full_like(lp, -1e30)).sum()
+        return torch.where(torch.isfinite(lp), lp, torch.full_like(lp, -1e30)).sum(), lp
 
     if torch.compiler.is_compiling():  # dynamo traces torch.func.grad, not torch.autograd.grad
-        return torch.func.grad(total)(x.detach())
-    with torch.enable_grad():  # eager: torch.autograd.grad has less per-call overhead
-        xg = x.detach().requires_grad_(True)
-        (grad,) = torch.autograd.grad(total(xg), xg)
-    return grad
+        grad, lp = torch.func.grad(total, has_aux=True)(x.detach())
+    else:
+        with torch.enable_grad():  # eager: torch.autograd.grad has less per-call overhead
+            xg = x.detach().requires_grad_(True)
+            value, lp = total(xg)
+            (grad,) = torch.autograd.grad(value, xg)
+    lp = lp.detach()
+    # 0·∞ in the backward pass of an impossible particle gives NaN: its gradient is 0 by definition
+    grad = torch.where(torch.isfinite(lp).unsqueeze(-1), grad, torch.zeros_like(grad))
+    return (grad, lp) if with_value else grad
 
 
 def _finite(t: Tensor, bound: float = MAX_SCORE) -> Tensor:
-    """NaN → 0 and ±inf → ±bound (finite values are left as they are)."""
+    """NaN → 0 and ±inf → ±bound (finite values are left as they are). Only for the SVGD velocity,
+    whose kernel can overflow for particles far apart; the scores that feed it are checked first."""
     return torch.nan_to_num(t, nan=0.0, posinf=bound, neginf=-bound)
 
 
-def likelihood_score(model, obs: Tensor, action: Tensor) -> Callable[[Tensor], Tensor]:
+def log_density_score(log_density: Callable[[Tensor], Tensor], name: str, fix: str) -> tuple[ScoreTerm, Channels]:
+    """The :data:`ScoreTerm` of ``log_density`` (``[*B, N, d] -> [*B, N]``) by :func:`autograd_score`,
+    flagging a NaN or +inf value and a non-finite gradient at a finite value; with their messages."""
+
+    def score(x: Tensor) -> tuple[Tensor, Tensor]:
+        grad, lp = autograd_score(log_density, x, with_value=True)
+        return grad, log_density_flags(lp, grad)
+
+    return score, log_density_channels(name, fix)
+
+
+def likelihood_score(model, obs: Tensor, action: Tensor) -> tuple[ScoreTerm, Channels]:
     """``x ↦ ∇_x log O(obs | x, action)`` for particles ``x`` ``[*B, N, d]`` (``obs`` ``[*B, 1, obs_dim]``,
-    ``action`` ``[*B, N]``) -> ``[*B, N, d]``.
+    ``action`` ``[*B, N]``) -> ``[*B, N, d]``, as a :data:`ScoreTerm` with its messages.
 
     Uses the model's closed-form ``observation_score`` when it has one (no autograd graph is recorded
-    and replayed: cheaper per iteration, eager or compiled), made finite by :func:`_finite` (NaN → 0,
-    like the zero gradient the autograd path gives a non-finite log-density; ±inf → ±``MAX_SCORE``,
-    like its clamp); otherwise :func:`autograd_score` through ``observation_log_prob``, so a model
-    without it works unchanged.
+    and replayed: cheaper per iteration, eager or compiled), flagging NaN and ±inf; otherwise
+    :func:`autograd_score` through ``observation_log_prob`` (a model without a closed form works
+    unchanged), flagging a NaN or +inf log-likelihood and a non-finite gradient. A ``-inf``
+    log-likelihood (zero likelihood) is allowed and has a zero score.
     """
     own = getattr(model, "observation_score", None)
+    where = "wherever the particles move (it may be 0 where the likelihood is flat)"
     if callable(own):
-        return lambda x: _finite(own(obs, x, action))
-    return lambda x: autograd_score(lambda z: model.observation_log_prob(obs, z, action), x)
+
+        def closed_form(x: Tensor) -> tuple[Tensor, Tensor]:
+            s = own(obs, x, action)
+            return s, value_flags(s)
+
+        return closed_form, value_channels("model.observation_score",
+                                           f"the model's observation_score must be finite {where}")
+    fix = f"the model's observation_log_prob must be finite or -inf, with a finite gradient, {where}"
+    return log_density_score(lambda z: model.observation_log_prob(obs, z, action), "model.observation_log_prob", fix)
+
+
+def smoothed_prior_score(prior: SmoothedPrior) -> tuple[ScoreTerm, Channels]:
+    """The :data:`ScoreTerm` of the smoothed prior (:meth:`SmoothedPrior.score`), flagging a NaN or inf
+    score (its means and covariance are checked when it is built, so this is an overflow)."""
+
+    def score(x: Tensor) -> tuple[Tensor, Tensor]:
+        s = prior.score(x)
+        return s, ~torch.isfinite(s).all(-1, keepdim=True)
+
+    return score, (("the smoothed prior's score was NaN or inf",
+                    "the particles overflowed; check the scale of the model's transition_mean and "
+                    "transition_scale_tril"),)
 
 
 class ESCORTFilter(BeliefFilter):
@@ -114,6 +174,18 @@ class ESCORTFilter(BeliefFilter):
         compile: run each iteration (:func:`evolution_step`) through ``torch.compile``, which fuses
             it into a few kernels. The first update of each shape compiles (tens of seconds on a CPU,
             cached on disk afterwards); later updates are several times faster. Default False.
+
+    Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
+    naming the culprit when the input belief, what the model's methods return (``transition``,
+    ``transition_mean``, ``transition_scale_tril``, ``observation_log_prob``, and
+    ``observation_score`` or ``transition_log_prob`` at any iteration) or the result holds a NaN or an
+    inf (a ``-inf`` log-density is a zero density, and allowed). One host synchronisation per update,
+    outside the compiled iteration; :meth:`fit` checks its target the same way.
+
+    Zero likelihood: a particle whose log-likelihood is ``-inf`` has a zero likelihood score (the
+    autograd path) and a negligible weight among the target samples of the correlation projections.
+    If every particle of a belief has zero likelihood, those weights are equal and the particles
+    follow the prior and the closed-form score, if any; nothing becomes NaN.
     """
 
     def __init__(
@@ -187,7 +259,8 @@ class ESCORTFilter(BeliefFilter):
     def __repr__(self) -> str:
         keys = ("num_steps", "step_size", "repulsion", "lambda_corr", "lambda_temp", "n_proj", "projection", "corr_form",
                 "temp_schedule", "prior", "compile")
-        return f"{type(self).__name__}(" + ", ".join(f"{k}={getattr(self, k)!r}" for k in keys) + ")"
+        extra = "" if self.check_finite else ", check_finite=False"
+        return f"{type(self).__name__}(" + ", ".join(f"{k}={getattr(self, k)!r}" for k in keys) + extra + ")"
 
     # ------------------------------------------------------------------ pieces
     def repulsion_scale(self, d: int) -> float:
@@ -196,17 +269,26 @@ class ESCORTFilter(BeliefFilter):
     def jitter_std(self, d: int) -> float:
         return math.sqrt(0.01 * (1.0 + 0.1 * d)) if self.jitter is None else float(self.jitter)
 
-    def _target_score(self, model, observation: Tensor, action: Tensor, prior) -> Callable[[Tensor], Tensor]:
-        """``x ↦ ∇ log O(o|x, a) + ∇ log p̂(x)``; the likelihood part by :func:`likelihood_score`."""
-        likelihood = likelihood_score(model, observation.unsqueeze(-2), action)
+    def _target_score(self, model, observation: Tensor, action: Tensor,
+                      prior: tuple[ScoreTerm, Channels]) -> tuple[Callable[[Tensor], tuple[Tensor, Tensor]], Channels]:
+        """``x ↦ (∇ log O(o|x, a) + ∇ log p̂(x), counts)``; the likelihood part by :func:`likelihood_score`,
+        the prior part a :data:`ScoreTerm`. ``counts`` ``[*B, C]`` counts the particles of each belief
+        flagged by each of the ``C`` channels (returned with the function)."""
+        likelihood, lik_channels = likelihood_score(model, observation.unsqueeze(-2), action)
+        prior_fn, prior_channels = prior
 
-        def score(x: Tensor) -> Tensor:
-            return (likelihood(x) + prior(x)).clamp(-MAX_SCORE, MAX_SCORE)
+        def score(x: Tensor) -> tuple[Tensor, Tensor]:
+            s_lik, f_lik = likelihood(x)
+            s_prior, f_prior = prior_fn(x)
+            counts = torch.cat([f_lik, f_prior], dim=-1).sum(-2)  # [*B, C]
+            return (s_lik + s_prior).clamp(-MAX_SCORE, MAX_SCORE), counts
 
-        return score
+        return score, lik_channels + prior_channels
 
-    def _exact_prior_score(self, model, particles: Tensor, log_weights: Tensor, action: Tensor):
-        """``∇ log Σ_j w_j T(x | X_t[j], a)`` by autograd, with ``[*B, N, 1, d]`` against ``[*B, 1, N, d]``."""
+    def _exact_prior_score(self, model, particles: Tensor, log_weights: Tensor,
+                           action: Tensor) -> tuple[ScoreTerm, Channels]:
+        """``∇ log Σ_j w_j T(x | X_t[j], a)`` by autograd, with ``[*B, N, 1, d]`` against ``[*B, 1, N, d]``,
+        as a :data:`ScoreTerm` (a NaN or +inf mixture means ``transition_log_prob`` gave one)."""
         src = particles.unsqueeze(-3)  # [*B, 1, N, d]
         a = action.unsqueeze(-2)  # [*B, 1, N]
         log_w = torch.log_softmax(log_weights, dim=-1).unsqueeze(-2)
@@ -215,10 +297,9 @@ class ESCORTFilter(BeliefFilter):
             lp = model.transition_log_prob(z.unsqueeze(-2), src, a)  # [*B, N, N]
             return torch.logsumexp(lp + log_w, dim=-1)
 
-        def score(x: Tensor) -> Tensor:
-            return autograd_score(mixture, x)
-
-        return score
+        return log_density_score(mixture, "model.transition_log_prob (in the exact prior's mixture)",
+                                 "the model's transition_log_prob must be finite or -inf, with a finite gradient, "
+                                 "wherever the particles move")
 
     # ------------------------------------------------------------------ evolution
     def _compiled(self, fn: Callable) -> Callable:
@@ -233,11 +314,17 @@ class ESCORTFilter(BeliefFilter):
             self._compiled_fns[fn.__name__] = torch.compile(fn, dynamic=False)
         return self._compiled_fns[fn.__name__]
 
-    def evolve(self, x: Tensor, score_fn: Callable[[Tensor], Tensor], *, target_samples: Tensor | None = None,
-               target_log_weights: Tensor | None = None, reference: Tensor | None = None,
-               generator: torch.Generator | None = None, num_steps: int | None = None,
-               breakdown: dict | None = None) -> Tensor:
+    def evolve(self, x: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]], *,
+               target_samples: Tensor | None = None, target_log_weights: Tensor | None = None,
+               reference: Tensor | None = None, generator: torch.Generator | None = None,
+               num_steps: int | None = None, breakdown: dict | None = None) -> tuple[Tensor, Tensor | None]:
         """Run the particle evolution from ``x`` ``[*B, N, d]``.
+
+        ``score_fn(x)`` gives the target score ``[*B, N, d]`` and integer counts ``[*B, C]`` of the
+        particles at which its sources gave NaN or inf (or ``None``), as :meth:`_target_score`.
+        Returns the particles ``[*B, N, d]`` and, per belief and channel, the largest count met at any
+        iteration (``None`` without iterations or counts); checking it is the caller's business, so
+        the loop never waits for the device.
 
         ``target_samples`` (with ``target_log_weights``) are weighted samples of the target used to
         build ``ΔC`` for the correlation projections; ``reference`` is the temporal reference set
@@ -264,6 +351,7 @@ class ESCORTFilter(BeliefFilter):
                     theta, theta_w = self._compiled(max_sliced_directions)(x, reference, theta0)
                     temporal = TemporalReference(reference, theta, theta_w)
             hist = torch.zeros_like(x)
+            counts = None
             for k in range(k_total):
                 if k % self.bandwidth_every == 0:
                     with timer("kernel"):
@@ -289,26 +377,36 @@ class ESCORTFilter(BeliefFilter):
                 scalars = torch.tensor([self.step_size / (1.0 + self.step_decay * k),
                                         0.0 if k == 0 else self.adagrad_alpha, lam_temp], **full)
                 with timer("iteration" if fused else None):
-                    x, hist = step(x, hist, score_fn, bandwidth, scalars, repulsion=repulsion, proj=proj,
-                                   lambda_corr=self.lambda_corr, corr_form=self.corr_form, temporal=temporal,
-                                   temp_clip=self.temp_clip, timer=None if fused else timer)
-        return x
+                    x, hist, bad = step(x, hist, score_fn, bandwidth, scalars, repulsion=repulsion, proj=proj,
+                                        lambda_corr=self.lambda_corr, corr_form=self.corr_form, temporal=temporal,
+                                        temp_clip=self.temp_clip, timer=None if fused else timer)
+                if bad is not None:
+                    counts = bad if counts is None else torch.maximum(counts, bad)
+        return x, counts
 
     # ------------------------------------------------------------------ filter interface
-    def _update(self, model, belief, action, observation, generator, breakdown: dict | None = None):
+    def _update(self, model, belief, action, observation, generator, breakdown: dict | None = None, *, guard=None):
+        guard = OFF if guard is None else guard
         x_t = belief.particles
         n, d = x_t.shape[-2], x_t.shape[-1]
         a = action.unsqueeze(-1).expand(x_t.shape[:-1])  # [*B, N]
         timer = _Timer(breakdown)
         with timer("score"):
             x_pred = model.transition(x_t, a, generator)
+            guard.model_values("model.transition", x_pred)
             means = model.transition_mean(x_t, a)
+            guard.model_values("model.transition_mean", means)
             if self.prior == "smoothed":
-                prior_score = SmoothedPrior(means, model.transition_scale_tril(), belief.log_weights).score
+                scale_tril = model.transition_scale_tril()
+                guard.model_values("model.transition_scale_tril", scale_tril, per_particle=False)
+                prior_score = smoothed_prior_score(SmoothedPrior(means, scale_tril, belief.log_weights))
             else:
                 prior_score = self._exact_prior_score(model, x_t, belief.log_weights, a)
-            score_fn = self._target_score(model, observation, a, prior_score)
+            score_fn, channels = self._target_score(model, observation, a, prior_score)
             log_lik = model.observation_log_prob(observation.unsqueeze(-2), x_pred, a).detach()
+            guard.model_log_density("model.observation_log_prob", log_lik)
+            # -inf (zero likelihood) -> -1e30: a belief whose particles are all impossible gets equal
+            # target weights, not NaN. NaN and +inf were recorded above and fail the guard.
             log_lik = torch.where(torch.isfinite(log_lik), log_lik, torch.full_like(log_lik, -1e30))
         if self.likelihood_pull > 0:
             w = torch.softmax(log_lik, dim=-1).unsqueeze(-1) * n  # mean 1
@@ -316,9 +414,10 @@ class ESCORTFilter(BeliefFilter):
             pull = torch.zeros_like(x_pred)
             pull[..., :m] = observation.unsqueeze(-2) - x_pred[..., :m]
             x_pred = x_pred + self.likelihood_pull * w.clamp(max=10.0) * pull
-        x = self.evolve(x_pred, score_fn, target_samples=x_pred, target_log_weights=log_lik,
-                        reference=means if self.lambda_temp > 0 else None, generator=generator,
-                        breakdown=breakdown)
+        x, counts = self.evolve(x_pred, score_fn, target_samples=x_pred, target_log_weights=log_lik,
+                                reference=means if self.lambda_temp > 0 else None, generator=generator,
+                                breakdown=breakdown)
+        guard.counts(channels, counts, "during the particle evolution")
         std = self.jitter_std(d)
         if std > 0:
             x = x + std * torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
@@ -330,37 +429,57 @@ class ESCORTFilter(BeliefFilter):
 
         There is no time axis, so ``F_temp`` is off. The correlation projections use the initial
         particles weighted by the normalised target density as weighted samples of the target.
-        Returns ``[*B, N, d]``; no jitter is added.
+        Returns ``[*B, N, d]``; no jitter is added. With ``check_finite``, non-finite ``particles``, a
+        NaN or +inf ``log_prob`` (``-inf`` is a zero density) or a non-finite gradient of it raise a
+        ``ValueError`` naming them, after one host synchronisation.
         """
         if particles.ndim < 2:
             raise ValueError(f"particles: expected [*B, N, d], got shape {tuple(particles.shape)}")
+        guard = FiniteGuard(f"{type(self).__name__}.fit", particles.shape[:-2], enabled=self.check_finite)
+        guard.values("particles:", particles, "the starting particles must be finite")
+        fix = "the target's log_prob must be finite or -inf, with a finite gradient, wherever the particles move"
+        term, channels = log_density_score(log_prob, "log_prob", fix)
 
-        def score(x: Tensor) -> Tensor:
-            return autograd_score(log_prob, x).clamp(-MAX_SCORE, MAX_SCORE)
+        def score(x: Tensor) -> tuple[Tensor, Tensor]:
+            grad, flags = term(x)
+            return grad.clamp(-MAX_SCORE, MAX_SCORE), flags.sum(-2)
 
         with torch.no_grad():
             log_w = log_prob(particles).detach()
+        guard.log_density("log_prob returned", log_w, fix)
         log_w = torch.where(torch.isfinite(log_w), log_w, torch.full_like(log_w, -1e30))
-        return self.evolve(particles.detach(), score, target_samples=particles.detach(), target_log_weights=log_w,
-                           reference=None, generator=generator, num_steps=num_steps).detach()
+        with guard.diagnosing():
+            x, counts = self.evolve(particles.detach(), score, target_samples=particles.detach(),
+                                    target_log_weights=log_w, reference=None, generator=generator, num_steps=num_steps)
+        guard.counts(channels, counts, "while fitting")
+        guard.values(f"{type(self).__name__}.fit: its result has", x,
+                     "the inputs and the target were finite, so the arithmetic overflowed")
+        guard.verify()
+        return x.detach()
 
 
-def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], Tensor], bandwidth: Tensor,
-                   scalars: Tensor, *, repulsion: float = 1.0, proj: Tensor | None = None, lambda_corr: float = 0.0,
-                   corr_form: str = "velocity", temporal: TemporalReference | None = None, temp_clip: float = 10.0,
-                   timer: _Timer | None = None) -> tuple[Tensor, Tensor]:
+def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]],
+                   bandwidth: Tensor, scalars: Tensor, *, repulsion: float = 1.0, proj: Tensor | None = None,
+                   lambda_corr: float = 0.0, corr_form: str = "velocity", temporal: TemporalReference | None = None,
+                   temp_clip: float = 10.0, timer: _Timer | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
     """One ESCORT iteration: ``x ← x + ε v / (sqrt(G) + 1e-6)``, ``G ← α G + (1 − α) v²``, with the
     velocity ``v = φ_SVGD + F_corr + F_temp``.
 
     ``x``, ``hist`` (``G``) ``[*B, N, d]``; ``bandwidth`` ``[*B]``; ``scalars`` ``[3]`` holds
     ``(ε, α, λ_temp)`` of this iteration; ``proj`` ``[*B, d, d]`` is ``Σ_k w_k A_k A_kᵀ`` (``None``
     turns ``F_corr`` off); ``temporal`` is the sorted reference of ``F_temp`` (``None`` turns it off).
-    Pure apart from ``timer``, so ``torch.compile`` fuses it whole. Returns the new ``(x, hist)``.
+    ``score_fn(x)`` gives the score ``[*B, N, d]`` and the counts ``[*B, C]`` of particles at which
+    its sources gave NaN or inf (or ``None``): they are passed on, never read here (no host sync).
+    Pure apart from ``timer``, so ``torch.compile`` fuses it whole. Returns the new ``(x, hist)`` and
+    the counts.
+
+    The velocity's NaN → 0 and ±inf → ±``MAX_SCORE`` (:func:`_finite`) guards against the kernel
+    overflowing for particles far apart; a non-finite score shows in the counts, not hidden by it.
     """
     timer = timer or _NO_TIMER
     eps, alpha, lam_temp = scalars[0], scalars[1], scalars[2]
     with timer("score"):
-        score = score_fn(x)
+        score, bad = score_fn(x)
     with timer("kernel"):
         phi = svgd_direction(x, score, bandwidth, repulsion)
     velocity = phi
@@ -372,7 +491,7 @@ def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], Tensor]
             velocity = velocity + temporal.force(x, lam_temp, temp_clip)
     velocity = _finite(velocity)
     hist = alpha * hist + (1.0 - alpha) * velocity * velocity
-    return x + eps * velocity / (hist.sqrt() + 1e-6), hist
+    return x + eps * velocity / (hist.sqrt() + 1e-6), hist, bad
 
 
 class SVGDFilter(ESCORTFilter):

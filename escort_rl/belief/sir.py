@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from escort_rl.belief.base import BeliefFilter
+from escort_rl.belief.checks import OFF
 from escort_rl.belief.particle_belief import ParticleBelief
 
 
@@ -40,6 +41,14 @@ class SIRFilter(BeliefFilter):
         roughening: if > 0, after resampling add ``N(0, (roughening·range·N^(-1/d))²)`` per dimension,
             where ``range`` is the per-dimension spread of the resampled particles (Gordon et al.).
             Default 0 (off).
+
+    Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
+    naming the culprit when the input belief, what the model's ``transition`` or
+    ``observation_log_prob`` returns, or the result holds a NaN or an inf (a ``-inf``
+    log-likelihood is a zero likelihood, and allowed). One host synchronisation per update.
+
+    If every particle of a belief has zero likelihood (all ``-inf``), that belief keeps its prior
+    weights (the propagated particles with the input log-weights) instead of becoming NaN.
     """
 
     def __init__(self, resample_threshold: float = 0.5, roughening: float = 0.0) -> None:
@@ -51,14 +60,18 @@ class SIRFilter(BeliefFilter):
         self.roughening = roughening
 
     def __repr__(self) -> str:
-        return f"SIRFilter(resample_threshold={self.resample_threshold}, roughening={self.roughening})"
+        extra = "" if self.check_finite else ", check_finite=False"
+        return f"SIRFilter(resample_threshold={self.resample_threshold}, roughening={self.roughening}{extra})"
 
-    def _update(self, model, belief, action, observation, generator):
+    def _update(self, model, belief, action, observation, generator, *, guard=None):
+        guard = OFF if guard is None else guard
         x = belief.particles
         n, d = x.shape[-2], x.shape[-1]
         a = action.unsqueeze(-1).expand(x.shape[:-1])  # [*B, N]
         x_next = model.transition(x, a, generator)
+        guard.model_values("model.transition", x_next)
         log_lik = model.observation_log_prob(observation.unsqueeze(-2), x_next, a)  # [*B, N]
+        guard.model_log_density("model.observation_log_prob", log_lik)
         log_w = belief.log_weights + log_lik
         all_neg_inf = torch.isneginf(log_w).all(-1, keepdim=True)
         # If every particle has zero likelihood, keep the prior weights instead of producing NaN.
