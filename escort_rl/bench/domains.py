@@ -64,9 +64,10 @@ class NonFiniteBeliefError(ValueError):
 def _belief_failures() -> tuple[type[Exception], ...]:
     """The errors that mean a filter's belief diverged on a trajectory: the run records a failed row
     (with the step and the message) and goes on with the other methods."""
+    from escort_rl.belief import NonFiniteError
     from escort_rl.belief.prior import PriorCovarianceError
 
-    return NonFiniteBeliefError, PriorCovarianceError
+    return NonFiniteBeliefError, PriorCovarianceError, NonFiniteError
 
 
 # ---------------------------------------------------------------------------------------- seeds
