@@ -311,6 +311,8 @@ class SVGDConfig:
     prior: str = _prior()
     jitter: Optional[float] = _jitter()
     compile: bool = False
+    stop_tolerance: float = _f(0.0, ge=0)
+    stop_window: int = _f(5, ge=1)
 
 
 @dataclass

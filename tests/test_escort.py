@@ -275,3 +275,45 @@ def test_float64_observations_update_a_float32_belief(filt):
     out32 = filt.update(model, belief, action, obs, torch.Generator().manual_seed(1))
     assert out64.particles.dtype == torch.float32
     torch.testing.assert_close(out64.particles, out32.particles)
+
+
+def test_moment_change_is_the_shift_over_the_spread():
+    from escort_rl.belief.escort import belief_moments, moment_change
+
+    x = torch.tensor([[[0.0, 0.0], [2.0, 0.0], [0.0, 2.0], [2.0, 2.0]]])  # mean (1, 1), std (1, 1)
+    mean, std = belief_moments(x)
+    torch.testing.assert_close(mean, torch.tensor([[1.0, 1.0]]))
+    torch.testing.assert_close(std, torch.tensor([[1.0, 1.0]]))
+    shifted = x + torch.tensor([0.3, 0.4])  # ‖Δμ‖ = 0.5, spread ‖σ‖ = √2
+    torch.testing.assert_close(moment_change((mean, std), belief_moments(shifted)), torch.tensor([0.5 / math.sqrt(2)]))
+    wider = 1.0 + 3.0 * (x - 1.0)  # σ 1 -> 3 in both coordinates: ‖Δσ‖ = 2√2
+    torch.testing.assert_close(moment_change((mean, std), belief_moments(wider)), torch.tensor([2.0]))
+
+
+def test_adaptive_stop_at_the_first_window_equals_running_that_many_iterations():
+    target = torch.distributions.MultivariateNormal(torch.tensor([1.0, -2.0]), covariance_matrix=torch.eye(2))
+    x0 = 3.0 * torch.randn(2, 50, 2, generator=torch.Generator().manual_seed(3))
+    stopped = ESCORTFilter(num_steps=40, stop_tolerance=1e9, stop_window=5)
+    short = ESCORTFilter(num_steps=5)
+    a = stopped.fit(target.log_prob, x0, generator=torch.Generator().manual_seed(4))
+    b = short.fit(target.log_prob, x0, generator=torch.Generator().manual_seed(4))
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert stopped.mean_iterations() == 5.0 and short.mean_iterations() == 5.0
+    assert math.isnan(ESCORTFilter().mean_iterations())
+
+
+def test_adaptive_stop_saves_iterations_and_stays_calibrated():
+    """On the Kalman calibration episode a tolerance of 0.05 runs well under K = 50 iterations per
+    update, with the mean and variance still within the calibration bounds of SPEC §4."""
+    filt = ESCORTFilter(stop_tolerance=0.05)
+    maha, ratio = _episode_errors(filt)
+    assert filt.mean_iterations() < 40, filt.mean_iterations()
+    assert maha < 0.6, maha
+    assert 0.6 <= ratio <= 1.6, ratio
+
+
+def test_adaptive_stop_arguments_are_checked():
+    with pytest.raises(ValueError, match="^ESCORTFilter.stop_tolerance: must be"):
+        ESCORTFilter(stop_tolerance=-0.1)
+    with pytest.raises(ValueError, match="^ESCORTFilter.stop_window: must be"):
+        ESCORTFilter(stop_window=0)

@@ -174,6 +174,12 @@ class ESCORTFilter(BeliefFilter):
         compile: run each iteration (:func:`evolution_step`) through ``torch.compile``, which fuses
             it into a few kernels. The first update of each shape compiles (tens of seconds on a CPU,
             cached on disk afterwards); later updates are several times faster. Default False.
+        stop_tolerance: the adaptive stop (default 0: off, every update runs ``K`` iterations). Every
+            ``stop_window`` iterations, each belief whose mean and per-coordinate spread both moved
+            by less than ``stop_tolerance`` times its spread over the window (:func:`moment_change`)
+            stops moving; the loop ends when every belief of the batch has stopped, or at ``K``.
+            One host synchronisation per window. :meth:`mean_iterations` reports the iterations used.
+        stop_window: iterations between two convergence checks (default 5).
 
     Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
     naming the culprit when the input belief, what the model's methods return (``transition``,
@@ -210,6 +216,8 @@ class ESCORTFilter(BeliefFilter):
         prior: str = "smoothed",
         jitter: float | None = None,
         compile: bool = False,
+        stop_tolerance: float = 0.0,
+        stop_window: int = 5,
     ) -> None:
         checks = [
             ("num_steps", isinstance(num_steps, int) and num_steps >= 0, "an int >= 0"),
@@ -232,9 +240,11 @@ class ESCORTFilter(BeliefFilter):
             ("jitter", jitter is None or jitter >= 0, "None or >= 0"),
             ("compile", isinstance(compile, bool), "True or False"),
             ("temp_clip", math.isfinite(temp_clip) and temp_clip > 0, "a finite number > 0"),
+            ("stop_tolerance", stop_tolerance >= 0, ">= 0 (0 turns the adaptive stop off)"),
+            ("stop_window", isinstance(stop_window, int) and stop_window >= 1, "an int >= 1"),
         ]
         for name in ("step_size", "step_decay", "bandwidth_scale", "lambda_corr", "lambda_temp", "likelihood_pull",
-                     "jitter"):
+                     "jitter", "stop_tolerance"):
             value = locals()[name]
             if value is not None and not math.isfinite(value):
                 raise ValueError(f"{type(self).__name__}.{name}: must be a finite number, got {value!r}")
@@ -250,7 +260,19 @@ class ESCORTFilter(BeliefFilter):
         self.temp_schedule, self.temp_clip = temp_schedule, temp_clip
         self.likelihood_pull, self.prior, self.jitter = likelihood_pull, prior, jitter
         self.compile = compile
+        self.stop_tolerance, self.stop_window = stop_tolerance, stop_window
         self._compiled_fns: dict[str, Callable] = {}
+        self._iterations_used = [0.0, 0]  # Σ over updated beliefs of the iterations they ran, and their count
+
+    def mean_iterations(self) -> float:
+        """The mean number of iterations a belief ran per update since the filter was built (``K``
+        without the adaptive stop; NaN before the first update)."""
+        total, count = self._iterations_used
+        return float(total) / count if count else float("nan")
+
+    def _record_iterations(self, used: Tensor | int, beliefs: int) -> None:
+        total = float(used.sum()) if isinstance(used, Tensor) else float(used) * beliefs
+        self._iterations_used = [self._iterations_used[0] + total, self._iterations_used[1] + beliefs]
 
     def __getstate__(self) -> dict:
         # compiled functions do not pickle (filters travel to ParallelEnv/collector workers)
@@ -352,6 +374,10 @@ class ESCORTFilter(BeliefFilter):
                     temporal = TemporalReference(reference, theta, theta_w)
             hist = torch.zeros_like(x)
             counts = None
+            stop = self.stop_tolerance > 0
+            active = torch.ones(x.shape[:-2], **full) if stop else None  # [*B]: 1 while a belief moves
+            used = torch.zeros(x.shape[:-2], **full) if stop else None
+            anchor = belief_moments(x) if stop else None
             for k in range(k_total):
                 if k % self.bandwidth_every == 0:
                     with timer("kernel"):
@@ -379,9 +405,19 @@ class ESCORTFilter(BeliefFilter):
                 with timer("iteration" if fused else None):
                     x, hist, bad = step(x, hist, score_fn, bandwidth, scalars, repulsion=repulsion, proj=proj,
                                         lambda_corr=self.lambda_corr, corr_form=self.corr_form, temporal=temporal,
-                                        temp_clip=self.temp_clip, timer=None if fused else timer)
+                                        temp_clip=self.temp_clip, timer=None if fused else timer, active=active)
                 if bad is not None:
                     counts = bad if counts is None else torch.maximum(counts, bad)
+                if stop:
+                    used = used + active
+                    if (k + 1) % self.stop_window == 0 and k + 1 < k_total:
+                        moments = belief_moments(x)
+                        active = active * (moment_change(anchor, moments) >= self.stop_tolerance)
+                        anchor = moments
+                        if not bool(active.any()):  # the one host sync per window
+                            break
+        beliefs = math.prod(x.shape[:-2])
+        self._record_iterations(used if stop else k_total, beliefs)
         return x, counts
 
     # ------------------------------------------------------------------ filter interface
@@ -461,7 +497,8 @@ class ESCORTFilter(BeliefFilter):
 def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]],
                    bandwidth: Tensor, scalars: Tensor, *, repulsion: float = 1.0, proj: Tensor | None = None,
                    lambda_corr: float = 0.0, corr_form: str = "velocity", temporal: TemporalReference | None = None,
-                   temp_clip: float = 10.0, timer: _Timer | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+                   temp_clip: float = 10.0, timer: _Timer | None = None,
+                   active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
     """One ESCORT iteration: ``x ← x + ε v / (sqrt(G) + 1e-6)``, ``G ← α G + (1 − α) v²``, with the
     velocity ``v = φ_SVGD + F_corr + F_temp``.
 
@@ -470,6 +507,8 @@ def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[T
     turns ``F_corr`` off); ``temporal`` is the sorted reference of ``F_temp`` (``None`` turns it off).
     ``score_fn(x)`` gives the score ``[*B, N, d]`` and the counts ``[*B, C]`` of particles at which
     its sources gave NaN or inf (or ``None``): they are passed on, never read here (no host sync).
+    ``active`` ``[*B]`` (1 or 0; ``None``: all 1) scales each belief's step: the adaptive stop freezes
+    the beliefs that have converged.
     Pure apart from ``timer``, so ``torch.compile`` fuses it whole. Returns the new ``(x, hist)`` and
     the counts.
 
@@ -491,7 +530,25 @@ def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[T
             velocity = velocity + temporal.force(x, lam_temp, temp_clip)
     velocity = _finite(velocity)
     hist = alpha * hist + (1.0 - alpha) * velocity * velocity
-    return x + eps * velocity / (hist.sqrt() + 1e-6), hist, bad
+    move = eps * velocity / (hist.sqrt() + 1e-6)
+    if active is not None:
+        move = active[..., None, None] * move
+    return x + move, hist, bad
+
+
+def belief_moments(x: Tensor) -> tuple[Tensor, Tensor]:
+    """The mean ``[*B, d]`` and per-coordinate standard deviation ``[*B, d]`` of equally weighted
+    particles ``x`` ``[*B, N, d]``."""
+    mean = x.mean(-2)
+    return mean, (x - mean.unsqueeze(-2)).pow(2).mean(-2).sqrt()
+
+
+def moment_change(before: tuple[Tensor, Tensor], after: tuple[Tensor, Tensor], eps: float = 1e-12) -> Tensor:
+    """How far a belief moved, relative to its spread: ``max(‖μ' − μ‖, ‖σ' − σ‖) / ‖σ‖`` per belief,
+    for the moments ``(μ, σ)`` of :func:`belief_moments` (``[*B, d]`` each) -> ``[*B]``."""
+    (m0, s0), (m1, s1) = before, after
+    scale = torch.linalg.vector_norm(s0, dim=-1).clamp_min(eps)
+    return torch.maximum(torch.linalg.vector_norm(m1 - m0, dim=-1), torch.linalg.vector_norm(s1 - s0, dim=-1)) / scale
 
 
 class SVGDFilter(ESCORTFilter):
