@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -152,6 +153,15 @@ def _parser() -> argparse.ArgumentParser:
                                "Mahalanobis error and variance ratio against the exact Kalman posterior.")
     cal.add_argument("--particles", type=int, default=300)
     cal.add_argument("--steps", type=int, default=12)
+    stop = bench_sub.add_parser("adaptive-stop", help="ESCORT's adaptive stop: iterations used, error, calibration",
+                                description="ESCORT (K = 50 the cap) with each --tolerances value of "
+                                "filter.stop_tolerance on protocol (a)'s trajectories of each domain, and on the "
+                                "Kalman calibration episode; writes adaptive_stop.md and adaptive_stop.json.")
+    stop.add_argument("--domains", nargs="+", default=["lightdark10d", "kidnapped20d", "mtt20d"])
+    stop.add_argument("--tolerances", type=float, nargs="+", default=[0.0, 0.05, 0.1])
+    stop.add_argument("--seeds", type=int, default=8)
+    stop.add_argument("--steps", type=int, default=30)
+    stop.add_argument("--output", default="outputs/bench/adaptive_stop")
     pb = bench_sub.add_parser("planner-budget", help="POMCPOW return against simulations per decision",
                               description="POMCPOW on an SIR belief with each n_sim in --budgets, plus a "
                               "uniform-random policy, on the same seeded episodes: return, final distance to goal "
@@ -464,6 +474,20 @@ def main(argv: list[str] | None = None) -> int:
 
             print(curves_markdown(write_curves(args.runs, args.output)))
             print(f"results: {Path(args.output).resolve()}")
+        elif args.command == "bench" and args.bench == "adaptive-stop":
+            from escort_rl.bench.adaptive_stop import adaptive_stop_markdown, adaptive_stop_rows
+
+            if any(not (t >= 0 and math.isfinite(t)) for t in args.tolerances):
+                raise ValueError(f"--tolerances: each must be a finite number >= 0, got {args.tolerances}")
+            rows = adaptive_stop_rows(args.domains, args.tolerances, seeds=args.seeds, steps=args.steps,
+                                      progress=lambda r: print(f"{r['domain']:>12} tol={r['tolerance']:g}: "
+                                                               f"{r['iterations']:.1f} iterations", flush=True))
+            out = Path(args.output)
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "adaptive_stop.json").write_text(json.dumps(rows, indent=1))
+            (out / "adaptive_stop.md").write_text(adaptive_stop_markdown(rows))
+            print(adaptive_stop_markdown(rows))
+            print(f"results: {out.resolve()}")
         elif args.command == "bench" and args.bench == "calibration":
             from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
             from escort_rl.bench.calibration import kalman_calibration

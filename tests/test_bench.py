@@ -107,3 +107,19 @@ def test_training_cost_rows_measure_every_filter(tmp_path, monkeypatch):
 
     with pytest.raises(ValueError, match="filter: 'pf'"):
         training_throughput("pf", 2, tmp_path / "x")
+
+
+def test_bench_adaptive_stop_reports_iterations_per_tolerance(tmp_path, capsys):
+    assert main(["bench", "adaptive-stop", "--domains", "lightdark10d", "--tolerances", "0", "1e9", "--seeds", "2",
+                 "--steps", "2", "--output", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "adaptive_stop.json").read_text())
+    by = {(r["domain"], r["tolerance"]): r for r in rows}
+    assert by[("lightdark10d", 0.0)]["iterations"] == 50.0  # no stop: K
+    assert by[("lightdark10d", 1e9)]["iterations"] == 5.0  # everything stops at the first check
+    assert by[("calibration", 0.0)]["iterations"] == 50.0 and by[("calibration", 1e9)]["iterations"] == 5.0
+    assert "| lightdark10d | 1e+09 | 5.0 |" in (tmp_path / "adaptive_stop.md").read_text()
+    capsys.readouterr()
+    assert main(["bench", "adaptive-stop", "--tolerances", "-1", "--output", str(tmp_path)]) == 2
+    assert "--tolerances" in capsys.readouterr().err
+    assert main(["bench", "adaptive-stop", "--domains", "atlantis", "--output", str(tmp_path)]) == 2
+    assert "--domains" in capsys.readouterr().err

@@ -278,6 +278,8 @@ def filter_trajectories(domain: str, method: str, traj: dict, seeds: list[int], 
             out["seconds"] += time.perf_counter() - t0
         errors.append(position_error(model, belief.mean().detach(), states[:, t + 1]))
     out["errors"] = torch.stack(errors, dim=1).detach()
+    # particle-evolution iterations per update (K, or fewer with the adaptive stop); NaN for SIR
+    out["iterations"] = filt.mean_iterations() if hasattr(filt, "mean_iterations") else float("nan")
     return out
 
 
