@@ -409,3 +409,20 @@ def test_a_failure_that_is_not_a_non_finite_value_passes_unchanged():
     guard.model_values("model.transition_scale_tril", torch.tensor([[1.0, 0.0], [INF, 1.0]]), per_particle=False)
     with pytest.raises(NonFiniteError, match=r"^model\.transition_scale_tril returned inf in 1 of 4 entries;"):
         guard.verify()
+
+
+def test_input_validation_reads_the_host_once(monkeypatch):
+    """The action range and the observation's finiteness are checked with one host read; the
+    messages are built only when the check fails."""
+    from escort_rl.belief.base import validate_update_inputs
+
+    model = LinearGaussian(state_dim=D)
+    filt = FILTERS["sir"]()
+    belief, action, observation = _inputs(model, filt)
+    counter = _SyncCounter(monkeypatch)
+    validate_update_inputs(model, belief, action, observation)
+    assert counter.calls == 1
+    with pytest.raises(ValueError, match=r"^action: values must lie in \[0, "):
+        validate_update_inputs(model, belief, torch.full_like(action, model.n_actions), observation)
+    with pytest.raises(ValueError, match=r"^observation: contains NaN or Inf \(flat batch indices \[0\]\)"):
+        validate_update_inputs(model, belief, action, torch.cat([observation[:1] * NAN, observation[1:]]))

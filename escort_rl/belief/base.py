@@ -120,22 +120,27 @@ def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observ
         raise ValueError(f"action: expected shape {tuple(batch)} (one integer per belief), got {shape}")
     if action.dtype.is_floating_point or action.dtype == torch.bool:
         raise ValueError(f"action: expected an integer tensor, got dtype {action.dtype}")
-    if action.numel() and (int(action.min()) < 0 or int(action.max()) >= model.n_actions):
-        raise ValueError(
-            f"action: values must lie in [0, {model.n_actions}), got min {int(action.min())}, "
-            f"max {int(action.max())}"
-        )
     if not isinstance(observation, Tensor) or observation.shape != (*batch, model.obs_dim):
         shape = tuple(observation.shape) if isinstance(observation, Tensor) else type(observation).__name__
         raise ValueError(
             f"observation: expected shape {(*batch, model.obs_dim)} (batch, model.obs_dim), got {shape}"
         )
-    if not torch.isfinite(observation).all():
-        bad = (~torch.isfinite(observation)).reshape(-1, model.obs_dim).any(-1).nonzero().flatten()
+    # the action range and the observation's finiteness in one host sync; the messages only on failure
+    ok = torch.isfinite(observation).all()
+    if action.numel():
+        ok = ok & (action >= 0).all() & (action < model.n_actions).all()
+    if bool(ok):
+        return
+    if action.numel() and (int(action.min()) < 0 or int(action.max()) >= model.n_actions):
         raise ValueError(
-            f"observation: contains NaN or Inf (flat batch indices {bad.tolist()[:8]}); "
-            "filters need finite observations"
+            f"action: values must lie in [0, {model.n_actions}), got min {int(action.min())}, "
+            f"max {int(action.max())}"
         )
+    bad = (~torch.isfinite(observation)).reshape(-1, model.obs_dim).any(-1).nonzero().flatten()
+    raise ValueError(
+        f"observation: contains NaN or Inf (flat batch indices {bad.tolist()[:8]}); "
+        "filters need finite observations"
+    )
 
 
 def validate_check_finite(owner: str, value: object) -> bool:
