@@ -53,15 +53,16 @@ class BeliefFilter(ABC):
         Returns a belief with particles ``[*batch_shape, num_particles, d]`` and equal weights.
         """
         check_model(model)
-        if not isinstance(num_particles, int) or num_particles < 1:
+        if not isinstance(num_particles, int) or isinstance(num_particles, bool) or num_particles < 1:
             raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
-        particles = model.initial_belief(tuple(batch_shape), num_particles, generator)
+        batch_shape = validate_batch_shape(batch_shape)
+        particles = model.initial_belief(batch_shape, num_particles, generator)
         if particles.shape[-1] != model.state_dim:
             raise ValueError(
                 f"model.initial_belief: returned last dimension {particles.shape[-1]}, "
                 f"but model.state_dim is {model.state_dim}"
             )
-        guard = FiniteGuard(type(self).__name__, tuple(batch_shape), enabled=self.check_finite)
+        guard = FiniteGuard(type(self).__name__, batch_shape, enabled=self.check_finite)
         guard.model_values("model.initial_belief", particles)
         guard.verify()
         return ParticleBelief.uniform(particles)
@@ -78,15 +79,23 @@ class BeliefFilter(ABC):
 
         Returns the posterior belief with particles ``[*B, N, d]``. With ``check_finite``, raises
         ``NonFiniteError`` (a ``ValueError``) naming ``belief.particles``, ``belief.log_weights`` or the
-        model method that gave a NaN or inf, after one host synchronisation.
+        model method that gave a NaN or inf, after one host synchronisation. When the update fails
+        because a model method returns the wrong shape or dtype, or fails on the belief's dtype, the
+        ``ValueError`` names that method (see :func:`diagnose_model_outputs`).
         """
         validate_update_inputs(model, belief, action, observation)
         if observation.dtype != belief.particles.dtype:  # e.g. float64 observations of a float32 belief
             observation = observation.to(belief.particles.dtype)
         guard = FiniteGuard(type(self).__name__, belief.batch_shape, enabled=self.check_finite)
         guard.input_belief(belief)
-        with guard.diagnosing():  # a NaN that makes a factorisation fail is named, not a deep traceback
-            posterior = self._update(model, belief, action, observation, generator, guard=guard)
+        try:
+            with guard.diagnosing():  # a NaN that makes a factorisation fail is named, not a deep traceback
+                posterior = self._update(model, belief, action, observation, generator, guard=guard)
+        except (RuntimeError, TypeError, IndexError):  # a model output that does not fit, named
+            message = diagnose_model_outputs(model, belief, action, observation)
+            if message is None:
+                raise
+            raise ValueError(message) from None
         guard.result(posterior)
         guard.verify()
         return posterior
@@ -106,9 +115,29 @@ class BeliefFilter(ABC):
         ``guard`` (``None``: no checks), which :meth:`update` then verifies with one host sync."""
 
 
+def validate_batch_shape(batch_shape) -> tuple[int, ...]:
+    """``batch_shape`` as a tuple of ints ``>= 0``, else ``ValueError`` naming ``batch_shape``."""
+    try:
+        shape = tuple(batch_shape)
+    except TypeError:
+        shape = None
+    if shape is None or not all(isinstance(b, int) and not isinstance(b, bool) and b >= 0 for b in shape):
+        raise ValueError(f"batch_shape: expected a tuple of ints >= 0 (e.g. (32,)), got {batch_shape!r}")
+    return shape
+
+
 def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observation: Tensor) -> None:
     """Raise ``ValueError`` naming the field when the update inputs do not fit together."""
     check_model(model)
+    x, log_w = belief.particles, belief.log_weights
+    if not isinstance(x, Tensor) or x.ndim < 2 or not x.dtype.is_floating_point:
+        what = f"shape {tuple(x.shape)}, dtype {x.dtype}" if isinstance(x, Tensor) else type(x).__name__
+        raise ValueError(f"belief.particles: expected a floating-point tensor [*B, N, d], got {what}; build the "
+                         "belief with the filter's init")
+    if not isinstance(log_w, Tensor) or log_w.shape != x.shape[:-1] or not log_w.dtype.is_floating_point:
+        what = f"shape {tuple(log_w.shape)}, dtype {log_w.dtype}" if isinstance(log_w, Tensor) else type(log_w).__name__
+        raise ValueError(f"belief.log_weights: expected a floating-point tensor of shape {tuple(x.shape[:-1])} (one "
+                         f"per particle, [*B, N]), got {what}")
     batch = belief.batch_shape
     if belief.state_dim != model.state_dim:
         raise ValueError(
@@ -141,6 +170,52 @@ def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observ
         f"observation: contains NaN or Inf (flat batch indices {bad.tolist()[:8]}); "
         "filters need finite observations"
     )
+
+
+def check_output_shape(method: str, t: Tensor, shape: tuple[int, ...], what: str) -> None:
+    """Raise ``ValueError`` naming model method ``method`` unless it returned a tensor of ``shape``
+    (``what`` says what that shape is, e.g. ``"the particles' [*B, N, d]"``). Reads shapes only (no sync)."""
+    if not isinstance(t, Tensor) or tuple(t.shape) != tuple(shape) or not t.dtype.is_floating_point:
+        got = f"shape {tuple(t.shape)}, dtype {t.dtype}" if isinstance(t, Tensor) else type(t).__name__
+        raise ValueError(f"{method}: returned {got}, expected a floating-point tensor of shape {tuple(shape)} "
+                         f"({what})")
+
+
+def diagnose_model_outputs(model, belief: ParticleBelief, action: Tensor, observation: Tensor) -> str | None:
+    """Why an update failed, when a model method is the cause: it raises on the belief's inputs, or
+    returns the wrong shape or dtype. Calls ``model.transition`` and ``model.observation_log_prob``
+    once on the validated inputs (``action`` ``[*B]``, ``observation`` ``[*B, obs_dim]`` in the belief's
+    dtype); returns the message naming the method, or ``None`` when both behave. For the failure path
+    of :meth:`BeliefFilter.update` only."""
+    x = belief.particles
+    a = action.unsqueeze(-1).expand(x.shape[:-1])
+    fix = "a model method must keep the particles' shape [*B, N, d] and dtype"
+
+    def call(name, fn):
+        try:
+            return fn(), None
+        except Exception as err:  # noqa: BLE001 - named below, with the first line of the cause
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            return None, (f"model.{name}: fails on belief.particles of shape {tuple(x.shape)} and dtype {x.dtype} "
+                          f"({type(err).__name__}: {first}); {fix}")
+
+    with torch.no_grad():
+        x_next, problem = call("transition", lambda: model.transition(x, a, None))
+        if problem is not None:
+            return problem
+        if not isinstance(x_next, Tensor) or x_next.shape != x.shape or x_next.dtype != x.dtype:
+            got = (f"shape {tuple(x_next.shape)}, dtype {x_next.dtype}" if isinstance(x_next, Tensor)
+                   else type(x_next).__name__)
+            return (f"model.transition: returned {got} for belief.particles of shape {tuple(x.shape)}, dtype "
+                    f"{x.dtype}; {fix}")
+        lp, problem = call("observation_log_prob", lambda: model.observation_log_prob(observation.unsqueeze(-2), x_next, a))
+    if problem is not None:
+        return problem
+    if not isinstance(lp, Tensor) or lp.shape != x.shape[:-1] or not lp.dtype.is_floating_point:
+        got = f"shape {tuple(lp.shape)}, dtype {lp.dtype}" if isinstance(lp, Tensor) else type(lp).__name__
+        return (f"model.observation_log_prob: returned {got}, expected one log-density per particle, shape "
+                f"{tuple(x.shape[:-1])} ([*B, N]) in a floating dtype")
+    return None
 
 
 def validate_check_finite(owner: str, value: object) -> bool:

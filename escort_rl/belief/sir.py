@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from escort_rl.belief.base import BeliefFilter
+from escort_rl.belief.base import BeliefFilter, check_output_shape
 from escort_rl.belief.checks import OFF
 from escort_rl.belief.particle_belief import ParticleBelief
 
@@ -52,6 +52,9 @@ class SIRFilter(BeliefFilter):
     """
 
     def __init__(self, resample_threshold: float = 0.5, roughening: float = 0.0) -> None:
+        for name, value in (("resample_threshold", resample_threshold), ("roughening", roughening)):
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                raise ValueError(f"SIRFilter.{name}: must be a number, got {value!r}")
         if not 0.0 <= resample_threshold <= 1.0:
             raise ValueError(f"SIRFilter.resample_threshold: must be in [0, 1], got {resample_threshold}")
         if not (math.isfinite(roughening) and roughening >= 0):
@@ -69,8 +72,10 @@ class SIRFilter(BeliefFilter):
         n, d = x.shape[-2], x.shape[-1]
         a = action.unsqueeze(-1).expand(x.shape[:-1])  # [*B, N]
         x_next = model.transition(x, a, generator)
+        check_output_shape("model.transition", x_next, x.shape, "the particles' shape [*B, N, d]")
         guard.model_values("model.transition", x_next)
         log_lik = model.observation_log_prob(observation.unsqueeze(-2), x_next, a)  # [*B, N]
+        check_output_shape("model.observation_log_prob", log_lik, x.shape[:-1], "one log-density per particle, [*B, N]")
         guard.model_log_density("model.observation_log_prob", log_lik)
         log_w = belief.log_weights + log_lik
         all_neg_inf = torch.isneginf(log_w).all(-1, keepdim=True)

@@ -38,13 +38,19 @@ class POMDPEnv(EnvBase):
     def __init__(self, model, batch_size=(1,), device=None, seed: int | None = None,
                  max_steps: int | None = None) -> None:
         check_model(model)
-        batch_size = tuple(batch_size) if not isinstance(batch_size, int) else (batch_size,)
-        if not all(isinstance(b, int) and b >= 1 for b in batch_size):
-            raise ValueError(f"POMDPEnv.batch_size: every size must be a positive int, got {batch_size}")
+        given = batch_size
+        try:
+            batch_size = tuple(batch_size) if not isinstance(batch_size, int) else (batch_size,)
+        except TypeError:  # e.g. a float
+            batch_size = (given,)
+        if not all(isinstance(b, int) and not isinstance(b, bool) and b >= 1 for b in batch_size):
+            raise ValueError(f"POMDPEnv.batch_size: every size must be a positive int, got {given!r}")
         batch_size = torch.Size(batch_size)
+        if max_steps is not None and (not isinstance(max_steps, int) or isinstance(max_steps, bool) or max_steps < 1):
+            raise ValueError(f"POMDPEnv.max_steps: must be a positive int or None, got {max_steps!r}")
+        if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool)):
+            raise ValueError(f"POMDPEnv.seed: must be an int or None, got {seed!r}")
         super().__init__(device=device if device is not None else "cpu", batch_size=batch_size)
-        if max_steps is not None and max_steps < 1:
-            raise ValueError(f"max_steps: must be a positive int or None, got {max_steps}")
         self.model = model
         self.max_steps = max_steps
         self.generator = torch.Generator(device=self.device)
