@@ -195,6 +195,7 @@ def _train_config(overrides: list[str]):
     (to branch a run, copy its directory and resume the copy)."""
     from escort_rl.config import ConfigError, recompose, saved_config_drift
     from escort_rl.trainers.checkpointing import load_checkpoint, run_dir_of
+    from escort_rl.trainers.scaffold import output_path
 
     resume = [o.split("=", 1)[1] for o in overrides if o.startswith("resume=")]
     rest = [o for o in overrides if not o.startswith("resume=")]
@@ -203,7 +204,7 @@ def _train_config(overrides: list[str]):
     saved = load_checkpoint(resume[-1])
     run_dir = run_dir_of(saved["path"])
     cfg = recompose(saved["config"], rest)
-    if Path(cfg.output_dir).resolve() != run_dir.resolve():
+    if output_path(cfg.output_dir).resolve() != run_dir.resolve():
         if any(_override_key(o) == "output_dir" for o in rest):
             raise ConfigError(f"output_dir: '{cfg.output_dir}' is not the run directory being resumed ('{run_dir}'); "
                               "a resume writes into the run it continues: drop output_dir=, or copy the run "
@@ -378,6 +379,70 @@ def check_positive_arguments(args) -> None:
                 raise ValueError(f"--{name.replace('_', '-')}: must be a positive int, got {v}")
 
 
+def check_output_argument(args) -> None:
+    """Raise ``ValueError`` naming ``--output`` when it cannot hold the results: an existing file
+    where a folder is wanted, a path under a file, or a folder that cannot be created. The folder
+    (for ``bench throughput``, the JSON file's folder) is created here, before any work is done."""
+    value = getattr(args, "output", None)
+    if value is None:
+        return
+    from escort_rl.schema import check_output_dir
+
+    is_file = args.command == "bench" and args.bench == "throughput"  # --output names a JSON file
+    path = Path(value).expanduser()
+    if is_file and path.is_dir():
+        raise ValueError(f"--output: '{value}' is a folder; pass a file name, e.g. {Path(value) / 'throughput.json'}")
+    folder = path.parent if is_file else path
+    problem = check_output_dir(str(folder))
+    if problem is not None:
+        raise ValueError(f"--output: {problem}")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--output: cannot create '{folder}' ({err.strerror or type(err).__name__}); pass a folder "
+                         "you can write to") from None
+
+
+def check_bench_arguments(args) -> None:
+    """Raise ``ValueError`` naming the first benchmark argument that cannot be used: ``--device``
+    (absent here), ``--max-pairs`` (not a finite positive number), ``--workers`` that do not divide
+    ``--num-envs``, an unknown ``--methods`` or ``--targets`` of ``bench synthetic``, an unknown
+    ``--structures`` of ``bench scaling``."""
+    import math
+
+    if args.command != "bench":
+        return
+    if args.bench == "cost":
+        from escort_rl.schema import check_device
+
+        problem = check_device(args.device)
+        if problem is not None:
+            raise ValueError(f"--device: {problem.replace('device=cpu', '--device cpu')}")
+        if not (math.isfinite(args.max_pairs) and args.max_pairs > 0):
+            raise ValueError(f"--max-pairs: must be a finite number > 0, got {args.max_pairs}")
+    if args.bench == "throughput":
+        bad = [k for k in args.workers if args.num_envs % k]
+        if bad:
+            raise ValueError(f"--workers: {bad[0]} does not divide --num-envs {args.num_envs}; each worker runs "
+                             "num_envs / workers environments")
+    if args.bench == "synthetic":
+        from escort_rl.bench.synthetic import METHODS
+        from escort_rl.bench.targets import synthetic_config
+
+        targets = sorted(synthetic_config()["targets"])
+        for flag, given, known in (("--methods", args.methods, METHODS), ("--targets", args.targets, targets)):
+            unknown = [m for m in given if m not in known]
+            if unknown:
+                raise ValueError(f"{flag}: unknown name '{unknown[0]}'; choose from {', '.join(known)}")
+    if args.bench == "scaling":
+        from escort_rl.bench.targets import SCALABILITY_STRUCTURES
+
+        unknown = [m for m in args.structures if m not in SCALABILITY_STRUCTURES]
+        if unknown:
+            raise ValueError(f"--structures: unknown structure '{unknown[0]}'; choose from "
+                             f"{', '.join(SCALABILITY_STRUCTURES)}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     _quiet_compiler_notices()
@@ -387,6 +452,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         check_positive_arguments(args)
+        check_bench_arguments(args)
+        check_output_argument(args)
         if args.command == "config":
             from omegaconf import OmegaConf
 
@@ -532,7 +599,7 @@ def main(argv: list[str] | None = None) -> int:
             _ = result
             print((out / "summary.md").read_text())
             print(f"results: {out.resolve()}")
-    except (ConfigError, CheckpointLoadError, CollectorWorkerDied) as err:
+    except (ConfigError, CheckpointLoadError, CollectorWorkerDied, FloatingPointError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except ValueError as err:

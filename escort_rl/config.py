@@ -47,8 +47,21 @@ def compose(overrides: list[str] | None = None, config_name: str = "config") -> 
         raise ConfigError(message) from None
     OmegaConf.set_struct(cfg, True)
     if config_name == "config":
-        schema.check_config(cfg, prefix="config: ")
+        check_composed(cfg)
     return cfg
+
+
+def check_composed(cfg: DictConfig) -> None:
+    """:func:`escort_rl.schema.check_config` on a composed config; a value that fails to resolve
+    (e.g. ``${oc.env:UNSET}``) raises :class:`ConfigError` naming its key too."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    from escort_rl import schema
+
+    try:
+        schema.check_config(cfg, prefix="config: ")
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"config: {schema.describe_error(err)}") from None
 
 
 def hydra_error_line(err: Exception) -> str | None:
@@ -160,8 +173,6 @@ def _compose_saved(saved: Mapping, overrides: list[str]) -> DictConfig:
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import OverrideParseException
 
-    from escort_rl import schema
-
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)
     except OverrideParseException as err:
@@ -182,7 +193,7 @@ def _compose_saved(saved: Mapping, overrides: list[str]) -> DictConfig:
             raise
         raise ConfigError(message) from None
     OmegaConf.set_struct(cfg, True)
-    schema.check_config(cfg, prefix="config: ")
+    check_composed(cfg)
     return cfg
 
 

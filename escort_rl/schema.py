@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -63,6 +64,13 @@ def _sub(cls) -> Any:
     return field(default_factory=cls)
 
 
+# seeds are signed 64-bit ints (what torch.manual_seed takes); the env and iteration seeds derived
+# from them stay in range
+SEED_MIN, SEED_END = -(2**63), 2**63
+# Adam's first step moves a float32 parameter by lr / (1 - beta1) = 10 lr: a larger rate overflows
+MAX_LR = 1e37
+
+
 # ------------------------------------------------------------------------------------- checks
 def check_device(value: str) -> str | None:
     """``cpu``, ``cuda``, ``cuda:N`` or ``mps``, present on this machine."""
@@ -88,14 +96,19 @@ def check_device(value: str) -> str | None:
 
 
 def check_output_dir(value: str) -> str | None:
-    """A folder, or a path that can become one: not an existing file, nor under one."""
+    """A folder, or a path that can become one: not empty (that would be the working directory), not
+    an existing file, nor under one, and inside a folder this process may write to."""
+    if not str(value).strip():
+        return "empty; pass a folder, e.g. output_dir=outputs/mine ('.' for the working directory)"
     path = Path(value).expanduser()
     if path.exists() and not path.is_dir():
         return f"'{value}' is an existing file; pass a folder"
-    for parent in path.parents:
+    for parent in (path, *path.parents):
         if parent.exists():
             if not parent.is_dir():
                 return f"'{value}' is under the file '{parent}'; pass a folder"
+            if not os.access(parent, os.W_OK | os.X_OK):
+                return f"'{value}' cannot be written: '{parent}' is not writable; pass a folder you can write to"
             break
     return None
 
@@ -346,7 +359,7 @@ class TrainerConfig:
     algorithm: str = MISSING
     iterations: int = _f(MISSING, ge=1)
     num_envs: int = _f(MISSING, ge=1)
-    lr: float = _f(MISSING, gt=0)
+    lr: float = _f(MISSING, gt=0, lt=MAX_LR)
     gamma: float = _f(MISSING, gt=0, le=1)
     entropy_coef: float = _f(MISSING, ge=0)
     max_grad_norm: float = _f(MISSING, gt=0)
@@ -393,7 +406,7 @@ class DVRLA2CConfig(TrainerConfig):
     """``configs/trainer/dvrl_a2c.yaml``."""
 
     algorithm: str = _f("dvrl_a2c", choices=["dvrl_a2c"])
-    readout_lr: float = _f(MISSING, gt=0)
+    readout_lr: float = _f(MISSING, gt=0, lt=MAX_LR)
 
 
 @dataclass
@@ -564,7 +577,7 @@ class LoggerConfig:
 @dataclass
 class EvaluateConfig:
     episodes: int = _f(MISSING, ge=1)
-    seed: int = MISSING
+    seed: int = _f(MISSING, ge=SEED_MIN, lt=SEED_END)
     greedy: bool = MISSING
 
 
@@ -576,7 +589,7 @@ class Config:
     filter: Any = _f(MISSING, group="filter")
     trainer: Any = _f(MISSING, group="trainer")
     dvrl: Any = _f(MISSING, group="dvrl")
-    seed: int = MISSING
+    seed: int = _f(MISSING, ge=SEED_MIN, lt=SEED_END)
     device: str = _f(MISSING, check=check_device)
     num_particles: int = _f(MISSING, ge=1)
     output_dir: str = _f(MISSING, check=check_output_dir)

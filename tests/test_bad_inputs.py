@@ -164,3 +164,178 @@ def test_sir_arguments_that_are_not_numbers_are_named(kwargs, field):
 ], ids=["batch-float", "batch-bool", "max-steps-fraction", "max-steps-zero", "seed-fraction"])
 def test_pomdp_env_names_a_bad_argument(kwargs, expected):
     assert _one_line_error(lambda: POMDPEnv(LightDark10D(), **kwargs)) == expected
+
+
+# ---------------------------------------------------------------------------------------------
+# The config: output_dir, seeds, rates, interpolations, exploring starts, the logger
+# ---------------------------------------------------------------------------------------------
+
+
+def _config_error(overrides) -> str:
+    from escort_rl.config import ConfigError, compose
+
+    with pytest.raises(ConfigError) as info:
+        compose(overrides)
+    message = str(info.value)
+    assert "\n" not in message, message
+    return message
+
+
+def test_an_empty_output_dir_is_refused_instead_of_writing_into_the_working_directory():
+    assert _config_error(["output_dir=''"]).startswith("config: output_dir: empty; pass a folder")
+
+
+def test_an_output_dir_inside_a_folder_that_cannot_be_written_is_named(tmp_path, monkeypatch):
+    import escort_rl.schema as schema
+
+    monkeypatch.setattr(schema.os, "access", lambda path, mode: False)
+    message = _config_error([f"output_dir={tmp_path / 'run'}"])
+    assert message == (f"config: output_dir: '{tmp_path / 'run'}' cannot be written: '{tmp_path}' is not writable; "
+                       "pass a folder you can write to")
+
+
+def test_a_seed_torch_cannot_take_is_named():
+    message = _config_error(["seed=99999999999999999999999"])
+    assert message == "config: seed: must be < 9223372036854775808, got 99999999999999999999999"
+
+
+def test_a_learning_rate_that_overflows_adams_first_step_is_named():
+    assert _config_error(["trainer.lr=1e38"]) == "config: trainer.lr: must be < 1e+37, got 1e+38"
+
+
+def test_an_interpolation_that_does_not_resolve_names_its_key(monkeypatch):
+    monkeypatch.delenv("ESCORT_RL_TEST_UNSET", raising=False)
+    message = _config_error(["output_dir=${oc.env:ESCORT_RL_TEST_UNSET}"])
+    assert message.startswith("config: output_dir: KeyError raised while resolving interpolation"), message
+    assert "ESCORT_RL_TEST_UNSET" in message
+
+
+@pytest.mark.parametrize("overrides, expected", [
+    (["env.exploring_starts.start_high=abc"], "env.exploring_starts.start_high: expected a number, got 'abc'"),
+    (["+env.exploring_starts.nokey=1"], "env.exploring_starts.nokey: not a key of env.model"),
+    (["env=mtt20d", "env.exploring_starts.agent_start_halfwidth=-1"],
+     "env.exploring_starts.agent_start_halfwidth: must be >= 0, got -1.0"),
+], ids=["wrong-type", "unknown-key", "out-of-range"])
+def test_exploring_starts_are_checked_against_the_model_schema(overrides, expected):
+    """A bad exploring-start value used to reach the model's constructor (a TypeError traceback)."""
+    from escort_rl.config import ConfigError, compose
+    from escort_rl.trainers.validation import validate_train_config
+
+    with pytest.raises(ConfigError) as info:
+        validate_train_config(compose(overrides))
+    assert str(info.value).startswith(expected), str(info.value)
+
+
+def test_the_tensorboard_logger_without_tensorboard_is_named(monkeypatch):
+    import escort_rl.trainers.validation as validation
+    from escort_rl.config import ConfigError, compose
+
+    real = validation.importlib.util.find_spec
+    monkeypatch.setattr(validation.importlib.util, "find_spec",
+                        lambda name, *a: None if name == "tensorboard" else real(name, *a))
+    with pytest.raises(ConfigError, match=r"^logger.backend: 'tensorboard' needs the tensorboard package"):
+        validation.validate_train_config(compose(["logger.backend=tensorboard"]))
+
+
+# ---------------------------------------------------------------------------------------------
+# The run directory
+# ---------------------------------------------------------------------------------------------
+
+
+def test_a_run_directory_that_cannot_be_created_names_output_dir(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from escort_rl.config import ConfigError
+    from escort_rl.trainers.scaffold import make_run_dir
+
+    def refuse(self, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", refuse)
+    with pytest.raises(ConfigError) as info:
+        make_run_dir(tmp_path / "run")
+    assert str(info.value) == (f"output_dir: cannot create '{tmp_path / 'run'}' (Permission denied); pass a folder "
+                               "you can write to")
+
+
+def test_output_dir_with_a_tilde_puts_the_whole_run_in_the_home_folder(tmp_path, monkeypatch):
+    """``output_dir='~/run'`` used to put the checkpoints in $HOME/run but config.yaml, the logs and
+    history.json in a folder literally named '~' under the working directory."""
+    from escort_rl.config import compose
+    from escort_rl.trainers.registry import train
+
+    home, cwd = tmp_path / "home", tmp_path / "cwd"
+    home.mkdir()
+    cwd.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.chdir(cwd)
+    cfg = compose(["trainer.iterations=1", "trainer.num_envs=2", "env.max_steps=3", "num_particles=8",
+                   "actor.hidden=8", "filter.compile=false", "output_dir='~/run'"])
+    run_dir = train(cfg, progress=False)
+    assert run_dir == home / "run"
+    for name in ("config.yaml", "history.json", "checkpoints", "logs"):
+        assert (home / "run" / name).exists(), name
+    assert list(cwd.iterdir()) == []
+
+
+# ---------------------------------------------------------------------------------------------
+# Command-line arguments
+# ---------------------------------------------------------------------------------------------
+
+
+def _cli_error(argv, capsys) -> str:
+    from escort_rl.cli import main
+
+    assert main(argv) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1, lines
+    return lines[0]
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["bench", "cost", "--device", "cuda:99"], "error: --device: 'cuda:99' but this machine has"),
+    (["bench", "cost", "--max-pairs", "nan"], "error: --max-pairs: must be a finite number > 0, got nan"),
+    (["bench", "throughput", "--workers", "3", "--num-envs", "2"], "error: --workers: 3 does not divide --num-envs 2"),
+    (["bench", "synthetic", "--methods", "nope"], "error: --methods: unknown name 'nope'; choose from escort"),
+    (["bench", "synthetic", "--targets", "nope"], "error: --targets: unknown name 'nope'; choose from gmm1d"),
+    (["bench", "scaling", "--structures", "nope"], "error: --structures: unknown structure 'nope'; choose from block"),
+], ids=["device", "max-pairs", "workers", "methods", "targets", "structures"])
+def test_bench_arguments_are_named_before_any_work(argv, expected, capsys):
+    assert _cli_error(argv, capsys).startswith(expected)
+
+
+def test_output_arguments_that_cannot_hold_results_are_named(tmp_path, capsys):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    assert _cli_error(["bench", "cost", "--output", str(a_file)], capsys) == (
+        f"error: --output: '{a_file}' is an existing file; pass a folder")
+    assert _cli_error(["bench", "cost", "--output", str(a_file / "sub")], capsys) == (
+        f"error: --output: '{a_file / 'sub'}' is under the file '{a_file}'; pass a folder")
+    assert _cli_error(["evaluate", "--checkpoint", str(tmp_path), "--output", str(a_file)], capsys) == (
+        f"error: --output: '{a_file}' is an existing file; pass a folder")
+    assert _cli_error(["bench", "throughput", "--output", str(tmp_path)], capsys).startswith(
+        f"error: --output: '{tmp_path}' is a folder; pass a file name")
+
+
+def test_an_output_folder_that_cannot_be_created_is_named(tmp_path, monkeypatch, capsys):
+    from pathlib import Path
+
+    def refuse(self, *args, **kwargs):
+        raise PermissionError(13, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", refuse)
+    assert _cli_error(["bench", "cost", "--output", str(tmp_path / "out")], capsys) == (
+        f"error: --output: cannot create '{tmp_path / 'out'}' (Permission denied); pass a folder you can write to")
+
+
+def test_a_non_finite_training_loss_ends_the_command_with_its_line(monkeypatch, capsys):
+    import escort_rl.cli as cli
+
+    def diverge(overrides, quiet=False):
+        raise FloatingPointError("training: non-finite loss_critic at iteration 3; lower trainer.lr or check the "
+                                 "model's rewards (last checkpoint kept)")
+
+    monkeypatch.setattr(cli, "_train", diverge)
+    assert _cli_error(["train", "--quiet"], capsys) == (
+        "error: training: non-finite loss_critic at iteration 3; lower trainer.lr or check the model's rewards "
+        "(last checkpoint kept)")

@@ -281,11 +281,29 @@ def resumed_run_dir(cfg: DictConfig, checkpoint: str | Path) -> Path:
     from escort_rl.config import ConfigError
 
     run_dir = run_dir_of(checkpoint)
-    if Path(cfg.output_dir).resolve() != run_dir.resolve():
+    if output_path(cfg.output_dir).resolve() != run_dir.resolve():
         raise ConfigError(f"output_dir: '{cfg.output_dir}' is not the run directory being resumed ('{run_dir}'); "
                           "a resume writes into the run it continues: drop output_dir, or copy the run "
                           "directory and resume the copy")
     return run_dir
+
+
+def output_path(output_dir: str) -> Path:
+    """The run directory that ``output_dir`` names: ``~`` is the home folder, as in a shell (every
+    file of the run, checkpoints included, goes there)."""
+    return Path(str(output_dir)).expanduser()
+
+
+def make_run_dir(run_dir: Path) -> None:
+    """Create ``run_dir`` (and its parents); a folder that cannot be created raises ``ConfigError``
+    naming ``output_dir``."""
+    from escort_rl.config import ConfigError
+
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"output_dir: cannot create '{run_dir}' ({err.strerror or type(err).__name__}); pass a "
+                          "folder you can write to") from None
 
 
 def restore(cfg: DictConfig, components: dict, resume_state: dict | None) -> tuple[dict, Path, Path | None]:
@@ -293,7 +311,7 @@ def restore(cfg: DictConfig, components: dict, resume_state: dict | None) -> tup
     for a new run). ``resume_state["path"]`` (a checkpoint or a run directory) restores
     ``components`` in place; see :func:`escort_rl.trainers.checkpointing.load_checkpoint`."""
     if resume_state is None:
-        return _fresh_state(), Path(cfg.output_dir), None
+        return _fresh_state(), output_path(cfg.output_dir), None
     loaded = load_checkpoint(resume_state["path"], **components)
     saved = loaded["trainer_state"]
     state = {**_fresh_state(), **{k: saved[k] for k in ("iteration", "frames", "history") if k in saved},
@@ -322,7 +340,7 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
     """
     components = algorithm.components
     state, run_dir, last_checkpoint = restore(cfg, components, resume_state)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    make_run_dir(run_dir)
     remove_interrupted_writes(checkpoint_dir(run_dir))
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
     torch.manual_seed(int(cfg.seed))

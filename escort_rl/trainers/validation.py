@@ -3,10 +3,15 @@
 
 from __future__ import annotations
 
-from omegaconf import DictConfig
+import dataclasses
+import importlib.util
+import typing
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from escort_rl.config import ConfigError
-from escort_rl.schema import check_config
+from escort_rl.schema import ENV_SCHEMAS, check_config, describe_error, find_problem
 
 
 def validate_train_config(cfg: DictConfig) -> None:
@@ -22,3 +27,39 @@ def validate_train_config(cfg: DictConfig) -> None:
             f"collector.workers: trainer.num_envs ({t.num_envs}) must be divisible by the number of "
             f"workers ({cfg.collector.workers})"
         )
+    check_exploring_starts(cfg)
+    if cfg.logger.backend == "tensorboard" and importlib.util.find_spec("tensorboard") is None:
+        raise ConfigError("logger.backend: 'tensorboard' needs the tensorboard package (pip install tensorboard); "
+                          "or use logger.backend=csv")
+
+
+def check_exploring_starts(cfg: DictConfig) -> None:
+    """``env.exploring_starts`` (model keys the training envs start from with
+    ``trainer.exploring_starts=true``): each key must be one of ``env.model``'s, with a value of its
+    type and range; ``ConfigError`` naming ``env.exploring_starts.<key>`` otherwise."""
+    starts = cfg.env.get("exploring_starts", None)
+    if not starts:
+        return
+    model = cfg.env.model
+    schema = OmegaConf.get_type(model)
+    if not dataclasses.is_dataclass(schema):  # a config saved without types: the env's schema
+        env_schema = ENV_SCHEMAS.get(cfg.env.get("name"))
+        schema = typing.get_type_hints(env_schema)["model"] if env_schema is not None else None
+    if schema is None:
+        return
+    names = {f.name for f in dataclasses.fields(schema)}
+    for key in starts:
+        if key not in names or key.startswith("_"):
+            raise ConfigError(f"env.exploring_starts.{key}: not a key of env.model; use keys of the env's model "
+                              "(e.g. start_low, start_high)")
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(schema), OmegaConf.to_container(model, resolve=True),
+                                 OmegaConf.to_container(starts, resolve=True))
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"env.exploring_starts.{describe_error(err)}") from None
+    problem = find_problem(merged, schema, stage="train")
+    if problem is not None:
+        key = problem.split(":", 1)[0]
+        if key in starts:
+            raise ConfigError(f"env.exploring_starts.{problem}")
+
