@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from conftest import gen
 from omegaconf import OmegaConf
 
 from escort_rl.models import POMDPModel, check_model
@@ -20,10 +21,6 @@ from escort_rl.models.kidnapped_robot import (
 )
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "env" / "kidnapped20d.yaml"
-
-
-def gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import gen
 from omegaconf import OmegaConf
 
 from escort_rl.models.multi_target import (
@@ -20,10 +21,6 @@ from escort_rl.models.protocol import POMDPModel, check_model
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "env" / "mtt20d.yaml"
 N_T = 4
-
-
-def gen(seed: int) -> torch.Generator:
-    return torch.Generator().manual_seed(seed)
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,81 @@
+"""Shared test helpers: seeded generators and tiny configs.
+
+- :func:`gen` (import it: ``from conftest import gen``): a CPU generator with a given seed, for tests
+  whose expected values were worked out for that seed.
+- The ``per_test_seed`` and ``per_test_generator`` fixtures: a seed of the test's own, stable (hashed
+  from the test's id, so a failure replays) and different between tests (they do not share random
+  streams).
+- ``pytest --seed-offset K`` shifts every such seed by ``K``, and the ``seed_offset`` fixture hands
+  ``K`` to tests that draw from a window of seeds (they start it at ``K``): tests written on these
+  fixtures must pass for any offset.
+- :data:`TINY_TRAIN`, :func:`tiny_overrides` and the ``tiny_config`` fixture: the default training job
+  at a size that trains in seconds.
+"""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+import torch
+
+TINY_TRAIN = ["trainer=reinforce", "trainer.num_envs=4", "env.max_steps=12", "num_particles=16", "actor.hidden=16",
+              "trainer.minibatch_size=64", "trainer.checkpoint_every=1", "filter.compile=false"]
+"""The default job's filter (ESCORT) at a tiny size; eager, because compiling in every test process would
+dominate the test time (``tests/test_escort.py`` checks that compiled and eager updates agree)."""
+
+
+def gen(seed: int) -> torch.Generator:
+    """A CPU generator seeded with ``seed``."""
+    return torch.Generator().manual_seed(seed)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--seed-offset", type=int, default=0,
+                     help="shift the seeds of the tests that take the per_test_seed, per_test_generator or "
+                          "seed_offset fixture (they must pass for any offset)")
+
+
+def stable_seed(test_id: str, offset: int = 0) -> int:
+    """A 31-bit seed hashed from a test id (stable across runs and machines), plus ``offset``."""
+    digest = hashlib.sha256(test_id.encode()).digest()
+    return (int.from_bytes(digest[:4], "little") + offset) % 2**31
+
+
+@pytest.fixture
+def seed_offset(request: pytest.FixtureRequest) -> int:
+    """``--seed-offset`` (default 0): where a test that draws from a window of seeds starts it."""
+    return request.config.getoption("--seed-offset")
+
+
+@pytest.fixture
+def per_test_seed(request: pytest.FixtureRequest, seed_offset: int) -> int:
+    """This test's seed: hashed from its id (parameters included), shifted by ``--seed-offset``."""
+    return stable_seed(request.node.nodeid, seed_offset)
+
+
+@pytest.fixture
+def per_test_generator(per_test_seed: int) -> torch.Generator:
+    """A CPU generator seeded with this test's :func:`per_test_seed`."""
+    return gen(per_test_seed)
+
+
+def tiny_overrides(*overrides: str) -> list[str]:
+    """:data:`TINY_TRAIN` with ``overrides`` on top: an override replaces the tiny entry of the same key,
+    and one that picks a group's option (``filter=sir``) drops the tiny entries inside that group
+    (``filter.compile``, a key of the default filter only)."""
+    keys = {o.split("=", 1)[0].lstrip("+~") for o in overrides}
+    kept = [t for t in TINY_TRAIN
+            if (key := t.split("=", 1)[0]) not in keys and not any(key.startswith(f"{k}.") for k in keys)]
+    return [*kept, *overrides]
+
+
+@pytest.fixture
+def tiny_config():
+    """``tiny_config(*overrides)``: the composed config of :func:`tiny_overrides`."""
+    from escort_rl.config import compose
+
+    def make(*overrides: str):
+        return compose(tiny_overrides(*overrides))
+
+    return make
