@@ -76,15 +76,25 @@ def test_killed_run_resumes_to_the_same_parameters(tmp_path):
 
     killed = tmp_path / "killed"
     cmd = [sys.executable, "-m", "escort_rl.cli", "train", "--quiet", *args, f"output_dir={killed}"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    log = tmp_path / "killed.stderr"
+    with log.open("wb") as stderr:  # a file, not a pipe: a full pipe would block the child
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=stderr)
     rotation = CheckpointRotation(killed / "checkpoints", keep_last=100)
-    while True:  # the run ends by itself after 12 iterations, so this loop ends too
+    hang_guard = time.monotonic() + 900  # ends a hung child only; the run takes seconds, this is no speed limit
+    while True:  # until the checkpoint of iteration 3 (the run ends by itself after 12 iterations)
         latest = rotation.latest()
         if latest is not None and load_checkpoint(latest)["trainer_state"]["iteration"] >= 3:
             break
-        if proc.poll() is not None:
-            pytest.fail(f"training exited early: {proc.stderr.read().decode()[-2000:]}")
-        time.sleep(0.05)
+        try:
+            proc.wait(timeout=0.05)  # returns at once if the child exits
+        except subprocess.TimeoutExpired:
+            if time.monotonic() > hang_guard:
+                proc.kill()
+                proc.wait()
+                pytest.fail("hang guard, not a speed assertion: the training child neither wrote the "
+                            f"checkpoint of iteration 3 nor exited in 900 s: {log.read_text()[-2000:]}")
+            continue
+        pytest.fail(f"training exited early: {log.read_text()[-2000:]}")
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     survivors = rotation.checkpoints()
