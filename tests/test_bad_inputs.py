@@ -161,9 +161,17 @@ def test_sir_arguments_that_are_not_numbers_are_named(kwargs, field):
     (dict(max_steps=2.5), "POMDPEnv.max_steps: must be a positive int or None, got 2.5"),
     (dict(max_steps=0), "POMDPEnv.max_steps: must be a positive int or None, got 0"),
     (dict(seed=2.5), "POMDPEnv.seed: must be an int or None, got 2.5"),
-], ids=["batch-float", "batch-bool", "max-steps-fraction", "max-steps-zero", "seed-fraction"])
+    (dict(device="tpu"), "POMDPEnv.device: not a device: 'tpu'; use 'cpu', 'cuda' or 'cuda:N'"),
+], ids=["batch-float", "batch-bool", "max-steps-fraction", "max-steps-zero", "seed-fraction", "device-unknown"])
 def test_pomdp_env_names_a_bad_argument(kwargs, expected):
     assert _one_line_error(lambda: POMDPEnv(LightDark10D(), **kwargs)) == expected
+
+
+def test_pomdp_env_names_a_cuda_device_this_machine_lacks():
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    message = _one_line_error(lambda: POMDPEnv(LightDark10D(), device="cuda:99"))
+    assert message == (f"POMDPEnv.device: 'cuda:99' but this machine has {count} CUDA device(s); "
+                       "use device='cpu'")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -50,7 +50,8 @@ class POMDPEnv(EnvBase):
             raise ValueError(f"POMDPEnv.max_steps: must be a positive int or None, got {max_steps!r}")
         if seed is not None and (not isinstance(seed, int) or isinstance(seed, bool)):
             raise ValueError(f"POMDPEnv.seed: must be an int or None, got {seed!r}")
-        super().__init__(device=device if device is not None else "cpu", batch_size=batch_size)
+        device = check_device(device)
+        super().__init__(device=device, batch_size=batch_size)
         self.model = model
         self.max_steps = max_steps
         self.generator = torch.Generator(device=self.device)
@@ -140,6 +141,21 @@ class POMDPEnv(EnvBase):
             batch_size=self.batch_size,
             device=self.device,
         )
+
+
+def check_device(device) -> torch.device:
+    """``device`` (``None``: CPU) as a ``torch.device``; ``ValueError`` naming ``POMDPEnv.device`` when
+    it is not a device or is a CUDA device this machine does not have."""
+    try:
+        dev = torch.device("cpu" if device is None else device)
+    except (RuntimeError, TypeError, ValueError):
+        raise ValueError(f"POMDPEnv.device: not a device: {device!r}; use 'cpu', 'cuda' or 'cuda:N'") from None
+    if dev.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0 or (dev.index is not None and dev.index >= count):
+            raise ValueError(f"POMDPEnv.device: {str(dev)!r} but this machine has {count} CUDA device(s); "
+                             "use device='cpu'")
+    return dev
 
 
 def check_action(action, batch_size: torch.Size, n_actions: int) -> torch.Tensor:
