@@ -218,6 +218,7 @@ save_checkpoint(rotation, 2, {}, {}, actor=torch.nn.Linear(2, 2), zz=DiesWhileSa
 """
 
 
+@pytest.mark.slow
 def test_interrupted_writes_are_removed_at_the_next_start(tmp_path):
     run = tmp_path / "run"
     cfg = compose([*TINY, "trainer.iterations=1", f"output_dir={run}"])
@@ -376,6 +377,7 @@ def _kill_worker_before(algorithm, index: int, worker: int, pids: list):
     return algorithm
 
 
+@pytest.mark.slow
 def test_killed_collector_worker_ends_the_run_with_one_line(tmp_path):
     run = tmp_path / "run"
     cfg = compose([*TINY, "trainer.iterations=3", "collector.workers=2", f"output_dir={run}"])

@@ -71,6 +71,7 @@ def test_non_finite_belief_names_method_and_domain():
         dom._check_finite(ParticleBelief.uniform(x), "svgd", "mtt20d", 5, [6, 7])
 
 
+@pytest.mark.slow
 def test_workers_share_trajectories_and_priors():
     """Two worker processes see the same trajectories and priors as one; SIR is deterministic for a
     fixed worker count, and its errors stay finite with either count."""
