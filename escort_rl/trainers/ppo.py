@@ -13,6 +13,13 @@ PPO updates, each on a fresh batch of ``num_envs × rollout_steps`` frames:
 
 Episodes run on across the batches of an iteration (finished envs reset on their own); the reset at
 each iteration start makes every iteration reproducible from its seed alone, so resume is exact.
+
+Imitation warm start (``trainer.imitation_iterations``, default 0): the first iterations are DAgger
+(Ross et al. 2011) with the domain's scripted controller as the expert. The policy still collects
+(on its own states), every frame is labelled with the action the scripted PD controller takes on
+that frame's belief mean (:mod:`escort_rl.planners.scripted`), and step 3 minimises
+``−log π(expert action | belief) + loss_critic`` instead of the PPO objective (the critic learns the
+returns of the policy that collects). PPO then improves on the cloned controller.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from escort_rl.modules import make_deepsets_policy
+from escort_rl.planners.scripted import belief_mean, scripted_controller_for
 from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory
 from escort_rl.trainers.scaffold import StagedCollector, episode_stats, make_collector
 
@@ -67,6 +75,18 @@ class PPO:
                                    batch_size=self.minibatch)
         self.collectors = StagedCollector(cfg, lambda c: make_collector(
             c, lambda n, s: env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=False))
+        self.imitation_iterations = int(t.get("imitation_iterations", 0))
+        self.expert = self._expert(model) if self.imitation_iterations > 0 else None
+        self.imitating = False
+
+    @staticmethod
+    def _expert(model):
+        from escort_rl.config import ConfigError
+
+        try:
+            return scripted_controller_for(model)
+        except ValueError as err:
+            raise ConfigError(f"trainer.imitation_iterations: {str(err).splitlines()[0]}; set it to 0") from None
 
     # The hooks a variant overrides (RecurrentPPO: whole env rows, recurrent mode).
     def prepare(self, batch):
@@ -91,19 +111,39 @@ class PPO:
     def loss_terms(self, minibatch):
         return self.loss(minibatch)
 
+    def label(self, batch) -> None:
+        """DAgger's labels: the scripted controller's action on each frame's belief mean, written as
+        ``"expert_action"`` ``[E, T]``."""
+        particles, log_weights = belief_keys(self.cfg)
+        batch["expert_action"] = self.expert(belief_mean(batch[particles], batch[log_weights]))
+
+    def total_loss(self, minibatch, out):
+        """What one Adam step minimises: the PPO loss, or during imitation the cross-entropy to the
+        expert's action (written into ``out`` as ``loss_imitation``) plus the critic's loss."""
+        if not self.imitating:
+            return out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+        dist = self.policy.get_dist(minibatch)
+        out["loss_imitation"] = -dist.log_prob(minibatch["expert_action"]).mean()
+        out["expert_agreement"] = (dist.logits.argmax(-1) == minibatch["expert_action"]).float().mean()
+        return out["loss_imitation"] + out["loss_critic"]
+
     def update(self, batch) -> dict:
         """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled): GAE, then ``epochs`` passes
         of one Adam step per minibatch; returns the mean losses."""
         t = self.cfg.trainer
         self.estimate_advantages(batch)
+        if self.imitating:
+            self.label(batch)
         source = self.fill(batch)
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
                 "clip_fraction": 0.0, "grad_norm": 0.0}
+        if self.imitating:
+            sums.update(loss_imitation=0.0, expert_agreement=0.0)
         steps = 0
         for _ in range(int(t.epochs)):
             for minibatch in self.minibatches(source):
                 out = self.loss_terms(minibatch)
-                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                total = self.total_loss(minibatch, out)
                 self.optimizer.zero_grad(set_to_none=True)
                 total.backward()
                 grad_norm = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(t.max_grad_norm))
@@ -116,6 +156,7 @@ class PPO:
         return {k: v / steps for k, v in sums.items()}
 
     def iteration(self, index: int, seed: int) -> dict:
+        self.imitating = index < self.imitation_iterations
         collector = self.collectors.for_iteration(index)
         collector.set_seed(seed)
         collector.reset()
