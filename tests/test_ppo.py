@@ -196,12 +196,13 @@ def test_imitation_iterations_clone_the_scripted_controller(tmp_path):
     assert "loss_imitation" not in history[8] and math.isfinite(history[8]["loss_objective"])
 
 
-def test_imitation_needs_a_scripted_controller_and_a_belief(tmp_path):
+def test_imitation_needs_a_scripted_controller_and_a_belief(tmp_path, capsys):
     from escort_rl.config import ConfigError
 
-    with pytest.raises(ConfigError, match="^trainer.imitation_iterations: .*no scripted controller"):
-        train(compose([*TINY_PPO, "env=kidnapped20d", "trainer.imitation_iterations=1", f"output_dir={tmp_path}"]),
-              progress=False)
+    run = train(compose([*TINY_PPO, "env=kidnapped20d", "trainer.imitation_iterations=1", "trainer.iterations=1",
+                         f"output_dir={tmp_path / 'kr'}"]), progress=False)
+    assert "KidnappedRobot20D has no scripted controller to imitate" in capsys.readouterr().err
+    assert "loss_imitation" not in load_checkpoint(run)["trainer_state"]["history"][0]  # PPO alone
     with pytest.raises(ConfigError, match="^trainer.imitation_iterations: trainer=recurrent_ppo"):
         train(compose(["trainer=recurrent_ppo", "trainer.imitation_iterations=1", f"output_dir={tmp_path}"]),
               progress=False)

@@ -19,11 +19,13 @@ Imitation warm start (``trainer.imitation_iterations``, default 0): the first it
 (on its own states), every frame is labelled with the action the scripted PD controller takes on
 that frame's belief mean (:mod:`escort_rl.planners.scripted`), and step 3 minimises
 ``−log π(expert action | belief) + loss_critic`` instead of the PPO objective (the critic learns the
-returns of the policy that collects). PPO then improves on the cloned controller.
+returns of the policy that collects). PPO then improves on the cloned controller. A domain without a
+scripted controller (Kidnapped Robot) skips it, with a printed note.
 """
 
 from __future__ import annotations
 
+import sys
 import time
 
 import torch
@@ -77,16 +79,20 @@ class PPO:
             c, lambda n, s: env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=False))
         self.imitation_iterations = int(t.get("imitation_iterations", 0))
         self.expert = self._expert(model) if self.imitation_iterations > 0 else None
+        if self.expert is None:
+            self.imitation_iterations = 0
         self.imitating = False
 
     @staticmethod
     def _expert(model):
-        from escort_rl.config import ConfigError
-
+        """The domain's scripted controller, or ``None`` with a printed note where it has none (Kidnapped
+        Robot): imitation is a warm start where an expert exists, so such a run trains by PPO alone."""
         try:
             return scripted_controller_for(model)
-        except ValueError as err:
-            raise ConfigError(f"trainer.imitation_iterations: {str(err).splitlines()[0]}; set it to 0") from None
+        except ValueError:
+            print(f"note: trainer.imitation_iterations: {type(model).__name__} has no scripted controller to "
+                  "imitate; training by PPO alone", file=sys.stderr)
+            return None
 
     # The hooks a variant overrides (RecurrentPPO: whole env rows, recurrent mode).
     def prepare(self, batch):
