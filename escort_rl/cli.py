@@ -292,11 +292,17 @@ def _bench_closed_loop(args) -> None:
                                 progress=show)
     for d in result["domains"]:
         cl.plot_closed_loop_error(result, d, out / f"closed_loop_error_{d}.png")
-    md = cl.closed_loop_markdown(result)
-    (out / "closed_loop.json").write_text(json.dumps(result, indent=1))
-    (out / "closed_loop.md").write_text(md)
-    print(md)
-    print(f"results: {out.resolve()} ({time.perf_counter() - t0:.1f} s)")
+    write_results(out, "closed_loop", result, cl.closed_loop_markdown(result), time.perf_counter() - t0)
+
+
+def write_results(out: Path, stem: str, result, markdown: str, seconds: float | None = None) -> None:
+    """Write a benchmark's ``<stem>.json`` and ``<stem>.md`` into ``out`` (created), print the Markdown
+    and where the results are (with the run's seconds, if given)."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    (out / f"{stem}.md").write_text(markdown)
+    print(markdown)
+    print(f"results: {out.resolve()}" + (f" ({seconds:.1f} s)" if seconds is not None else ""))
 
 
 def _bench_domains(args) -> None:
@@ -338,11 +344,7 @@ def _bench_domains(args) -> None:
                              max_particles=kw["max_particles"], calibration_steps=1 if args.quick else 3,
                              filter_set=dom.parse_filter_set(kw["filter_set"]), threads=kw["threads"],
                              progress=show, plot_dir=out, runs_dir=out / "runs")
-    md = dom.domains_markdown(result)
-    (out / "domains.json").write_text(json.dumps(result, indent=1))
-    (out / "domains.md").write_text(md)
-    print(md)
-    print(f"results: {out.resolve()} ({time.perf_counter() - t0:.1f} s)")
+    write_results(out, "domains", result, dom.domains_markdown(result), time.perf_counter() - t0)
 
 
 def _filter_kwargs(args) -> dict:
@@ -494,10 +496,7 @@ def main(argv: list[str] | None = None) -> int:
 
                 result.update(training_cost_rows(args.training, out / "training_runs", args.training_steps,
                                                  args.warmup, progress=print))
-            (out / "cost.json").write_text(json.dumps(result, indent=1))
-            (out / "cost.md").write_text(cost_markdown(result))
-            print(cost_markdown(result))
-            print(f"results: {out.resolve()}")
+            write_results(out, "cost", result, cost_markdown(result))
         elif args.command == "bench" and args.bench in ("synthetic", "scaling"):
             from escort_rl.bench import synthetic as syn
 
@@ -524,12 +523,7 @@ def main(argv: list[str] | None = None) -> int:
                 Path(args.output).mkdir(parents=True, exist_ok=True)
                 result = syn.run_scaling(**kw, progress=show, plot_dir=args.output)
                 md = syn.scaling_markdown(result)
-            out = Path(args.output)
-            out.mkdir(parents=True, exist_ok=True)
-            (out / f"{args.bench}.json").write_text(json.dumps(result, indent=1))
-            (out / f"{args.bench}.md").write_text(md)
-            print(md)
-            print(f"results: {out.resolve()}")
+            write_results(Path(args.output), args.bench, result, md)
         elif args.command == "bench" and args.bench == "domains":
             _bench_domains(args)
         elif args.command == "bench" and args.bench == "planner-budget":
@@ -549,12 +543,7 @@ def main(argv: list[str] | None = None) -> int:
             rows = adaptive_stop_rows(args.domains, args.tolerances, seeds=args.seeds, steps=args.steps,
                                       progress=lambda r: print(f"{r['domain']:>12} tol={r['tolerance']:g}: "
                                                                f"{r['iterations']:.1f} iterations", flush=True))
-            out = Path(args.output)
-            out.mkdir(parents=True, exist_ok=True)
-            (out / "adaptive_stop.json").write_text(json.dumps(rows, indent=1))
-            (out / "adaptive_stop.md").write_text(adaptive_stop_markdown(rows))
-            print(adaptive_stop_markdown(rows))
-            print(f"results: {out.resolve()}")
+            write_results(Path(args.output), "adaptive_stop", rows, adaptive_stop_markdown(rows))
         elif args.command == "bench" and args.bench == "calibration":
             from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
             from escort_rl.bench.calibration import kalman_calibration
