@@ -317,3 +317,33 @@ def test_adaptive_stop_arguments_are_checked():
         ESCORTFilter(stop_tolerance=-0.1)
     with pytest.raises(ValueError, match="^ESCORTFilter.stop_window: must be"):
         ESCORTFilter(stop_window=0)
+
+
+def test_a_flat_log_density_has_a_zero_score():
+    """A log-density that does not depend on the state (no autograd graph) has score 0, eager."""
+    from escort_rl.belief.escort import autograd_score
+
+    x = torch.randn(2, 5, 3)
+    torch.testing.assert_close(autograd_score(lambda z: torch.zeros(z.shape[:-1]), x), torch.zeros_like(x))
+
+
+@pytest.mark.parametrize("cls", [ESCORTFilter, SVGDFilter])
+def test_a_model_with_a_flat_likelihood_updates(cls):
+    class Flat(LinearGaussian):
+        observation_score = None  # the autograd path
+
+        def observation_log_prob(self, o, s_next, a):
+            return torch.zeros(torch.broadcast_shapes(o.shape[:-1], s_next.shape[:-1]))
+
+    model, g = Flat(state_dim=2), torch.Generator().manual_seed(0)
+    filt = cls(num_steps=3)
+    belief = filt.init(model, (2,), 10, g)
+    out = filt.update(model, belief, torch.zeros(2, dtype=torch.long), torch.zeros(2, model.obs_dim), g)
+    assert torch.isfinite(out.particles).all()
+
+
+def test_a_non_number_argument_is_named():
+    with pytest.raises(ValueError, match="^ESCORTFilter.step_size: must be a number, got '0.1'"):
+        ESCORTFilter(step_size="0.1")
+    with pytest.raises(ValueError, match="^SVGDFilter.jitter: must be a number"):
+        SVGDFilter(jitter="x")

@@ -75,7 +75,9 @@ def autograd_score(log_density: Callable[[Tensor], Tensor], x: Tensor,
         with torch.enable_grad():  # eager: torch.autograd.grad has less per-call overhead
             xg = x.detach().requires_grad_(True)
             value, lp = total(xg)
-            (grad,) = torch.autograd.grad(value, xg)
+            # a log-density that does not depend on x (a flat likelihood) has no graph: its gradient is 0
+            grad = (torch.autograd.grad(value, xg, allow_unused=True)[0] if value.requires_grad else None)
+            grad = torch.zeros_like(xg) if grad is None else grad
     lp = lp.detach()
     # 0·∞ in the backward pass of an impossible particle gives NaN: its gradient is 0 by definition
     grad = torch.where(torch.isfinite(lp).unsqueeze(-1), grad, torch.zeros_like(grad))
@@ -219,6 +221,12 @@ class ESCORTFilter(BeliefFilter):
         stop_tolerance: float = 0.0,
         stop_window: int = 5,
     ) -> None:
+        for name in ("step_size", "step_decay", "adagrad_alpha", "bandwidth_scale", "lambda_corr", "lambda_temp",
+                     "temp_clip", "likelihood_pull", "jitter", "stop_tolerance"):
+            value = locals()[name]
+            if not (value is None and name == "jitter") and (isinstance(value, bool)
+                                                             or not isinstance(value, (int, float))):
+                raise ValueError(f"{type(self).__name__}.{name}: must be a number, got {value!r}")
         checks = [
             ("num_steps", isinstance(num_steps, int) and num_steps >= 0, "an int >= 0"),
             ("step_size", step_size > 0, "> 0"),
