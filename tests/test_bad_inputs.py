@@ -347,3 +347,64 @@ def test_a_non_finite_training_loss_ends_the_command_with_its_line(monkeypatch, 
     assert _cli_error(["train", "--quiet"], capsys) == (
         "error: training: non-finite loss_critic at iteration 3; lower trainer.lr or check the model's rewards "
         "(last checkpoint kept)")
+
+
+def test_a_worker_whose_exit_status_is_read_late_still_ends_the_run_with_its_line(tmp_path):
+    """A killed worker's pipe closes a moment before its exit status can be read: the iteration fails
+    with an EOFError while the worker still looks alive. The run must still end with the one line
+    naming the worker, not the EOFError's traceback."""
+    from types import SimpleNamespace
+
+    from escort_rl.trainers.scaffold import CollectorWorkerDied, raise_if_worker_died
+
+    class LateProc:
+        pid = 4242
+
+        def __init__(self):
+            self.reads = 0
+
+        @property
+        def exitcode(self):
+            self.reads += 1
+            return None if self.reads < 4 else -9
+
+    class AliveProc:
+        pid, exitcode = 4343, None
+
+    collector = SimpleNamespace(procs=[LateProc(), AliveProc()])
+    algorithm = SimpleNamespace(collectors=SimpleNamespace(collector=collector))
+    with pytest.raises(CollectorWorkerDied) as info:
+        raise_if_worker_died(algorithm, 2, tmp_path / "checkpoints" / "checkpoint-1", tmp_path)
+    assert str(info.value).startswith("collector: worker 0 (pid 4242) killed by SIGKILL during iteration 2;")
+
+
+def test_no_dead_worker_lets_the_iteration_error_through(tmp_path):
+    from types import SimpleNamespace
+
+    from escort_rl.trainers.scaffold import raise_if_worker_died
+
+    alive = SimpleNamespace(pid=1, exitcode=None)
+    algorithm = SimpleNamespace(collectors=SimpleNamespace(collector=SimpleNamespace(procs=[alive])))
+    assert raise_if_worker_died(algorithm, 2, None, tmp_path, wait_s=0.05) is None
+    single = SimpleNamespace(collectors=SimpleNamespace(collector=SimpleNamespace()))  # no worker processes
+    assert raise_if_worker_died(single, 2, None, tmp_path) is None
+
+
+def test_weights_are_not_sent_to_a_collector_with_a_dead_worker():
+    """TorchRL waits for every worker's acknowledgement of new weights without a timeout: sending them
+    to a collector whose worker died hung the run instead of ending it with the worker's line."""
+    from types import SimpleNamespace
+
+    from escort_rl.trainers.scaffold import StagedCollector
+
+    sent = []
+    workers = [SimpleNamespace(pid=1, exitcode=None), SimpleNamespace(pid=2, exitcode=None)]
+    collector = SimpleNamespace(procs=workers, update_policy_weights_=lambda: sent.append(True))
+    staged = StagedCollector(cfg=None, build=None)
+    staged.collector = collector
+    staged.update_policy_weights()
+    assert sent == [True]
+    workers[1].exitcode = -9
+    with pytest.raises(RuntimeError, match="^collector: a worker process has ended$"):
+        staged.update_policy_weights()
+    assert sent == [True]

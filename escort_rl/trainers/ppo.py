@@ -179,7 +179,7 @@ class PPO:
             for key, value in self.update(batch).items():
                 stats[key] = stats.get(key, 0.0) + value / self.batches
             if int(self.cfg.collector.workers) > 1:
-                collector.update_policy_weights_()
+                self.collectors.update_policy_weights()
         episodes = episode_stats(torch.cat(seen, dim=1), self.model)
         return {"frames": frames, **episodes, **stats, "fps": frames / max(collect_s, 1e-9)}
 

@@ -125,7 +125,7 @@ class Reinforce:
         batch["next", "reward"] = batch["next", "reward"] * float(self.cfg.trainer.reward_scale)
         stats = self.update(batch)
         if int(self.cfg.collector.workers) > 1:
-            collector.update_policy_weights_()
+            self.collectors.update_policy_weights()
         return {"frames": batch.numel(), **episodes, **stats, "fps": batch.numel() / max(collect_s, 1e-9)}
 
     def close(self) -> None:

@@ -189,6 +189,15 @@ class StagedCollector:
     def next(self):
         return next(self.iterator)
 
+    def update_policy_weights(self) -> None:
+        """Send the policy's new weights to the collector's worker processes. TorchRL waits for every
+        worker's acknowledgement without a timeout, so a worker that died since the last batch would
+        hang the run here: a dead worker raises ``RuntimeError`` instead, which the scaffold turns
+        into :class:`CollectorWorkerDied` naming the worker."""
+        if dead_workers(self.collector):
+            raise RuntimeError("collector: a worker process has ended")
+        self.collector.update_policy_weights_()
+
     def close(self) -> None:
         if self.collector is not None:
             self.collector.shutdown()
@@ -265,13 +274,24 @@ def worker_death_message(worker: int, pid: int, code: int, iteration: int, last_
     return f"collector: worker {worker} (pid {pid}) {exit_description(code)} during iteration {iteration}; {where}"
 
 
-def raise_if_worker_died(algorithm: Algorithm, iteration: int, last_checkpoint: Path | None, run_dir: Path) -> None:
+def raise_if_worker_died(algorithm: Algorithm, iteration: int, last_checkpoint: Path | None, run_dir: Path,
+                         wait_s: float = 2.0) -> None:
     """Raise :class:`CollectorWorkerDied` when a worker of ``algorithm``'s current collector (a
-    :class:`StagedCollector` named ``collectors``) has ended; called when an iteration fails."""
+    :class:`StagedCollector` named ``collectors``) has ended; called when an iteration fails.
+
+    A killed worker's pipe closes a moment before its exit status can be read, so the iteration can
+    fail (``EOFError`` on the pipe) while every worker still looks alive: with worker processes, this
+    polls for up to ``wait_s`` seconds before concluding that none died (the failure path only)."""
     staged = getattr(algorithm, "collectors", None)
-    died = dead_workers(getattr(staged, "collector", None))
-    if died:
-        raise CollectorWorkerDied(worker_death_message(*died[0], iteration, last_checkpoint, run_dir))
+    collector = getattr(staged, "collector", None)
+    deadline = time.monotonic() + wait_s
+    while True:
+        died = dead_workers(collector)
+        if died:
+            raise CollectorWorkerDied(worker_death_message(*died[0], iteration, last_checkpoint, run_dir))
+        if not getattr(collector, "procs", None) or time.monotonic() >= deadline:
+            return
+        time.sleep(0.02)
 
 
 def resumed_run_dir(cfg: DictConfig, checkpoint: str | Path) -> Path:
