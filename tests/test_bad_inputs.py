@@ -408,3 +408,41 @@ def test_weights_are_not_sent_to_a_collector_with_a_dead_worker():
     with pytest.raises(RuntimeError, match="^collector: a worker process has ended$"):
         staged.update_policy_weights()
     assert sent == [True]
+
+
+def test_a_worker_that_dies_while_weights_are_sent_ends_the_wait():
+    """TorchRL's weight send waits for each worker's acknowledgement forever; a worker that dies
+    during the send must end the wait with the error the scaffold names, not hang the run."""
+    import threading
+    from types import SimpleNamespace
+
+    from escort_rl.trainers.scaffold import StagedCollector
+
+    release = threading.Event()
+
+    class DiesDuringSend:
+        pid = 7
+
+        def __init__(self):
+            self.sending, self.reads = False, 0
+
+        @property
+        def exitcode(self):
+            if not self.sending:
+                return None
+            self.reads += 1
+            return None if self.reads < 3 else -9
+
+    worker = DiesDuringSend()
+
+    def send_and_wait_for_acks():
+        worker.sending = True
+        release.wait()  # the dead worker's acknowledgement never comes
+
+    staged = StagedCollector(cfg=None, build=None)
+    staged.collector = SimpleNamespace(procs=[worker], update_policy_weights_=send_and_wait_for_acks)
+    try:
+        with pytest.raises(RuntimeError, match="^collector: a worker process has ended$"):
+            staged.update_policy_weights(poll_s=0.01)
+    finally:
+        release.set()

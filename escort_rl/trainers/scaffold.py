@@ -34,6 +34,7 @@ import json
 import math
 import os
 import signal
+import threading
 import time
 from pathlib import Path
 from typing import Protocol
@@ -189,14 +190,36 @@ class StagedCollector:
     def next(self):
         return next(self.iterator)
 
-    def update_policy_weights(self) -> None:
-        """Send the policy's new weights to the collector's worker processes. TorchRL waits for every
-        worker's acknowledgement without a timeout, so a worker that died since the last batch would
-        hang the run here: a dead worker raises ``RuntimeError`` instead, which the scaffold turns
-        into :class:`CollectorWorkerDied` naming the worker."""
-        if dead_workers(self.collector):
+    def update_policy_weights(self, poll_s: float = 0.05) -> None:
+        """Send the policy's new weights to the collector's worker processes.
+
+        TorchRL waits for every worker's acknowledgement without a timeout, so a worker that died
+        before or during the send would hang the run. With worker processes, the send runs in a
+        helper thread while this one watches the workers: a dead worker raises ``RuntimeError``,
+        which the scaffold turns into :class:`CollectorWorkerDied` naming the worker (the helper
+        thread, blocked on the dead worker's acknowledgement, is a daemon and ends with the process)."""
+        collector = self.collector
+        if not getattr(collector, "procs", None):
+            collector.update_policy_weights_()
+            return
+        if dead_workers(collector):
             raise RuntimeError("collector: a worker process has ended")
-        self.collector.update_policy_weights_()
+        done, failed = threading.Event(), []
+
+        def send() -> None:
+            try:
+                collector.update_policy_weights_()
+            except BaseException as err:  # noqa: BLE001 - raised again in the calling thread
+                failed.append(err)
+            finally:
+                done.set()
+
+        threading.Thread(target=send, name="policy-weights", daemon=True).start()
+        while not done.wait(poll_s):
+            if dead_workers(collector):
+                raise RuntimeError("collector: a worker process has ended")
+        if failed:
+            raise failed[0]
 
     def close(self) -> None:
         if self.collector is not None:
