@@ -1,0 +1,159 @@
+"""Flickering Atari: the flicker wrapper, DVRL's preprocessing, the TorchRL envs, and a smoke training
+run of each Atari agent."""
+
+from __future__ import annotations
+
+import functools
+import math
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import ParallelEnv
+from torchrl.envs.utils import check_env_specs
+
+import escort_rl.envs  # noqa: F401  (registers the ids)
+from escort_rl.config import ConfigError
+from escort_rl.envs.atari import (
+    GAMES,
+    DVRLAtari,
+    Flicker,
+    area_resize_matrix,
+    make_atari_torchrl_env,
+    make_flickering_atari,
+)
+
+DELTA = 1e-9  # failure probability of each confidence bound below, for a correct wrapper and any seed
+
+
+def hoeffding(n: int, delta: float = DELTA) -> float:
+    """Half-width of a two-sided Hoeffding bound on the mean of ``n`` draws in [0, 1]."""
+    return math.sqrt(math.log(2 / delta) / (2 * n))
+
+
+class Ones(gym.Env):
+    """A trivial env whose observation is all ones: the flicker's draws without an emulator."""
+
+    observation_space = gym.spaces.Box(0.0, 1.0, (1, 4, 4), np.float32)
+    action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.ones((1, 4, 4), np.float32), {}
+
+    def step(self, action):
+        return np.ones((1, 4, 4), np.float32), 0.0, False, False, {}
+
+
+def blanks(env: gym.Env, seed: int, steps: int) -> np.ndarray:
+    obs, info = env.reset(seed=seed)
+    out = [info["blank"]]
+    for _ in range(steps - 1):
+        obs, _, terminated, truncated, info = env.step(0)
+        assert bool(info["blank"]) == (not obs.any())
+        out.append(info["blank"])
+    return np.array(out, dtype=float)
+
+
+def test_blank_rate_within_a_confidence_bound(per_test_seed):
+    n = 4000
+    rate = blanks(Flicker(Ones()), per_test_seed, n).mean()
+    assert abs(rate - 0.5) <= hoeffding(n), rate
+    assert blanks(Flicker(Ones(), p_blank=0.0), per_test_seed, 50).sum() == 0
+    assert blanks(Flicker(Ones(), p_blank=1.0), per_test_seed, 50).sum() == 50
+
+
+def test_blanks_are_independent_across_envs_and_reproducible(per_test_seed):
+    n = 4000
+    a, b = blanks(Flicker(Ones()), per_test_seed, n), blanks(Flicker(Ones()), per_test_seed + 1, n)
+    # independent fair coins agree half the time; identical or shared streams would agree always
+    assert abs((a == b).mean() - 0.5) <= hoeffding(n)
+    assert np.array_equal(a, blanks(Flicker(Ones()), per_test_seed, n))
+
+
+def test_flicker_rejects_a_bad_probability():
+    with pytest.raises(ValueError, match="p_blank"):
+        Flicker(Ones(), p_blank=1.5)
+
+
+def test_area_resize_keeps_constants_and_averages_boxes():
+    m = area_resize_matrix(210, 84)
+    assert m.shape == (84, 210) and np.allclose(m.sum(1), 1.0)
+    assert np.allclose(m @ np.full(210, 7.0), 7.0)
+    # 4 -> 2: each output pixel is the mean of two inputs
+    assert np.allclose(area_resize_matrix(4, 2) @ np.array([0.0, 2.0, 4.0, 8.0]), [1.0, 6.0])
+
+
+@pytest.mark.parametrize("game", sorted(GAMES))
+def test_registered_games_give_preprocessed_frames(game):
+    env = gym.make(GAMES[game][1])
+    obs, info = env.reset(seed=0)
+    assert env.observation_space.shape == (1, 84, 84)
+    for _ in range(8):
+        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        assert obs.shape == (1, 84, 84) and obs.dtype == np.float32
+        assert 0.0 <= obs.min() and obs.max() <= 1.0
+        assert set(info) >= {"game_over", "blank", "lives"}
+    env.close()
+
+
+def test_same_seed_same_frames_other_seed_other_blanks():
+    def run(seed):
+        env = make_flickering_atari("pong")
+        frames = [env.reset(seed=seed)[0]]
+        frames += [env.step(k % 6)[0] for k in range(40)]
+        env.close()
+        return np.stack(frames)
+
+    a, b, c = run(5), run(5), run(6)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a.reshape(41, -1).any(1), c.reshape(41, -1).any(1))
+
+
+def test_a_lost_life_ends_the_episode_but_not_the_game():
+    env = DVRLAtari("mspacman")
+    env.reset(seed=1)
+    rng = np.random.default_rng(0)
+    for _ in range(5000):
+        _, _, terminated, truncated, info = env.step(int(rng.integers(env.action_space.n)))
+        if terminated:
+            break
+    assert terminated and not info["game_over"] and info["lives"] >= 1
+    lives = info["lives"]
+    _, info = env.reset()
+    assert info["lives"] == lives  # the game went on: a new game would have all its lives
+    env.close()
+
+
+def test_unknown_game_and_missing_ale_name_the_fix(monkeypatch):
+    with pytest.raises(ConfigError, match="game: unknown 'tetris'"):
+        make_flickering_atari("tetris")
+    monkeypatch.setitem(sys.modules, "ale_py", None)
+    with pytest.raises(ImportError, match=r"pip install escort-rl\[atari\]"):
+        make_flickering_atari("pong")
+
+
+def test_torchrl_env_specs_and_actions():
+    env = make_atari_torchrl_env("asteroids", seed=2)
+    check_env_specs(env)
+    td = env.rollout(10)
+    assert td["next", "observation"].shape == (10, 1, 84, 84)
+    assert td["action"].dtype == torch.int64 and td["next", "game_over"].dtype == torch.bool
+    env.close()
+
+
+@pytest.mark.slow
+def test_parallel_env_with_spawned_workers_and_independent_flicker():
+    env = ParallelEnv(2, functools.partial(make_atari_torchrl_env, "pong"), mp_start_method="spawn")
+    try:
+        env.set_seed(0)
+        check_env_specs(env)
+        n = 600
+        blank = (env.rollout(n, break_when_any_done=False)["next", "observation"].flatten(2).amax(-1) == 0).float()
+        assert blank.shape == (2, n)
+        assert (abs(blank.mean(1) - 0.5) <= hoeffding(n)).all()
+        assert abs((blank[0] == blank[1]).float().mean() - 0.5) <= hoeffding(n)
+    finally:
+        env.close()
