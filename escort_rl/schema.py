@@ -399,7 +399,7 @@ class PPOConfig(BeliefTrainerConfig):
     minibatches: int = _f(MISSING, ge=1)
     critic_coef: float = _f(MISSING, ge=0)
     critic_input: str = _f("belief", choices=["belief", "state"])
-    imitation_iterations: int = _f(0, ge=0)
+    action_repeat: int = _f(1, ge=1)
 
 
 @dataclass

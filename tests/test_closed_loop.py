@@ -172,7 +172,7 @@ def test_filter_rows_use_the_yamls_trainer_with_whole_episode_batches(tmp_path, 
         cfg = cl.run_config(d, "sir", 7, "unused", settings["train"][d], trainer=settings["trainer"])
         assert cfg.trainer.algorithm == "ppo" and cfg.env.max_steps % cfg.trainer.rollout_steps == 0
         assert cfg.trainer.num_envs == settings["train"][d]["num_envs"]
-        assert not cfg.trainer.warm_start_filter and cfg.trainer.imitation_iterations == 0  # own belief, own rewards
+        assert not cfg.trainer.warm_start_filter  # own belief
     assert [cl.batch_length(t, 125) for t in (500, 200, 100, 6, 127)] == [125, 100, 100, 6, 127]
     cfg = cl.run_config("lightdark10d", "sir", 7, "unused", {"num_envs": 2, "rollout_steps": 3}, steps=6,
                         trainer="ppo")

@@ -163,46 +163,26 @@ def test_a_short_run_improves_the_return():
     assert gain.mean() > 1.0 and gain.mean() > 5 * se, (float(gain.mean()), float(se))
 
 
-def test_imitation_labels_are_the_scripted_action_on_the_belief_mean():
+def test_action_repeat_counts_env_steps_and_decides_every_k_steps(tmp_path):
+    """With trainer.action_repeat = 3 an iteration runs ⌈12 / 3⌉ = 4 decisions per env (one batch of
+    rollout_steps = 4), and the frames it reports are env steps: 4 envs × 12 steps."""
     from escort_rl.models import LightDark10D
-    from escort_rl.planners.scripted import pd_action
     from escort_rl.trainers.ppo import PPO
 
-    cfg = compose([*TINY_PPO, "trainer.imitation_iterations=1"])
+    cfg = compose([*TINY_PPO, "trainer.action_repeat=3", "trainer.rollout_steps=6", "trainer.exploring_starts=false",
+                   f"output_dir={tmp_path}"])  # far from the goal: no episode ends inside the 12 steps
     algorithm = PPO(cfg, LightDark10D())
     try:
-        batch = _tiny_batch()
-        weights = torch.softmax(torch.randn(6, 5, generator=torch.Generator().manual_seed(1)), -1)
-        batch["particle_log_weights"] = weights.log()
-        algorithm.label(batch)
-        mean = (weights.unsqueeze(-1) * batch["particles"]).sum(-2)
-        expected = pd_action(mean[:, :5], mean[:, 5:], torch.full((5,), 8.0), 3.0)
-        assert torch.equal(batch["expert_action"], expected)
+        assert (algorithm.rollout_steps, algorithm.batches) == (4, 1)
+        stats = algorithm.iteration(0, seed=0)
     finally:
         algorithm.close()
+    assert stats["frames"] == 4 * 12
+    assert math.isfinite(stats["loss_objective"])
 
 
-def test_imitation_iterations_clone_the_scripted_controller(tmp_path):
-    """DAgger iterations: the cross-entropy to the expert falls and the policy agrees with the expert
-    on most frames (a uniform policy agrees on a tenth); then PPO takes over."""
-    run = train(compose([*TINY_PPO, "trainer.imitation_iterations=8", "trainer.iterations=9", "trainer.lr=0.01",
-                         "actor.hidden=32", "trainer.num_envs=16", "trainer.epochs=4", f"output_dir={tmp_path}"]),
-                progress=False)
-    history = load_checkpoint(run)["trainer_state"]["history"]
-    first, last = history[0], history[7]
-    # over seeds 0-3: the loss falls to 0.40-0.43 of the first iteration's, agreement ends at 0.79-0.83
-    assert last["loss_imitation"] < 0.6 * first["loss_imitation"], (first, last)
-    assert last["expert_agreement"] > 0.6, last
-    assert "loss_imitation" not in history[8] and math.isfinite(history[8]["loss_objective"])
-
-
-def test_imitation_needs_a_scripted_controller_and_a_belief(tmp_path, capsys):
+def test_recurrent_ppo_refuses_an_action_repeat(tmp_path):
     from escort_rl.config import ConfigError
 
-    run = train(compose([*TINY_PPO, "env=kidnapped20d", "trainer.imitation_iterations=1", "trainer.iterations=1",
-                         f"output_dir={tmp_path / 'kr'}"]), progress=False)
-    assert "KidnappedRobot20D has no scripted controller to imitate" in capsys.readouterr().err
-    assert "loss_imitation" not in load_checkpoint(run)["trainer_state"]["history"][0]  # PPO alone
-    with pytest.raises(ConfigError, match="^trainer.imitation_iterations: trainer=recurrent_ppo"):
-        train(compose(["trainer=recurrent_ppo", "trainer.imitation_iterations=1", f"output_dir={tmp_path}"]),
-              progress=False)
+    with pytest.raises(ConfigError, match="^trainer.action_repeat: trainer=recurrent_ppo"):
+        train(compose(["trainer=recurrent_ppo", "trainer.action_repeat=2", f"output_dir={tmp_path}"]), progress=False)

@@ -154,8 +154,6 @@ def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict,
         t.minibatches = min(int(t.minibatches), int(t.num_envs))
     if t.get("warm_start_filter") and "warm_start_filter" not in train:
         t.warm_start_filter = None  # each row trains on its own filter's beliefs only
-    if t.get("imitation_iterations") and "imitation_iterations" not in train:
-        t.imitation_iterations = 0  # and learns from its rewards alone: no scripted expert to clone
     return cfg
 
 

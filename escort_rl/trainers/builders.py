@@ -7,14 +7,14 @@ from functools import partial
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torchrl.envs import TransformedEnv
+from torchrl.envs import Compose, TransformedEnv
 
 from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
 from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
 from escort_rl.models import DOMAINS, LightDark1D
 from escort_rl.modules import DeepSetsActor
-from escort_rl.transforms import BeliefTransform
+from escort_rl.transforms import ActionRepeat, BeliefTransform
 
 # The benchmark domains, and the 1-D planning test problem (no env config; built by name for
 # `escort-rl bench planner-budget --domain lightdark1d`).
@@ -78,8 +78,10 @@ def build_filter(filter_cfg: DictConfig):
         raise ConfigError(f"filter: {str(err).splitlines()[0]}") from None
 
 
-def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None) -> TransformedEnv:
-    """``TransformedEnv(POMDPEnv(model, (num_envs,)), BeliefTransform(model, filter, N))``.
+def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None, action_repeat: int = 1) -> TransformedEnv:
+    """``TransformedEnv(POMDPEnv(model, (num_envs,)), BeliefTransform(model, filter, N))``, followed
+    by :class:`~escort_rl.transforms.ActionRepeat` when ``action_repeat > 1`` (a policy's decision
+    then holds for that many env steps, each with its belief update).
 
     Module-level (and picklable through ``functools.partial``) so that spawned collector workers
     can build it. The belief transform shares the env's generator, so ``env.set_seed`` seeds both.
@@ -87,8 +89,14 @@ def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None) -> Transfo
     model = build_model(cfg.env, cfg.device)
     base = POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
     particles_key, log_weights_key = belief_keys(cfg)
-    return TransformedEnv(base, BeliefTransform(model, build_filter(cfg.filter), int(cfg.num_particles),
-                                                particles_key=particles_key, log_weights_key=log_weights_key))
+    belief = BeliefTransform(model, build_filter(cfg.filter), int(cfg.num_particles),
+                             particles_key=particles_key, log_weights_key=log_weights_key)
+    return TransformedEnv(base, Compose(belief, ActionRepeat(action_repeat)) if action_repeat > 1 else belief)
+
+
+def trained_action_repeat(cfg: DictConfig) -> int:
+    """Env steps per decision of the trained policy (``trainer.action_repeat``, default 1)."""
+    return int(cfg.trainer.get("action_repeat", 1) or 1)
 
 
 def belief_keys(cfg: DictConfig) -> tuple[str, str]:
@@ -98,10 +106,10 @@ def belief_keys(cfg: DictConfig) -> tuple[str, str]:
     return str(keys.get("particles", "particles")), str(keys.get("log_weights", "particle_log_weights"))
 
 
-def env_factory(cfg: DictConfig, num_envs: int, seed: int | None = None):
+def env_factory(cfg: DictConfig, num_envs: int, seed: int | None = None, action_repeat: int = 1):
     """A picklable zero-argument factory for :func:`make_env`."""
     plain = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    return partial(make_env, plain, num_envs, seed)
+    return partial(make_env, plain, num_envs, seed, action_repeat)
 
 
 def input_scaling(cfg: DictConfig) -> tuple:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import time
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -16,7 +17,8 @@ from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curv
 from escort_rl.models import position_dims, position_error
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.planners import ScriptedBeliefController
-from escort_rl.trainers.builders import belief_keys, build_actor, build_model, make_env
+from escort_rl.trainers.builders import belief_keys, build_actor, build_model, make_env, trained_action_repeat
+from escort_rl.transforms import action_repeat_of
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 from escort_rl.trainers.registry import algorithm
 
@@ -25,8 +27,10 @@ def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor 
     """Per-env metrics of the first episode in a rollout ``[E, T]``.
 
     Returns tensors: ``final_distance`` ``[E]``, ``success`` ``[E]``, ``episode_return`` ``[E]``,
-    ``length`` ``[E]`` and ``position_error`` ``[E, T]`` (NaN after the episode ends), where the
-    position error is ``‖E_b[pos] − pos_true‖₂`` of the belief after each step. ``belief_mean``
+    ``length`` ``[E]`` (rollout steps: decisions), ``steps`` ``[E]`` (env steps: ``length`` times a
+    policy's action repeat, less where the episode ended inside a decision) and ``position_error``
+    ``[E, T]`` (NaN after the episode ends), where the position error is ``‖E_b[pos] − pos_true‖₂``
+    of the belief after each rollout step. ``belief_mean``
     ``[E, T, d]``: the state estimate after each step when the rollout carries no particles (DVRL's
     readout); default: the weighted mean of ``("next", "particles")``.
     """
@@ -50,6 +54,9 @@ def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor 
         "episode_return": (rewards * inside).sum(1),
         "length": end + 1,
         "position_error": torch.where(inside, pos_err, torch.full_like(pos_err, float("nan"))),
+        # env steps: with an action repeat a decision spans several
+        "steps": (rollout["next", "repeats"].squeeze(-1).cumsum(1)[torch.arange(e), end]
+                  if ("next", "repeats") in rollout.keys(True) else end + 1),
     }
 
 
@@ -81,22 +88,25 @@ def summarise_episodes(metrics: dict) -> dict:
             "success_rate_se": sr_se, "episode_return": ret, "episode_return_se": ret_se,
             "final_position_error": pe_m, "final_position_error_se": pe_se,
             "mean_position_error": pe_avg, "mean_position_error_se": pe_avg_se,
-            "mean_length": float(metrics["length"].double().mean())}
+            "mean_length": float(metrics.get("steps", metrics["length"]).double().mean())}
 
 
 def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = None,
                  make=make_env) -> tuple[TensorDict, float]:
     """Roll ``policy`` (or uniform-random actions when ``None``) for one episode in each of
+    repeat = action_repeat_of(env)
     ``episodes`` envs seeded with ``seed``. Returns the rollout ``[E, T]`` and the seconds per
     batched step (policy + env + belief update) over steps 2..T: the first step is a warm-up (with
     ``filter.compile=true`` it compiles) and its seconds go to ``timing["first_step_seconds"]``.
-    ``make(cfg, num_envs, seed)`` builds the env (default: the env with ``cfg``'s belief filter)."""
+    ``make(cfg, num_envs, seed)`` builds the env (default: the env with ``cfg``'s belief filter). With
+    an :class:`~escort_rl.transforms.ActionRepeat` of ``k`` in the env, ``T = ⌈max_steps / k⌉``
+    decisions, and the seconds are per env step (a decision's seconds over ``k``)."""
     env = make(cfg, episodes, seed=seed)
     torch.manual_seed(seed)
     stamps = []
     t0 = time.perf_counter()
     with torch.no_grad():
-        rollout = env.rollout(int(cfg.env.max_steps), policy, break_when_any_done=False,
+        rollout = env.rollout(-(-int(cfg.env.max_steps) // repeat), policy, break_when_any_done=False,
                               callback=lambda *_: stamps.append(time.perf_counter()))
     env.close()
     if len(stamps) > 1:
@@ -106,7 +116,7 @@ def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = No
         per_step = first = (time.perf_counter() - t0) / max(rollout.shape[1], 1)
     if timing is not None:
         timing["first_step_seconds"] = first
-    return rollout, per_step
+    return rollout, per_step / repeat
 
 
 def trained_policy(cfg, checkpoint):
@@ -130,7 +140,8 @@ def trained_policy(cfg, checkpoint):
     actor = build_actor(cfg, model.state_dim, model.n_actions)
     load_checkpoint(checkpoint, actor=actor)
     actor.eval()
-    return make_deepsets_policy(actor, *belief_keys(cfg)), make_env, lambda rollout: None
+    return (make_deepsets_policy(actor, *belief_keys(cfg)), partial(make_env, action_repeat=trained_action_repeat(cfg)),
+            lambda rollout: None)
 
 
 def scripted_policy(cfg, model):

@@ -14,18 +14,17 @@ PPO updates, each on a fresh batch of ``num_envs × rollout_steps`` frames:
 Episodes run on across the batches of an iteration (finished envs reset on their own); the reset at
 each iteration start makes every iteration reproducible from its seed alone, so resume is exact.
 
-Imitation warm start (``trainer.imitation_iterations``, default 0): the first iterations are DAgger
-(Ross et al. 2011) with the domain's scripted controller as the expert. The policy still collects
-(on its own states), every frame is labelled with the action the scripted PD controller takes on
-that frame's belief mean (:mod:`escort_rl.planners.scripted`), and step 3 minimises
-``−log π(expert action | belief) + loss_critic`` instead of the PPO objective (the critic learns the
-returns of the policy that collects). PPO then improves on the cloned controller. A domain without a
-scripted controller (Kidnapped Robot) skips it, with a printed note.
+Action repeat (``trainer.action_repeat = k``, default 1): the policy decides every ``k`` env steps
+(:class:`~escort_rl.transforms.ActionRepeat`; the belief is still updated at every step). Its
+frames are decisions: ``rollout_steps`` counts decisions per env, ``gamma`` discounts per decision,
+and an iteration runs ``⌈env.max_steps / k⌉`` decisions per env. The ``frames`` it reports are env
+steps. On Light-Dark one push moves the position by about 0.1 over some 20 steps, so with ``k = 4``
+a decision's effect on the return is four times larger and the horizon in decisions four times
+shorter, and each update trains on a quarter as many frames per env step.
 """
 
 from __future__ import annotations
 
-import sys
 import time
 
 import torch
@@ -36,8 +35,7 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from escort_rl.modules import make_deepsets_policy
-from escort_rl.planners.scripted import belief_mean, scripted_controller_for
-from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory
+from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory, trained_action_repeat
 from escort_rl.trainers.scaffold import StagedCollector, episode_stats, make_collector
 
 
@@ -69,30 +67,17 @@ class PPO:
         self.policy = make_deepsets_policy(self.actor, *belief_keys(cfg))  # what the collector runs
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
         self.components = {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
-        self.rollout_steps = min(int(t.rollout_steps), int(cfg.env.max_steps))  # never past one episode
-        self.batches = -(-int(cfg.env.max_steps) // self.rollout_steps)  # PPO updates per iteration
+        self.repeat = trained_action_repeat(cfg)
+        decisions = -(-int(cfg.env.max_steps) // self.repeat)  # per env and episode
+        self.rollout_steps = min(int(t.rollout_steps), decisions)  # never past one episode
+        self.batches = -(-decisions // self.rollout_steps)  # PPO updates per iteration
         frames = int(t.num_envs) * self.rollout_steps
         self.minibatch = max(1, frames // int(t.minibatches))
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(frames), sampler=SamplerWithoutReplacement(),
                                    batch_size=self.minibatch)
         self.collectors = StagedCollector(cfg, lambda c: make_collector(
-            c, lambda n, s: env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=False))
-        self.imitation_iterations = int(t.get("imitation_iterations", 0))
-        self.expert = self._expert(model) if self.imitation_iterations > 0 else None
-        if self.expert is None:
-            self.imitation_iterations = 0
-        self.imitating = False
-
-    @staticmethod
-    def _expert(model):
-        """The domain's scripted controller, or ``None`` with a printed note where it has none (Kidnapped
-        Robot): imitation is a warm start where an expert exists, so such a run trains by PPO alone."""
-        try:
-            return scripted_controller_for(model)
-        except ValueError:
-            print(f"note: trainer.imitation_iterations: {type(model).__name__} has no scripted controller to "
-                  "imitate; training by PPO alone", file=sys.stderr)
-            return None
+            c, lambda n, s: env_factory(c, n, seed=s, action_repeat=self.repeat), self.policy, frames,
+            reset_at_each_iter=False))
 
     # The hooks a variant overrides (RecurrentPPO: whole env rows, recurrent mode).
     def prepare(self, batch):
@@ -117,34 +102,18 @@ class PPO:
     def loss_terms(self, minibatch):
         return self.loss(minibatch)
 
-    def label(self, batch) -> None:
-        """DAgger's labels: the scripted controller's action on each frame's belief mean, written as
-        ``"expert_action"`` ``[E, T]``."""
-        particles, log_weights = belief_keys(self.cfg)
-        batch["expert_action"] = self.expert(belief_mean(batch[particles], batch[log_weights]))
-
     def total_loss(self, minibatch, out):
-        """What one Adam step minimises: the PPO loss, or during imitation the cross-entropy to the
-        expert's action (written into ``out`` as ``loss_imitation``) plus the critic's loss."""
-        if not self.imitating:
-            return out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
-        dist = self.policy.get_dist(minibatch)
-        out["loss_imitation"] = -dist.log_prob(minibatch["expert_action"]).mean()
-        out["expert_agreement"] = (dist.logits.argmax(-1) == minibatch["expert_action"]).float().mean()
-        return out["loss_imitation"] + out["loss_critic"]
+        """What one Adam step minimises."""
+        return out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
 
     def update(self, batch) -> dict:
         """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled): GAE, then ``epochs`` passes
         of one Adam step per minibatch; returns the mean losses."""
         t = self.cfg.trainer
         self.estimate_advantages(batch)
-        if self.imitating:
-            self.label(batch)
         source = self.fill(batch)
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
                 "clip_fraction": 0.0, "grad_norm": 0.0}
-        if self.imitating:
-            sums.update(loss_imitation=0.0, expert_agreement=0.0)
         steps = 0
         for _ in range(int(t.epochs)):
             for minibatch in self.minibatches(source):
@@ -162,7 +131,6 @@ class PPO:
         return {k: v / steps for k, v in sums.items()}
 
     def iteration(self, index: int, seed: int) -> dict:
-        self.imitating = index < self.imitation_iterations
         collector = self.collectors.for_iteration(index)
         collector.set_seed(seed)
         collector.reset()
@@ -174,7 +142,7 @@ class PPO:
             batch = self.prepare(batch)  # [E, T]
             seen.append(batch.select(("next", "reward"), ("next", "done"), ("next", "terminated"),
                                      ("next", "true_state")).clone())
-            frames += batch.numel()
+            frames += int(batch["next", "repeats"].sum()) if self.repeat > 1 else batch.numel()
             batch["next", "reward"] = batch["next", "reward"] * float(self.cfg.trainer.reward_scale)
             for key, value in self.update(batch).items():
                 stats[key] = stats.get(key, 0.0) + value / self.batches

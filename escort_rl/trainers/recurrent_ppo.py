@@ -123,9 +123,9 @@ def validate_recurrent_ppo_config(cfg: DictConfig) -> None:
         raise ConfigError("trainer.warm_start_filter: trainer=recurrent_ppo runs on raw observations (no belief "
                           f"filter to warm start), got {t.get('warm_start_filter')}; set it to null and "
                           "trainer.warm_start_iterations=0")
-    if int(t.get("imitation_iterations", 0) or 0) > 0:
-        raise ConfigError("trainer.imitation_iterations: trainer=recurrent_ppo acts on raw observations, with no "
-                          f"belief for the scripted expert, got {t.imitation_iterations}; set it to 0")
+    if int(t.get("action_repeat", 1) or 1) != 1:
+        raise ConfigError("trainer.action_repeat: trainer=recurrent_ppo decides at every step (its GRU reads every "
+                          f"observation), got {t.action_repeat}; set it to 1")
     per_worker = int(t.num_envs) // int(cfg.collector.workers)
     if int(t.minibatches) > int(t.num_envs):
         raise ConfigError(f"trainer.minibatches: minibatches are whole env rows, so at most trainer.num_envs "
@@ -154,7 +154,7 @@ class RecurrentPPO(PPO):
         frames = int(t.num_envs) * self.rollout_steps
         self.collectors = StagedCollector(cfg, lambda c: make_collector(
             c, lambda n, s: recurrent_env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=False))
-        self.imitation_iterations, self.expert, self.imitating = 0, None, False
+        self.repeat = 1
 
     def prepare(self, batch: TensorDictBase) -> TensorDictBase:
         batch = batch.reshape(-1, batch.shape[-1])  # [E, T]; a MultiSyncCollector's is [K, E/K, T]
