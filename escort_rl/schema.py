@@ -550,6 +550,75 @@ class SyntheticBenchConfig:
     scalability: ScalabilityConfig = _sub(ScalabilityConfig)
 
 
+@dataclass
+class AtariTrainerConfig:
+    """``configs/bench/atari.yaml``'s ``trainer``: A2C with DVRL's Atari settings."""
+
+    num_envs: int = _f(MISSING, ge=1)
+    rollout_steps: int = _f(MISSING, ge=1)
+    updates_per_iteration: int = _f(MISSING, ge=1)
+    lr: float = _f(MISSING, gt=0, lt=MAX_LR)
+    rmsprop_alpha: float = _f(MISSING, ge=0, lt=1)
+    rmsprop_eps: float = _f(MISSING, gt=0)
+    gamma: float = _f(MISSING, gt=0, le=1)
+    entropy_coef: float = _f(MISSING, ge=0)
+    value_loss_coef: float = _f(MISSING, ge=0)
+    encoding_loss_coef: float = _f(MISSING, ge=0)
+    max_grad_norm: float = _f(MISSING, gt=0)
+    reward_clip: bool = MISSING
+    parallel_envs: bool = MISSING
+    checkpoint_every: int = _f(MISSING, ge=1)
+    keep_checkpoints: int = _f(MISSING, ge=1)
+
+
+@dataclass
+class AtariVRNNConfig:
+    """The VRNN of DVRL and ESCORT-latent (``escort_rl.modules.DVRL``'s size arguments)."""
+
+    num_particles: int = _f(MISSING, ge=1)
+    latent_dim: int = _f(MISSING, ge=1)
+    hidden: int = _f(MISSING, ge=1)
+    encoding_dim: int = _f(MISSING, ge=1)
+    summary: str = _f(MISSING, choices=["gru", "deepsets"])
+
+
+@dataclass
+class AtariESCORTConfig:
+    """ESCORT-latent's particle evolution (``ESCORTFilter``'s arguments)."""
+
+    num_steps: int = _f(MISSING, ge=1)
+    step_size: float = _f(MISSING, gt=0)
+    lambda_corr: float = _f(MISSING, ge=0)
+    lambda_temp: float = _f(MISSING, ge=0)
+    n_proj: int = _f(MISSING, ge=1)
+    proj_dim: int = _f(MISSING, ge=1)
+    jitter: float = _f(MISSING, ge=0)
+
+
+@dataclass
+class AtariGRUConfig:
+    hidden: int = _f(MISSING, ge=1)
+
+
+@dataclass
+class AtariPaperConfig:
+    """The paper's Table 4: ``table4[game][method] = [mean, s.e.]`` at ``frames``."""
+
+    frames: int = _f(MISSING, ge=1)
+    table4: Dict[str, Dict[str, List[float]]] = MISSING
+
+
+@dataclass
+class AtariBenchConfig:
+    """``configs/bench/atari.yaml`` (Flickering Atari, the paper's Table 4)."""
+
+    trainer: AtariTrainerConfig = _sub(AtariTrainerConfig)
+    vrnn: AtariVRNNConfig = _sub(AtariVRNNConfig)
+    escort: AtariESCORTConfig = _sub(AtariESCORTConfig)
+    gru: AtariGRUConfig = _sub(AtariGRUConfig)
+    paper: AtariPaperConfig = _sub(AtariPaperConfig)
+
+
 # --------------------------------------------------------------------------------------- root
 @dataclass
 class KeysConfig:

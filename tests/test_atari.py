@@ -157,3 +157,73 @@ def test_parallel_env_with_spawned_workers_and_independent_flicker():
         assert abs((blank[0] == blank[1]).float().mean() - 0.5) <= hoeffding(n)
     finally:
         env.close()
+
+
+# ---------------------------------------------------------------------------------------- agents
+from omegaconf import OmegaConf  # noqa: E402
+
+from escort_rl.modules import DVRLPolicy, ESCORTLatent  # noqa: E402
+from escort_rl.schema import AtariBenchConfig, load_typed  # noqa: E402
+from escort_rl.trainers.atari_a2c import AGENTS, AtariA2C  # noqa: E402
+
+
+def tiny_atari_config(agent: str, tmp_path, **trainer) -> OmegaConf:
+    """``configs/bench/atari.yaml`` at a size that trains in seconds."""
+    from escort_rl.config import config_dir
+
+    settings = OmegaConf.to_container(load_typed(config_dir() / "bench" / "atari.yaml", AtariBenchConfig))
+    settings["trainer"].update(num_envs=2, rollout_steps=5, updates_per_iteration=10, lr=1e-3, **trainer)
+    settings["vrnn"].update(num_particles=3, latent_dim=4, hidden=8, encoding_dim=8)
+    settings["escort"].update(num_steps=2)
+    settings["gru"].update(hidden=8)
+    return OmegaConf.create({"seed": 0, "device": "cpu", "output_dir": str(tmp_path / agent),
+                             "logger": {"backend": "csv"}, "game": "pong", "agent": agent, **settings})
+
+
+@pytest.mark.parametrize("agent", AGENTS)
+def test_each_agent_trains_a_few_hundred_frames(agent, tmp_path):
+    torch.manual_seed(0)
+    algorithm = AtariA2C(tiny_atari_config(agent, tmp_path))
+    try:
+        before = {k: v.detach().clone() for k, v in algorithm.policy.named_parameters()}
+        records = [algorithm.iteration(i, 100 + i) for i in range(2)]
+    finally:
+        algorithm.close()
+    assert sum(r["frames"] for r in records) == 200
+    for r in records:
+        assert all(math.isfinite(r[k]) for k in ("policy_loss", "value_loss", "entropy", "elbo", "fps"))
+        assert (r["elbo"] == 0.0) == (agent == "gru")
+    changed = [k for k, v in algorithm.policy.named_parameters() if not torch.equal(v, before[k])]
+    # the encoder, the recurrence and both heads learn
+    for part in ("encoder", "actor_head", "critic_head"):
+        assert any(part in k for k in changed), (part, changed)
+
+
+def test_escort_latent_moves_particles_without_resampling_and_learns_its_model():
+    torch.manual_seed(0)
+    from escort_rl.belief import ESCORTFilter
+
+    def model(steps):
+        torch.manual_seed(0)
+        return ESCORTLatent((1, 84, 84), 3, 4, hidden=8, num_particles=5, encoding_dim=8,
+                            escort=ESCORTFilter(num_steps=steps, jitter=0.0))
+
+    obs = torch.rand(2, 1, 84, 84)
+    action, reset = torch.zeros(2, dtype=torch.long), torch.tensor([True, False])
+    moved, still = model(3), model(0)
+    state, elbo, summary = moved.step(moved.initial_state(2), action, obs, reset, torch.Generator().manual_seed(1))
+    state0, _, _ = still.step(still.initial_state(2), action, obs, reset, torch.Generator().manual_seed(1))
+    assert torch.allclose(state.log_w, torch.full((2, 5), -math.log(5)))  # uniform: nothing resampled
+    assert not torch.allclose(state.z, state0.z)  # the SVGD iterations moved the predicted particles
+    assert elbo.shape == (2,) and torch.isfinite(elbo).all() and summary.shape == (2, 8)
+    elbo.sum().backward()
+    for net in (moved.emission, moved.prior, moved.proposal, moved.observation_encoder):
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
+    with pytest.raises(ValueError, match="resample"):
+        ESCORTLatent((1, 84, 84), 3, 4, resample=True)
+    assert isinstance(DVRLPolicy(moved).dvrl, ESCORTLatent)
+
+
+def test_unknown_agent_is_named(tmp_path):
+    with pytest.raises(ConfigError, match="agent: unknown 'ppo'"):
+        AtariA2C(tiny_atari_config("ppo", tmp_path))

@@ -138,6 +138,25 @@ def smoothed_prior_score(prior: SmoothedPrior) -> tuple[ScoreTerm, Channels]:
                     "transition_scale_tril"),)
 
 
+def target_score(likelihood: tuple[ScoreTerm, Channels],
+                 prior: tuple[ScoreTerm, Channels]) -> tuple[Callable[[Tensor], tuple[Tensor, Tensor]], Channels]:
+    """The score of ESCORT's target ``log p(x) = log-likelihood(x) + log p̂(x)`` from the two
+    :data:`ScoreTerm` s: ``x`` ``[*B, N, d]`` -> ``(score [*B, N, d], counts [*B, C])``, the score clamped
+    to ``±MAX_SCORE`` and ``counts`` the particles of each belief flagged by each of the ``C`` channels
+    (the likelihood's, then the prior's; returned with the function). What :meth:`ESCORTFilter.evolve`
+    takes as ``score_fn``."""
+    likelihood_fn, lik_channels = likelihood
+    prior_fn, prior_channels = prior
+
+    def score(x: Tensor) -> tuple[Tensor, Tensor]:
+        s_lik, f_lik = likelihood_fn(x)
+        s_prior, f_prior = prior_fn(x)
+        counts = torch.cat([f_lik, f_prior], dim=-1).sum(-2)  # [*B, C]
+        return (s_lik + s_prior).clamp(-MAX_SCORE, MAX_SCORE), counts
+
+    return score, lik_channels + prior_channels
+
+
 class ESCORTFilter(BeliefFilter):
     """ESCORT: SVGD with a correlation-aware regulariser and a temporal-consistency term.
 
@@ -304,16 +323,7 @@ class ESCORTFilter(BeliefFilter):
         """``x ↦ (∇ log O(o|x, a) + ∇ log p̂(x), counts)``; the likelihood part by :func:`likelihood_score`,
         the prior part a :data:`ScoreTerm`. ``counts`` ``[*B, C]`` counts the particles of each belief
         flagged by each of the ``C`` channels (returned with the function)."""
-        likelihood, lik_channels = likelihood_score(model, observation.unsqueeze(-2), action)
-        prior_fn, prior_channels = prior
-
-        def score(x: Tensor) -> tuple[Tensor, Tensor]:
-            s_lik, f_lik = likelihood(x)
-            s_prior, f_prior = prior_fn(x)
-            counts = torch.cat([f_lik, f_prior], dim=-1).sum(-2)  # [*B, C]
-            return (s_lik + s_prior).clamp(-MAX_SCORE, MAX_SCORE), counts
-
-        return score, lik_channels + prior_channels
+        return target_score(likelihood_score(model, observation.unsqueeze(-2), action), prior)
 
     def _exact_prior_score(self, model, particles: Tensor, log_weights: Tensor,
                            action: Tensor) -> tuple[ScoreTerm, Channels]:

@@ -239,19 +239,8 @@ class DVRL(nn.Module):
             ``(new_state, elbo [B], summary [B, summary_dim])``, with ``elbo`` the ``ELBO_t`` of the
             module docstring.
         """
-        state = DVRLState(*state)
-        b, k = self._check_step_inputs(state, action_prev, observation)
-        if reset_mask is None:
-            reset_mask = torch.zeros(b, dtype=torch.bool, device=observation.device)
-        reset_mask = reset_mask.reshape(b).bool()
-        state = self.reset_rows(state, reset_mask)
-
-        action_prev = action_prev.reshape(b)
-        out_of_range = ~reset_mask & ((action_prev < 0) | (action_prev >= self.n_actions))
-        if out_of_range.any():
-            raise ValueError(f"action_prev: values must lie in [0, {self.n_actions}) on rows not being reset, "
-                             f"got {action_prev[out_of_range].tolist()}")
-
+        state, action_prev, reset_mask = self.prepare_step(state, action_prev, observation, reset_mask)
+        b, k = state.log_w.shape
         obs_enc = self.observation_encoder(observation)  # [B, E]
         action_enc = self.encode_action(action_prev, reset_mask)  # [B, E]
         uniforms = torch.rand(b, generator=generator, device=observation.device)
@@ -261,18 +250,7 @@ class DVRL(nn.Module):
 
         obs_k = obs_enc.unsqueeze(1).expand(b, k, -1)
         action_k = action_enc.unsqueeze(1).expand(b, k, -1)
-        q = self.proposal(state.h, action_k, obs_k)
-        eps = torch.randn(b, k, self.latent_dim, generator=generator, device=observation.device)
-        z = q.mean + q.stddev * eps  # reparameterised sample of q
-        log_q = q.log_prob(z)
-        log_prior = self.prior(state.h, action_k).log_prob(z)
-        obs_rep = observation.unsqueeze(1).expand(b, k, *observation.shape[1:])
-        log_lik = self.emission(state.h, z, action_k).log_prob(obs_rep)
-        log_prior = _check_log_prob(log_prior, "prior", b, k)
-        log_lik = _check_log_prob(log_lik, "emission", b, k)
-        log_q = _check_log_prob(log_q, "proposal", b, k)
-        increment = log_prior + log_lik - log_q  # Δ_t^k, [B, K]
-
+        z, increment = self.importance_step(state.h, obs_k, action_k, observation, generator)
         joint = log_w_prev + increment
         elbo = torch.logsumexp(joint, dim=-1)  # ELBO_t, [B]
         # normalised weights; a row whose every weight is zero (ELBO = -inf) restarts uniform, not NaN
@@ -281,6 +259,41 @@ class DVRL(nn.Module):
         h = self.recurrence(state.h, z, obs_k, action_k)
         new_state = DVRLState(h, z, log_w)
         return new_state, elbo, self.summarize(new_state)
+
+    def prepare_step(self, state: DVRLState | tuple[Tensor, Tensor, Tensor], action_prev: Tensor,
+                     observation: Tensor, reset_mask: Tensor | None) -> tuple[DVRLState, Tensor, Tensor]:
+        """Check the inputs of :meth:`step` and re-initialise the rows being reset. Returns
+        ``(state, action_prev [B], reset_mask [B] bool)``."""
+        state = DVRLState(*state)
+        b, _ = self._check_step_inputs(state, action_prev, observation)
+        if reset_mask is None:
+            reset_mask = torch.zeros(b, dtype=torch.bool, device=observation.device)
+        reset_mask = reset_mask.reshape(b).bool()
+        state = self.reset_rows(state, reset_mask)
+        action_prev = action_prev.reshape(b)
+        out_of_range = ~reset_mask & ((action_prev < 0) | (action_prev >= self.n_actions))
+        if out_of_range.any():
+            raise ValueError(f"action_prev: values must lie in [0, {self.n_actions}) on rows not being reset, "
+                             f"got {action_prev[out_of_range].tolist()}")
+        return state, action_prev, reset_mask
+
+    def importance_step(self, h: Tensor, obs_k: Tensor, action_k: Tensor, observation: Tensor,
+                        generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+        """Steps 3 and 4 of the module docstring: ``z ~ q(z | h, a, o)`` (reparameterised) and its
+        log-weight increment ``Δ = log p(z | h, a) + log p(o | h, z, a) − log q(z | h, a, o)``.
+
+        ``h [B, K, H]``, ``obs_k`` and ``action_k`` ``[B, K, E]`` (the encodings expanded over the
+        particles), ``observation [B, *obs_shape]``. Returns ``(z [B, K, Z], Δ [B, K])``.
+        """
+        b, k = h.shape[:2]
+        q = self.proposal(h, action_k, obs_k)
+        eps = torch.randn(b, k, self.latent_dim, generator=generator, device=observation.device)
+        z = q.mean + q.stddev * eps  # reparameterised sample of q
+        log_q = _check_log_prob(q.log_prob(z), "proposal", b, k)
+        log_prior = _check_log_prob(self.prior(h, action_k).log_prob(z), "prior", b, k)
+        obs_rep = observation.unsqueeze(1).expand(b, k, *observation.shape[1:])
+        log_lik = _check_log_prob(self.emission(h, z, action_k).log_prob(obs_rep), "emission", b, k)
+        return z, log_prior + log_lik - log_q
 
     def summarize(self, state: DVRLState) -> Tensor:
         """The belief summary ``[B, summary_dim]`` of the particles ``(h, φ(z), w)``."""

@@ -36,6 +36,14 @@ from escort_rl.modules.dvrl import DVRL, DVRLState
 _GREEDY = (InteractionType.MODE, InteractionType.DETERMINISTIC, InteractionType.MEDIAN, InteractionType.MEAN)
 
 
+def sample_action(logits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(action [B], log π(action) [B])`` from ``logits [B, A]``: the most probable action under
+    ``set_interaction_type("mode")`` (or ``"deterministic"``), a sample otherwise."""
+    dist = Categorical(logits=logits)
+    action = logits.argmax(-1) if interaction_type() in _GREEDY else dist.sample()
+    return action, dist.log_prob(action)
+
+
 class DVRLPolicy(TensorDictModuleBase):
     """Runs :meth:`DVRL.step` on a tensordict and samples the action from the actor head.
 
@@ -114,15 +122,14 @@ class DVRLPolicy(TensorDictModuleBase):
         observation = observation.reshape(n, *observation.shape[len(batch):])
         new_state, elbo, summary = self.dvrl.step(state, prev_action, observation, is_init)
         logits, value = self.dvrl.heads(summary)
-        dist = Categorical(logits=logits)
-        action = logits.argmax(-1) if interaction_type() in _GREEDY else dist.sample()
+        action, log_prob = sample_action(logits)
 
         def out(x: torch.Tensor) -> torch.Tensor:
             return x.reshape(*batch, *x.shape[1:])
 
         tensordict.set("logits", out(logits))
         tensordict.set(self.action_key, out(action))
-        tensordict.set("action_log_prob", out(dist.log_prob(action)))
+        tensordict.set("action_log_prob", out(log_prob))
         tensordict.set("state_value", out(value.unsqueeze(-1)))
         tensordict.set(self.elbo_key, out(elbo))
         tensordict.set(self.summary_key, out(summary))

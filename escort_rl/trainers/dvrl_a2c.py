@@ -94,12 +94,14 @@ def window_returns(reward: torch.Tensor, done: torch.Tensor, bootstrap: torch.Te
 
 
 def a2c_loss(window: TensorDictBase, bootstrap: torch.Tensor, gamma: float, entropy_coef: float,
-             value_loss_coef: float, encoding_loss_coef: float, reward_scale: float = 1.0) -> tuple[torch.Tensor, dict]:
+             value_loss_coef: float, encoding_loss_coef: float, reward_scale: float = 1.0,
+             elbo_key: str | None = "dvrl_elbo") -> tuple[torch.Tensor, dict]:
     """The DVRL objective of one window ``[B, T]`` (see the module docstring).
 
-    ``window`` holds ``logits [B, T, A]``, ``action [B, T]``, ``state_value [B, T, 1]``, ``dvrl_elbo
-    [B, T]`` (with gradients) and ``("next", "reward" | "done") [B, T, 1]``; ``bootstrap [B]`` and the
-    values are in units of ``reward_scale × reward``. Returns the loss and its terms as floats.
+    ``window`` holds ``logits [B, T, A]``, ``action [B, T]``, ``state_value [B, T, 1]``, ``elbo_key``
+    ``[B, T]`` (with gradients) and ``("next", "reward" | "done") [B, T, 1]``; ``bootstrap [B]`` and the
+    values are in units of ``reward_scale × reward``. ``elbo_key=None`` (an agent without a model, e.g.
+    a GRU) drops the ELBO term: plain A2C. Returns the loss and its terms as floats.
     """
     reward = reward_scale * window["next", "reward"].squeeze(-1)
     done = window["next", "done"].squeeze(-1)
@@ -112,7 +114,7 @@ def a2c_loss(window: TensorDictBase, bootstrap: torch.Tensor, gamma: float, entr
     policy_loss = -(dist.log_prob(window["action"]) * advantage).mean()
     value_loss = torch.nn.functional.smooth_l1_loss(value, returns)
     entropy = dist.entropy().mean()
-    elbo = window["dvrl_elbo"].mean()
+    elbo = window[elbo_key].mean() if elbo_key is not None else torch.zeros((), device=value.device)
     loss = policy_loss + value_loss_coef * value_loss - entropy_coef * entropy - encoding_loss_coef * elbo
     terms = {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy, "elbo": elbo}
     return loss, {k: float(v.detach()) for k, v in terms.items()}
