@@ -8,7 +8,7 @@ import math
 import pytest
 
 from escort_rl.bench import closed_loop as cl
-from escort_rl.bench.domains import DEFAULT_DOMAINS
+from escort_rl.bench import methods as registry
 from escort_rl.cli import main
 
 TINY = ["bench", "domains", "--protocol", "b", "--domains", "lightdark10d", "--methods", "sir", "escort",
@@ -61,8 +61,8 @@ def test_trains_each_method_evaluates_and_resumes(tmp_path, capsys):
 
 
 def test_every_domain_has_a_budget_and_builds():
-    settings = cl.load_settings()
-    for d in DEFAULT_DOMAINS:
+    settings = registry.load_settings()
+    for d in registry.DOMAINS:
         assert settings["train"][d]["iterations"] >= 1
         cfg = cl.run_config(d, "escort", 7, "unused", settings["train"][d],
                             (("num_steps", "3"), ("lambda_corr", "0.5")), steps=4)
@@ -131,7 +131,7 @@ def test_dvrl_row_trains_its_own_belief_and_reports_the_readout_error(tmp_path):
 
 # ------------------------------------------------------------------------------ baseline rows
 def test_the_registry_knows_every_row_and_the_defaults_include_the_baselines():
-    settings = cl.load_settings()
+    settings = registry.load_settings()
     spec = {m: cl.method_spec(m, settings) for m in ("sir", "scripted_sir", "scripted_escort", "pomcpow_sir",
                                                      "dvrl", "recurrent_ppo", cl.RANDOM)}
     assert spec["sir"] == {"kind": "trained", "section": None, "filter": "sir", "trainer": "ppo"}
@@ -139,13 +139,11 @@ def test_the_registry_knows_every_row_and_the_defaults_include_the_baselines():
     assert spec["pomcpow_sir"]["kind"] == "planner"
     assert spec["dvrl"]["kind"] == spec["recurrent_ppo"]["kind"] == "learned"
     assert spec["recurrent_ppo"]["trainer"] == "recurrent_ppo" and spec["recurrent_ppo"]["section"] == "recurrent"
-    defaults = cl.default_methods()
+    defaults = registry.protocol_b_methods()
     assert {"scripted_sir", "scripted_escort", "recurrent_ppo", "dvrl", "pomcpow_sir", "sir"} <= set(defaults)
     assert len(set(defaults)) == len(defaults) and cl.RANDOM not in defaults
     # protocol (a)'s learned beliefs stay beliefs: the recurrent policy has none
-    from escort_rl.bench.domains import learned_methods
-
-    assert "recurrent_ppo" not in learned_methods() and "dvrl" in learned_methods()
+    assert "recurrent_ppo" not in registry.learned_methods() and "dvrl" in registry.learned_methods()
     # the checks accept the new names and still refuse unknown ones
     with pytest.raises(ValueError, match="--methods: unknown method 'scripted_nowhere'"):
         cl.run_closed_loop(["lightdark10d"], ["scripted_nowhere"], "unused")
@@ -156,19 +154,19 @@ def test_the_registry_knows_every_row_and_the_defaults_include_the_baselines():
 
 
 def test_a_section_name_may_not_shadow_another_row(monkeypatch):
-    settings = cl.load_settings()
+    settings = registry.load_settings()
     settings["scripted"] = {**settings["scripted"], "sir": {"filter": "sir"}}
     with pytest.raises(ValueError, match="'sir' in scripted is also a filter config"):
-        cl.named_rows(settings)
+        registry.named_rows(settings)
     settings["scripted"] = {"dvrl": {"filter": "sir"}}
     with pytest.raises(ValueError, match="'dvrl' in learned is also the scripted section"):
-        cl.named_rows(settings)
+        registry.named_rows(settings)
 
 
 def test_filter_rows_use_the_yamls_trainer_with_whole_episode_batches(tmp_path, monkeypatch):
-    settings = cl.load_settings()
+    settings = registry.load_settings()
     assert settings["trainer"] == "ppo"
-    for d in DEFAULT_DOMAINS:  # the budget's frames keep their meaning: rollout_steps divides the episode
+    for d in registry.DOMAINS:  # the budget's frames keep their meaning: rollout_steps divides the episode
         cfg = cl.run_config(d, "sir", 7, "unused", settings["train"][d], trainer=settings["trainer"])
         assert cfg.trainer.algorithm == "ppo" and cfg.env.max_steps % cfg.trainer.rollout_steps == 0
         assert cfg.trainer.num_envs == settings["train"][d]["num_envs"]
@@ -181,7 +179,7 @@ def test_filter_rows_use_the_yamls_trainer_with_whole_episode_batches(tmp_path, 
     assert cfg.trainer.minibatches == 2 and cfg.trainer.rollout_steps == 6  # minibatches are whole env rows
 
     # without the key: the config's default trainer (PPO)
-    monkeypatch.setattr(cl, "load_settings", lambda: {k: v for k, v in settings.items() if k != "trainer"})
+    monkeypatch.setattr(registry, "load_settings", lambda: {k: v for k, v in settings.items() if k != "trainer"})
     result = cl.run_closed_loop(["lightdark10d"], ["sir"], tmp_path, episodes=2, n=8, steps=6, threads=1,
                                 train_overrides={"iterations": 1, "num_envs": 2})
     assert result["trainer"] == "ppo" and result["trainers"] == {"sir": "ppo"}
@@ -193,10 +191,10 @@ def test_a_bad_trainer_in_the_yaml_names_the_key(tmp_path, monkeypatch):
     from escort_rl.config import ConfigError
 
     bad = tmp_path / "closed_loop.yaml"
-    bad.write_text(cl.settings_path().read_text().replace("trainer: ppo", "trainer: dvrl_a2c"))
-    monkeypatch.setattr(cl, "settings_path", lambda: bad)
+    bad.write_text(registry.settings_path().read_text().replace("trainer: ppo", "trainer: dvrl_a2c"))
+    monkeypatch.setattr(registry, "settings_path", lambda: bad)
     with pytest.raises(ConfigError, match="trainer: must be one of ppo, reinforce; got 'dvrl_a2c'"):
-        cl.load_settings()
+        registry.load_settings()
 
 
 def test_scripted_rows_train_nothing_and_do_not_apply_to_kidnapped_robot(tmp_path):

@@ -8,6 +8,8 @@ import torch
 
 from escort_rl.belief import ParticleBelief
 from escort_rl.bench import domains as dom
+from escort_rl.bench import methods as registry
+from escort_rl.bench import trajectories as tr
 from escort_rl.cli import main
 
 
@@ -41,17 +43,17 @@ def test_quick_cli_writes_tables_and_plots(tmp_path, capsys):
 
 
 def test_trajectories_are_seeded_per_seed():
-    model, _ = dom.build_domain("mtt20d")
-    a = dom.generate_trajectories(model, 4, [0, 1, 2])
-    b = dom.generate_trajectories(model, 4, [0, 1, 2])
-    c = dom.generate_trajectories(model, 4, [2])
+    model, _ = registry.build_domain("mtt20d")
+    a = tr.generate_trajectories(model, 4, [0, 1, 2])
+    b = tr.generate_trajectories(model, 4, [0, 1, 2])
+    c = tr.generate_trajectories(model, 4, [2])
     for k in ("states", "actions", "observations"):
         assert torch.equal(a[k], b[k])
         assert torch.equal(a[k][2], c[k][0])  # a seed's trajectory does not depend on the others
     assert a["hashes"] == b["hashes"] and a["hashes"][2] == c["hashes"][0]
     assert a["states"].shape == (3, 5, 20) and a["actions"].shape == (3, 4) and a["observations"].shape[:2] == (3, 4)
-    filt = dom.build_method("mtt20d", "sir")
-    prior, hashes = dom.initial_beliefs(filt, model, [0, 1, 2], 8)
+    filt = registry.build_method("mtt20d", "sir")
+    prior, hashes = tr.initial_beliefs(filt, model, [0, 1, 2], 8)
     assert prior.particles.shape == (3, 8, 20) and len(set(hashes)) == 3
     assert not torch.isclose(prior.particles[:, 0], a["states"][:, 0]).all()  # independent of the true start
 
@@ -67,39 +69,19 @@ def test_unknown_method_is_one_line_naming_the_flag(tmp_path, capsys):
 def test_non_finite_belief_names_method_and_domain():
     x = torch.zeros(2, 3, 4)
     x[1, 0, 0] = float("nan")
-    with pytest.raises(dom.NonFiniteBeliefError, match="method 'svgd' on domain 'mtt20d'.*step 5.*seeds \\[7\\]"):
-        dom._check_finite(ParticleBelief.uniform(x), "svgd", "mtt20d", 5, [6, 7])
-
-
-@pytest.mark.slow
-def test_workers_share_trajectories_and_priors():
-    """Two worker processes see the same trajectories and priors as one; SIR is deterministic for a
-    fixed worker count, and its errors stay finite with either count."""
-    kw = dict(domains=["lightdark10d", "kidnapped20d"], methods=["sir"], seeds=3, n=20, steps=4, equal_time=False,
-              threads=1)
-    one = dom.run_domains(workers=1, **kw)
-    again = dom.run_domains(workers=1, **kw)
-    two = dom.run_domains(workers=2, **kw)
-    assert two["worker_threads"] == 1
-    for r1, r1b, r2 in zip(one["rows"], again["rows"], two["rows"]):
-        assert r1["input_hashes"] == r2["input_hashes"] == one["domain_info"][r1["domain"]]["trajectory_hashes"]
-        assert r1["initial_belief_hashes"] == r2["initial_belief_hashes"]
-        assert r1["per_seed"] == r1b["per_seed"]
-        assert len(r2["per_seed"]["final_error"]) == 3
-        assert all(math.isfinite(v) and v >= 0 for v in r2["per_seed"]["final_error"])
-        # the prior (step 0) is shared, so its error is identical whatever the split
-        assert r1["error_over_time"]["mean"][0] == pytest.approx(r2["error_over_time"]["mean"][0], abs=1e-12)
+    with pytest.raises(tr.NonFiniteBeliefError, match="method 'svgd' on domain 'mtt20d'.*step 5.*seeds \\[7\\]"):
+        tr.check_finite(ParticleBelief.uniform(x), "svgd", "mtt20d", 5, [6, 7])
 
 
 def test_a_diverged_method_is_a_failed_row_and_the_run_goes_on(monkeypatch):
-    real = dom._check_finite
+    real = tr.check_finite
 
     def diverge_svgd(belief, method, domain, step, seeds):
         if method == "svgd" and step == 3:
-            raise dom.NonFiniteBeliefError(f"method '{method}' on domain '{domain}': diverged (test)")
+            raise tr.NonFiniteBeliefError(f"method '{method}' on domain '{domain}': diverged (test)")
         real(belief, method, domain, step, seeds)
 
-    monkeypatch.setattr(dom, "_check_finite", diverge_svgd)
+    monkeypatch.setattr(tr, "check_finite", diverge_svgd)
     result = dom.run_domains(domains=["lightdark10d"], methods=["sir", "svgd", "escort"], seeds=2, n=10, steps=4,
                              equal_time=True, particle_grid=(10, 20), max_particles=20, calibration_steps=1,
                              threads=1, filter_set=(("num_steps", "2"),))
@@ -114,11 +96,9 @@ def test_a_diverged_method_is_a_failed_row_and_the_run_goes_on(monkeypatch):
 
 
 def test_learned_belief_row_reads_the_shared_trajectories(tmp_path, monkeypatch):
-    from escort_rl.bench import closed_loop as cl
-
-    settings = cl.load_settings()
+    settings = registry.load_settings()
     settings["train"] = {d: {"iterations": 1, "num_envs": 2} for d in settings["train"]}
-    monkeypatch.setattr(cl, "load_settings", lambda: settings)
+    monkeypatch.setattr(registry, "load_settings", lambda: settings)
     with pytest.raises(ValueError, match="--output"):
         dom.run_domains(["lightdark10d"], ["dvrl"], seeds=2, n=10, steps=3)
     result = dom.run_domains(["lightdark10d"], ["sir", "dvrl"], seeds=2, n=10, steps=4, equal_time=True,

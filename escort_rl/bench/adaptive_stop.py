@@ -12,8 +12,9 @@ A tolerance of 0 is the filter without the stop: every update runs ``K`` iterati
 from __future__ import annotations
 
 from escort_rl.bench.calibration import kalman_calibration
-from escort_rl.bench.domains import (build_domain, build_method, check_names, filter_trajectories, generate_trajectories,
-                                     mean_se)
+from escort_rl.bench.methods import build_domain, build_method, check_names
+from escort_rl.bench.trajectories import filter_trajectories, generate_trajectories
+from escort_rl.reporting.stats import mean_se
 
 
 def adaptive_stop_rows(domains: list[str], tolerances: list[float], seeds: int = 8, steps: int = 30,
@@ -70,3 +71,33 @@ def adaptive_stop_markdown(rows: list[dict], method: str = "escort") -> str:
             lines.append(f"| {r['tolerance']:g} | {r['iterations']:.1f} | {r['mahalanobis']:.3f} | "
                          f"{r['variance_ratio']:.3f} |")
     return "\n".join(lines) + "\n"
+
+
+def register(subparsers) -> None:
+    """Add ``bench adaptive-stop`` to the ``bench`` subparsers."""
+    from escort_rl.bench.methods import DOMAINS
+
+    stop = subparsers.add_parser("adaptive-stop", help="ESCORT's adaptive stop: iterations used, error, calibration",
+                                 description="ESCORT (K = 50 the cap) with each --tolerances value of "
+                                 "filter.stop_tolerance on protocol (a)'s trajectories of each domain, and on the "
+                                 "Kalman calibration episode; writes adaptive_stop.md and adaptive_stop.json.")
+    stop.add_argument("--domains", nargs="+", default=list(DOMAINS))
+    stop.add_argument("--tolerances", type=float, nargs="+", default=[0.0, 0.05, 0.1])
+    stop.add_argument("--seeds", type=int, default=8)
+    stop.add_argument("--steps", type=int, default=30)
+    stop.add_argument("--output", default="outputs/bench/adaptive_stop")
+    stop.set_defaults(handler=main)
+
+
+def main(args) -> None:
+    import math
+    from pathlib import Path
+
+    from escort_rl.reporting.paths import write_results
+
+    if any(not (t >= 0 and math.isfinite(t)) for t in args.tolerances):
+        raise ValueError(f"--tolerances: each must be a finite number >= 0, got {args.tolerances}")
+    rows = adaptive_stop_rows(args.domains, args.tolerances, seeds=args.seeds, steps=args.steps,
+                              progress=lambda r: print(f"{r['domain']:>12} tol={r['tolerance']:g}: "
+                                                       f"{r['iterations']:.1f} iterations", flush=True))
+    write_results(Path(args.output), "adaptive_stop", rows, adaptive_stop_markdown(rows))

@@ -48,39 +48,26 @@ from __future__ import annotations
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
 
-from escort_rl.bench.domains import (DEFAULT_METHODS, _belief_failures, applied_filter_set, available_methods,
-                                     check_at_least_one, check_names)
+from escort_rl.bench import methods as registry
+from escort_rl.bench.methods import RANDOM, SECTIONS, applied_filter_set, check_at_least_one, check_names
+from escort_rl.bench.runner import Cell, backend_from_args, run_cells
+from escort_rl.bench.trajectories import belief_failures
+from escort_rl.reporting.paths import write_results
+from escort_rl.reporting.plots import plot_curves
 from escort_rl.trainers.evaluate import scripted_policy, trained_policy
 
-RANDOM = "random"
 REFERENCE_FILTER = "sir"  # the belief the random-policy row is scored on
-# the yaml's sections of named rows -> the row's policy kind (recurrent rows are trained by their own
-# trainer and evaluated like the learned belief; they only lack a belief)
-SECTIONS = {"planners": "planner", "scripted": "scripted", "learned": "learned", "recurrent": "learned"}
 
 
 class NotApplicable(ValueError):
     """A row that cannot run on a domain (a scripted row where the domain has no controller); the
     benchmark records it with the reason instead of failing."""
-
-
-def settings_path() -> Path:
-    from escort_rl.config import config_dir
-
-    return config_dir() / "bench" / "closed_loop.yaml"
-
-
-def load_settings() -> dict:
-    """``configs/bench/closed_loop.yaml`` as a plain dict, checked against
-    :class:`escort_rl.schema.ClosedLoopBenchConfig` (a bad value raises ``ConfigError`` naming the key)."""
-    from escort_rl.schema import ClosedLoopBenchConfig, load_typed
-
-    return OmegaConf.to_container(load_typed(settings_path(), ClosedLoopBenchConfig), resolve=True)
 
 
 def method_spec(method: str, settings: dict) -> dict:
@@ -100,25 +87,6 @@ def method_spec(method: str, settings: dict) -> dict:
                     "filter": row["filter"] if "filter" in row else REFERENCE_FILTER,
                     "trainer": row.get("trainer", settings.get("trainer"))}
     return {"kind": "trained", "section": None, "filter": method, "trainer": settings.get("trainer")}
-
-
-def named_rows(settings: dict) -> list[str]:
-    """The row names of the yaml's sections (planners, scripted, learned, recurrent), in order.
-    Raises ``ValueError`` for a name in two sections or one that shadows a filter config."""
-    names, filters = {}, set(available_methods())
-    for section in SECTIONS:
-        for m in settings.get(section) or {}:
-            if m in names or m in filters or m == RANDOM:
-                other = f"the {names[m]} section" if m in names else "a filter config" if m in filters else "a row"
-                raise ValueError(f"{settings_path().name}: '{m}' in {section} is also {other}; rename it")
-            names[m] = section
-    return list(names)
-
-
-def default_methods(settings: dict | None = None) -> list[str]:
-    """Protocol (b)'s default rows (the random row is always added): the filters of protocol (a),
-    then every row of the yaml's sections."""
-    return [*DEFAULT_METHODS, *named_rows(settings if settings is not None else load_settings())]
 
 
 def batch_length(steps: int, rollout_steps: int) -> int:
@@ -169,7 +137,7 @@ def train_run(cfg, progress: bool = False) -> dict:
     """Train (or resume, or skip when finished) the run in ``cfg.output_dir``. Returns the frames,
     iterations, training seconds (summed over sessions) and the iteration it resumed from."""
     from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint, resolve_checkpoint
-    from escort_rl.trainers.evaluate import display_path
+    from escort_rl.reporting.paths import display_path
     from escort_rl.trainers.registry import train
 
     run_dir = Path(cfg.output_dir)
@@ -287,9 +255,74 @@ def _save_evaluation(run_dir: Path, key: dict, result: dict) -> None:
     tmp.replace(run_dir / EVALUATION_FILE)
 
 
+@dataclass(frozen=True)
+class ClosedLoopCell(Cell):
+    """One row of protocol (b): train (or resume, or reuse) the (domain, method) run in ``run_dir``,
+    then evaluate it on ``episodes`` seeded episodes (or reuse the saved evaluation).
+
+    ``kind``, ``section``, ``filter``, ``trainer``: the row's :func:`method_spec`; ``budget``: the
+    trainer keys, as ``(key, value)`` pairs. The run folder is the cell's store (checkpoints and
+    ``evaluation.json``), so the runner keeps no copy (``stored = False``); on a cluster, ``run_dir``
+    must be on a filesystem every node sees."""
+
+    domain: str
+    method: str
+    kind: str
+    section: str | None
+    filter: str
+    trainer: str | None
+    particles: int
+    episodes: int
+    steps: int | None
+    budget: tuple
+    filter_set: tuple
+    run_dir: str
+    eval_seed: int
+    greedy: bool
+    train_progress: bool = False
+    stored = False
+
+    def key(self) -> str:
+        return f"closed_loop/{self.domain}/{self.method}"
+
+    def run(self) -> dict:
+        d, m, kind = self.domain, self.method, self.kind
+        # the learned rows' filter config is unused (their belief is their own, or none)
+        cfg = run_config(d, self.filter, self.particles, Path(self.run_dir), dict(self.budget),
+                         self.filter_set if kind != "learned" else (), self.steps, trainer=self.trainer)
+        trains = kind in ("trained", "learned")
+        belief = {"learned": m, "recurrent": "none"}.get(self.section, self.filter)
+        row = {"domain": d, "method": m, "filter": belief, "particles": self.particles, "episodes": self.episodes,
+               "steps": int(cfg.env.max_steps), "policy": kind,
+               "trainer": str(cfg.trainer.algorithm) if trains else None, "train": None, "failed": None}
+        try:
+            policy = make = estimates = None
+            if kind == "scripted":
+                policy = scripted_row_policy(cfg)  # NotApplicable before anything runs
+            if trains:
+                row["train"] = train_run(cfg, progress=self.train_progress)
+            key = _evaluation_key(cfg, kind, d, self.episodes, self.eval_seed, self.greedy,
+                                  (row["train"] or {}).get("checkpoint"))
+            evaluation = _saved_evaluation(Path(cfg.output_dir), key)
+            row["evaluation_reused"] = evaluation is not None
+            if evaluation is None:
+                if trains:
+                    policy, make, estimates = trained_policy(cfg, row["train"]["checkpoint"])
+                elif kind == "planner":
+                    policy = planner_policy(cfg, d, self.eval_seed)
+                evaluation = evaluate_run(cfg, policy, self.episodes, self.eval_seed, self.greedy, make, estimates)
+                _save_evaluation(Path(cfg.output_dir), key, evaluation)
+            row.update(evaluation)
+        except NotApplicable as e:
+            row["failed"] = {"message": str(e).splitlines()[0], "not_applicable": True}
+        except belief_failures() as e:
+            row["failed"] = {"message": str(e).splitlines()[0]}
+        return row
+
+
 def run_closed_loop(domains, methods, output, episodes: int | None = None, n: int | None = None,
                     steps: int | None = None, train_overrides: dict | None = None, filter_set=(),
-                    threads: int | None = None, progress=None, train_progress: bool = False) -> dict:
+                    threads: int | None = None, progress=None, train_progress: bool = False, backend=None) -> dict:
     """Protocol (b) for every method on every domain, plus a random-policy row per domain.
 
     ``methods``: filter configs (trained with the yaml's ``trainer``) and the rows of the yaml's
@@ -297,14 +330,18 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
     ``steps``: episode length (default: each env's ``max_steps``). ``train_overrides``: trainer keys
     set for every domain (e.g. ``{"iterations": 2}``) on top of the yaml's per-domain budget.
     ``filter_set``: (key, value) pairs set on every method's filter config that has the key.
-    ``progress(row)`` is called per row. Writes the runs under ``output/runs``; returns the result
-    (rows and settings). A row that fails (a diverged belief) or does not apply (a scripted row on a
-    domain without a controller) has ``failed = {"message": ...}`` (with ``"not_applicable": True``
-    for the latter) and no metrics."""
+    ``threads``: torch threads in each cell (default 1). ``backend``: where the (domain, method)
+    cells (:class:`ClosedLoopCell`) run (default in-process). ``progress(row)`` is called per row as
+    it finishes. Writes the runs under ``output/runs``; returns the result (rows in grid order and
+    settings). A row that fails (a diverged belief) or does not apply (a scripted row on a domain
+    without a controller) has ``failed = {"message": ...}`` (with ``"not_applicable": True`` for the
+    latter) and no metrics."""
+    from escort_rl.bench.runner import InProcessBackend
+
     domains, methods = list(domains), list(methods)
     filter_set = tuple(tuple(kv) for kv in filter_set)
-    settings = load_settings()
-    named_rows(settings)  # the sections' names are distinct
+    settings = registry.load_settings()
+    registry.named_rows(settings)  # the sections' names are distinct
     specs = {m: method_spec(m, settings) for m in [*methods, RANDOM]}
     check_names(domains, list(dict.fromkeys(specs[m]["filter"] for m in methods)), filter_set)
     if len(set(methods)) != len(methods):
@@ -316,69 +353,39 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
     check_at_least_one(seeds=episodes, particles=n, steps=steps, threads=threads)
     missing = [d for d in domains if d not in settings["train"]]
     if missing:
-        raise ValueError(f"{settings_path().name}: no train entry for {', '.join(missing)}; add one")
-    output = Path(output)
-    previous_threads = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(threads)
+        raise ValueError(f"{registry.settings_path().name}: no train entry for {', '.join(missing)}; add one")
+    output, threads = Path(output), threads or 1
+    backend = backend or InProcessBackend()
     t_start = time.perf_counter()
-    rows, trainers, filter_trainer = [], {}, None
     eval_seed, greedy = int(settings["eval_seed"]), bool(settings["greedy"])
+    budgets = {d: {**settings["train"][d], **(train_overrides or {})} for d in domains}
+    cells = [ClosedLoopCell(domain=d, method=m, kind=specs[m]["kind"], section=specs[m]["section"],
+                            filter=specs[m]["filter"], trainer=specs[m]["trainer"], particles=n, episodes=episodes,
+                            steps=steps, budget=tuple(budgets[d].items()), filter_set=filter_set,
+                            run_dir=str(output / "runs" / d / m), eval_seed=eval_seed, greedy=greedy,
+                            train_progress=train_progress, threads=threads)
+             for d in domains for m in [*methods, RANDOM]]
     try:
-        for d in domains:
-            budget = {**settings["train"][d], **(train_overrides or {})}
-            for m in [*methods, RANDOM]:
-                spec = specs[m]
-                kind = spec["kind"]
-                # the learned rows' filter config is unused (their belief is their own, or none)
-                cfg = run_config(d, spec["filter"], n, output / "runs" / d / m, budget,
-                                 filter_set if kind != "learned" else (), steps, trainer=spec["trainer"])
-                trains = kind in ("trained", "learned")
-                if trains:
-                    trainers[m] = str(cfg.trainer.algorithm)
-                if kind == RANDOM:  # the filter rows' trainer (resolved: the config's when the yaml has none)
-                    filter_trainer = str(cfg.trainer.algorithm)
-                belief = {"learned": m, "recurrent": "none"}.get(spec["section"], spec["filter"])
-                row = {"domain": d, "method": m, "filter": belief, "particles": n, "episodes": episodes,
-                       "steps": int(cfg.env.max_steps), "policy": kind,
-                       "trainer": trainers.get(m) if trains else None, "train": None, "failed": None}
-                try:
-                    policy = make = estimates = None
-                    if kind == "scripted":
-                        policy = scripted_row_policy(cfg)  # NotApplicable before anything runs
-                    if trains:
-                        row["train"] = train_run(cfg, progress=train_progress)
-                    key = _evaluation_key(cfg, kind, d, episodes, eval_seed, greedy,
-                                          (row["train"] or {}).get("checkpoint"))
-                    evaluation = _saved_evaluation(Path(cfg.output_dir), key)
-                    row["evaluation_reused"] = evaluation is not None
-                    if evaluation is None:
-                        if trains:
-                            policy, make, estimates = trained_policy(cfg, row["train"]["checkpoint"])
-                        elif kind == "planner":
-                            policy = planner_policy(cfg, d, eval_seed)
-                        evaluation = evaluate_run(cfg, policy, episodes, eval_seed, greedy, make, estimates)
-                        _save_evaluation(Path(cfg.output_dir), key, evaluation)
-                    row.update(evaluation)
-                except NotApplicable as e:
-                    row["failed"] = {"message": str(e).splitlines()[0], "not_applicable": True}
-                except _belief_failures() as e:
-                    row["failed"] = {"message": str(e).splitlines()[0]}
-                rows.append(row)
-                if progress is not None:
-                    progress(row)
+        rows = run_cells(cells, backend, on_result=None if progress is None else lambda cell, row: progress(row),
+                         desc="protocol (b) cells")
     finally:
-        torch.set_num_threads(previous_threads)
+        backend.close()
+    for row in rows:
+        row.pop("timing", None)
+    trainers = {r["method"]: r["trainer"] for r in rows if r["trainer"] is not None}
+    # the filter rows' trainer (resolved: the config's when the yaml has none)
+    reference = run_config(domains[0], REFERENCE_FILTER, n, output / "runs" / domains[0] / RANDOM, budgets[domains[0]],
+                           (), steps, trainer=specs[RANDOM]["trainer"])
     sections = {section: {m: settings[section][m] for m in methods if specs[m]["section"] == section}
                 for section in SECTIONS}
     return {"protocol": "b: closed loop", "domains": domains, "methods": [*methods, RANDOM], "episodes": episodes,
             "particles": n, "eval_seed": eval_seed, "greedy": greedy,
-            "trainer": filter_trainer, "trainers": trainers,
-            "train_budget": {d: {**settings["train"][d], **(train_overrides or {})} for d in domains},
+            "trainer": str(reference.trainer.algorithm), "trainers": trainers,
+            "train_budget": budgets,
             "filter_set": {m: applied_filter_set(specs[m]["filter"], filter_set)
                            for m in methods if specs[m]["kind"] != "learned"},
             **sections,
-            "torch_threads": torch.get_num_threads() if threads is None else threads,
+            "torch_threads": threads, "backend": backend.name,
             "seconds": time.perf_counter() - t_start, "rows": rows}
 
 
@@ -430,7 +437,7 @@ def _time_cell(row: dict) -> str:
     return cell
 
 
-def _train_cell(row: dict) -> str:
+def train_cell(row: dict) -> str:
     t = row.get("train")
     if not t:
         return "—"
@@ -493,7 +500,7 @@ def closed_loop_markdown(result: dict) -> str:
         "",
         "Training cost (frames, minutes over all sessions of the run, frames per second):",
         "",
-        *_table(result, _train_cell),
+        *_table(result, train_cell),
         "",
     ]
     failed = [r for r in result["rows"] if r["failed"] and not r["failed"].get("not_applicable")]
@@ -509,23 +516,51 @@ def closed_loop_markdown(result: dict) -> str:
 
 
 def plot_closed_loop_error(result: dict, domain: str, path: Path) -> Path:
-    """Mean position error over the evaluation episodes against the step, one line per method."""
-    import matplotlib
+    """Mean position error over the evaluation episodes against the step, one line per method (a
+    row without a belief, the recurrent policy, has no curve)."""
+    curves = {r["method"]: (r["error_over_time"], None)
+              for r in result["rows"] if r["domain"] == domain and not r["failed"]}
+    return plot_curves(curves, path, "step", "position error ‖E_b[pos] − pos_true‖₂",
+                       f"{domain}: protocol (b), N = {result['particles']}, {result['episodes']} episodes (mean)",
+                       start=1)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    for row in (r for r in result["rows"] if r["domain"] == domain and not r["failed"]):
-        curve = row["error_over_time"]
-        if all(c is None or math.isnan(c) for c in curve):
-            continue  # no belief (a recurrent policy): no position error
-        ax.plot(range(1, len(curve) + 1), curve, label=row["method"], lw=1.2)
-    ax.set_xlabel("step")
-    ax.set_ylabel("position error ‖E_b[pos] − pos_true‖₂")
-    ax.set_title(f"{domain}: protocol (b), N = {result['particles']}, {result['episodes']} episodes (mean)", fontsize=9)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+QUICK = dict(domains=list(registry.DOMAINS), methods=list(registry.QUICK_METHODS), seeds=2, particles=20, steps=10,
+             filter_set=[], threads=1, train_iterations=1, train_envs=2)
+"""``bench domains --protocol b --quick`` (flags given explicitly win)."""
+
+
+def main(args) -> None:
+    """``bench domains --protocol b`` (the flags of :func:`escort_rl.bench.domains.register`)."""
+    from escort_rl.bench.methods import parse_filter_set
+
+    full = dict(domains=list(registry.DOMAINS), methods=registry.protocol_b_methods(), seeds=None, particles=None,
+                steps=None, filter_set=[], threads=None, train_iterations=None, train_envs=None)
+    kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
+    train = {k: v for k, v in (("iterations", kw["train_iterations"]), ("num_envs", kw["train_envs"])) if v is not None}
+    if args.seeds_per_cell is not None:
+        raise ValueError("--seeds-per-cell: protocol b's cells are (domain, method) runs; leave it out")
+    backend = backend_from_args(args)
+
+    def show(row):
+        if row["failed"]:
+            print(f"{row['domain']:>13} {row['method']:>14} FAILED: {row['failed']['message']}", flush=True)
+            return
+        s = row["summary"]
+        trained = f"  trained {train_cell(row)}" if row["train"] else ""
+        if "seconds_per_decision" in row:
+            trained += f"  {1e3 * row['seconds_per_decision']:.1f} ms per decision"
+        print(f"{row['domain']:>13} {row['method']:>14} final error {s['final_position_error']:.3f} ± "
+              f"{s['final_position_error_se']:.3f}  return {s['episode_return']:.1f} ± {s['episode_return_se']:.1f}  "
+              f"distance {s['final_distance']:.3f}  success {s['success_rate']:.2f}  "
+              f"{1e3 * row['seconds_per_step']:.1f} ms/step{trained}", flush=True)
+
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    result = run_closed_loop(kw["domains"], kw["methods"], out, episodes=kw["seeds"], n=kw["particles"],
+                             steps=kw["steps"], train_overrides=train, filter_set=parse_filter_set(kw["filter_set"]),
+                             threads=kw["threads"], progress=show, backend=backend)
+    for d in result["domains"]:
+        plot_closed_loop_error(result, d, out / f"closed_loop_error_{d}.png")
+    write_results(out, "closed_loop", result, closed_loop_markdown(result), time.perf_counter() - t0)

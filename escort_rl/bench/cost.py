@@ -189,3 +189,62 @@ def update_cost_markdown(result: dict) -> str:
     lines += ["", "Fitted exponent of time in d (B = 1): "
               + ", ".join(f"{k} {v:.2f}" for k, v in result["exponents"].items()), ""]
     return "\n".join(lines)
+
+
+def register(subparsers) -> None:
+    """Add ``bench cost`` to the ``bench`` subparsers."""
+    cost = subparsers.add_parser("cost", help="time one belief update: ESCORT vs SVGD vs SIR over d, N, B",
+                                 description="Times one update for d, N and B, ESCORT, SVGD and SIR in the same "
+                                 "run; reports the ESCORT breakdown, the fitted exponent in d and GFLOP/s.")
+    cost.add_argument("--dims", type=int, nargs="+", default=[10, 20, 50, 100, 200])
+    cost.add_argument("--particles", type=int, nargs="+", default=[100, 1000])
+    cost.add_argument("--batches", type=int, nargs="+", default=[1, 32])
+    cost.add_argument("--repeats", type=int, default=3)
+    cost.add_argument("--num-steps", type=int, default=50, help="K for ESCORT and SVGD")
+    cost.add_argument("--device", default="cpu")
+    cost.add_argument("--quick", action="store_true", help="a small smoke grid: d 10 20, N 100, B 1 2")
+    cost.add_argument("--compile", action="store_true",
+                      help="also time ESCORT and SVGD with compile=True (each shape compiles once first)")
+    cost.add_argument("--max-pairs", type=float, default=1e7,
+                      help="skip (d, N, B) with B·N² above this (default 1e7 skips N=1000 at B=32 on a CPU)")
+    cost.add_argument("--training", type=int, nargs="+", default=[], metavar="B",
+                      help="also measure PPO training frames/s on SIR, SVGD and ESCORT beliefs at these batch sizes")
+    cost.add_argument("--training-steps", type=int, default=100,
+                      help="episode length of the training rows (3 iterations of B x this many frames)")
+    cost.add_argument("--warmup", action="store_true",
+                      help="also time the first compiled ESCORT update in fresh processes, cold and from the cache")
+    cost.add_argument("--no-updates", action="store_true", help="skip the per-update grid (training/warm-up rows only)")
+    cost.add_argument("--output", default="outputs/bench/cost", help="folder for cost.md and cost.json")
+    cost.set_defaults(handler=main)
+
+
+def main(args) -> None:
+    from pathlib import Path
+
+    from escort_rl.reporting.paths import write_results
+    from escort_rl.schema import check_device
+
+    problem = check_device(args.device)
+    if problem is not None:
+        raise ValueError(f"--device: {problem.replace('device=cpu', '--device cpu')}")
+    if not (math.isfinite(args.max_pairs) and args.max_pairs > 0):
+        raise ValueError(f"--max-pairs: must be a finite number > 0, got {args.max_pairs}")
+    grid = dict(dims=args.dims, particles=args.particles, batches=args.batches)
+    if args.quick:
+        grid = dict(dims=[10, 20], particles=[100], batches=[1, 2])
+
+    def show(row):
+        print(f"{row['filter']:>15} d={row['d']:<4} N={row['N']:<5} B={row['B']:<3} "
+              f"{1e3 * row['seconds']:9.2f} ms", flush=True)
+
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    result = {} if args.no_updates else run_cost_benchmark(
+        **grid, repeats=args.repeats, num_steps=args.num_steps, device=args.device, progress=show,
+        max_pairs=args.max_pairs, compile=args.compile)
+    if args.training or args.warmup:
+        from escort_rl.bench.training_cost import training_cost_rows
+
+        result.update(training_cost_rows(args.training, out / "training_runs", args.training_steps,
+                                         args.warmup, progress=print))
+    write_results(out, "cost", result, cost_markdown(result))

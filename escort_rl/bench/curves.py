@@ -13,7 +13,7 @@ import math
 from pathlib import Path
 
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
-from escort_rl.trainers.evaluate import display_path
+from escort_rl.reporting.paths import display_path
 
 
 def run_label(config: dict) -> str:
@@ -102,3 +102,18 @@ def write_curves(run_dirs: list[str], output: str | Path) -> list[dict]:
     (out / "learning_curves.md").write_text(curves_markdown(runs))
     (out / "learning_curves.json").write_text(json.dumps(runs, indent=1))
     return runs
+
+
+def register(subparsers) -> None:
+    """Add ``bench curves`` to the ``bench`` subparsers."""
+    cur = subparsers.add_parser("curves", help="learning curves of training runs side by side",
+                                description="Return, final distance to goal and (DVRL) ELBO against frames for "
+                                "each run directory; writes learning_curves.png, .md and .json.")
+    cur.add_argument("runs", nargs="+", help="run directories (or checkpoints), e.g. outputs/lightdark10d")
+    cur.add_argument("--output", default="outputs/bench/curves", help="folder for the figure and tables")
+    cur.set_defaults(handler=main)
+
+
+def main(args) -> None:
+    print(curves_markdown(write_curves(args.runs, args.output)))
+    print(f"results: {Path(args.output).resolve()}")

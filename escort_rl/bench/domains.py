@@ -1,295 +1,125 @@
-"""The domain benchmark (SPEC §6), protocol (a) "shared trajectories".
+"""The domain benchmark (SPEC §6), protocol (a) "shared trajectories", as a grid of cells.
 
-For each domain and seed one trajectory is drawn with a seeded generator: the true start state from
-``model.initial_state``, actions from a fixed behaviour policy (uniform random actions, seeded per
-seed), states from ``model.transition`` and observations from ``model.observe``. Episodes are not cut
-at terminal states: every trajectory has the same horizon. Every method (a filter config name under
-``configs/filter/``, so a new config is a new row with no code change) then filters the *same*
-action/observation sequence from the *same* prior particles: seed ``s``'s prior is drawn by
-``filt.init`` with a generator of its own, and the per-seed priors are stacked into one batch.
-
-All seeds of a (domain, method) run as one batch ``B = seeds`` (filters are batched over
-``[B, N, d]``); the only Python loop in the filtering is over time steps.
+Every method (a filter config name, so a new config is a new row; or a learned belief) filters the
+same seeded action/observation sequences from the same seeded priors
+(:mod:`escort_rl.bench.trajectories`). The grid's cells are (domain × method × block of seeds)
+(:class:`FilterCell`, :class:`LearnedCell`): a cell regenerates its seeds' trajectories (the hashes
+prove they are the driver's) and filters them as one batch ``[S, N, d]``. ``seeds_per_cell``
+(default: all seeds of a row in one cell) is part of the cell, so the numbers do not depend on the
+backend or the number of workers (:mod:`escort_rl.bench.runner`); each finished cell is saved under
+``<output>/cells/`` and a rerun skips it.
 
 Metrics, each mean ± standard error over seeds: the position error ``‖E_b[pos] − pos_true‖₂`` of the
 weighted belief mean at every step (Light-Dark: the 5 position coordinates; Kidnapped Robot: dims
-(0, 1); Multi-Target Tracking: ``model.target_position_error``, the mean over the four targets), its
-value at the final step and its average over steps 1..T, and the wall-clock seconds per filter update.
+(0, 1); Multi-Target Tracking: ``model.position_error``, the mean over the four targets), its value
+at the final step and its average over steps 1..T, and the wall-clock seconds per filter update
+(summed over a row's cells).
 
-Reproducibility across ``workers``: seeds are split into ``workers`` contiguous chunks, one process
-each. The trajectory of seed ``s`` and its prior particles depend only on ``(base_seed, s)``, so they
-are identical for any worker count (the JSON stores their hashes). The filters' own noise (SIR's
-resampling offsets, ESCORT's propagation and jitter) comes from one generator per batch, seeded by
-the chunk's first seed, so with ``workers > 1`` that noise differs from ``workers = 1`` and the
-per-seed errors agree in distribution, not bit for bit. For a fixed worker count a run is
-deterministic.
-
-Equal wall-clock table: each method's time per step is measured on a few steps of the same batch at
-each ``N'`` of a grid (capped by ``max_particles``) plus the base ``N``; the method gets the largest
-``N'`` whose time is not above the reference method's (``escort``, or the first method when escort
-is not listed) time at the base ``N``, and protocol (a) is rerun at that ``N'``. The reference keeps
-the base ``N``; a method whose ``N'`` equals ``N`` reuses its equal-N run.
-
-Threads: the timings depend strongly on torch's thread count. Small batched updates are often fastest
-on one thread, and several threads on a busy 2-core machine can be ten times slower; ``threads``
-(``--threads``) fixes the count, and is recorded in the output with the timings.
+Equal wall-clock table: each method's time per step is measured here, one method at a time with the
+cells' thread count, on a few steps of the same batch at each ``N'`` of a grid (capped by
+``max_particles``) plus the base ``N``; the method gets the largest ``N'`` whose time is not above the
+reference method's (``escort``, or the first method when escort is not listed) time at the base
+``N``, and protocol (a) is rerun at that ``N'`` as a second grid of cells. The reference keeps the
+base ``N``; a method whose ``N'`` equals ``N`` reuses its equal-N row.
 """
 
 from __future__ import annotations
 
-import hashlib
 import math
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor
-from functools import lru_cache
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from escort_rl.models import position_dims, position_error
-from escort_rl.trainers.evaluate import display_path
+from escort_rl.bench import methods as registry
+from escort_rl.bench.methods import (applied_filter_set, build_domain, check_at_least_one, check_names,
+                                     parse_filter_set)
+from escort_rl.bench.runner import Cell, CellStore, add_runner_arguments, backend_from_args, run_cells, seed_blocks
+from escort_rl.bench.trajectories import (BEHAVIOUR_POLICY, NonFiniteBeliefError, filter_trajectories,
+                                          generate_trajectories, learned_trajectories, position_error_label,
+                                          time_per_step)
+from escort_rl.reporting.paths import display_path, write_results
+from escort_rl.reporting.plots import plot_curves
+from escort_rl.reporting.stats import format_mean_se, mean_se
+from escort_rl.reporting.tables import method_table
 
-DEFAULT_METHODS = ("escort", "escort_nocorr", "escort_notemp", "escort_noproj", "svgd", "sir")
-DEFAULT_DOMAINS = ("lightdark10d", "kidnapped20d", "mtt20d")
 PARTICLE_GRID = (50, 100, 200, 500, 1000, 2000)
-BEHAVIOUR_POLICY = ("uniform random actions: a_t ~ U{0, ..., n_actions - 1}, drawn from the seed's "
-                    "trajectory generator (the same actions for every method)")
 
 
-class NonFiniteBeliefError(ValueError):
-    """A filter produced NaN or Inf particles or weights; the message names the method and domain."""
+# ---------------------------------------------------------------------------------------- cells
+def _part(out: dict) -> dict:
+    """A filtering output (:func:`filter_trajectories`) as a cell result: plain lists, and the
+    wall-clock figures under ``timing`` (the only entries that differ between runs)."""
+    part = {k: v for k, v in out.items() if k not in ("seconds", "first_seconds", "errors")}
+    part["errors"] = out["errors"].tolist()
+    part["timing"] = {"seconds": out["seconds"], "first_seconds": out["first_seconds"]}
+    return part
 
 
-def _belief_failures() -> tuple[type[Exception], ...]:
-    """The errors that mean a filter's belief diverged on a trajectory: the run records a failed row
-    (with the step and the message) and goes on with the other methods."""
-    from escort_rl.belief import NonFiniteError
-    from escort_rl.belief.prior import PriorCovarianceError
+@dataclass(frozen=True)
+class FilterCell(Cell):
+    """One filter method on one domain's shared trajectories of ``seeds`` (one batch).
 
-    return NonFiniteBeliefError, PriorCovarianceError, NonFiniteError
-
-
-# ---------------------------------------------------------------------------------------- seeds
-def derived_seed(kind: str, base_seed: int, seed: int) -> int:
-    """A 63-bit seed for ``kind`` (``trajectory``, ``belief``, ``filter``) of one seed: the streams
-    never overlap, so no prior particle copies the true start state."""
-    digest = hashlib.sha256(f"escort-rl/domains/{kind}/{base_seed}/{seed}".encode()).digest()
-    return int.from_bytes(digest[:8], "little") & ((1 << 63) - 1)
-
-
-def tensor_hash(*tensors: torch.Tensor) -> str:
-    """SHA-256 (first 16 hex digits) of the tensors' bytes, shapes and dtypes."""
-    h = hashlib.sha256()
-    for t in tensors:
-        t = t.detach().cpu().contiguous()
-        h.update(f"{tuple(t.shape)}{t.dtype}".encode())
-        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
-    return h.hexdigest()[:16]
-
-
-# ---------------------------------------------------------------------------------------- building
-def available_methods() -> list[str]:
-    from escort_rl.config import config_dir
-
-    return sorted(p.stem for p in (config_dir() / "filter").glob("*.yaml"))
-
-
-def available_domains() -> list[str]:
-    from escort_rl.config import config_dir
-
-    return sorted(p.stem for p in (config_dir() / "env").glob("*.yaml"))
-
-
-def check_names(domains, methods, filter_set: tuple = ()) -> None:
-    """Raise ``ValueError`` naming ``--domains``, ``--methods`` or ``--filter-set`` for a bad name."""
-    if not domains:
-        raise ValueError("--domains: give at least one domain")
-    if not methods:
-        raise ValueError("--methods: give at least one method")
-    known_d, known_m, learned = available_domains(), available_methods(), learned_methods()
-    for d in domains:
-        if d not in known_d:
-            raise ValueError(f"--domains: unknown domain '{d}'; choose from {', '.join(known_d)}")
-    for m in methods:
-        if m not in known_m and m not in learned:
-            raise ValueError(f"--methods: unknown method '{m}'; the methods are the filter configs "
-                             f"{', '.join(known_m)} and the learned beliefs {', '.join(learned)}")
-    if len(set(methods)) != len(methods):
-        raise ValueError("--methods: a method is listed twice")
-    filters = [m for m in methods if m not in learned]
-    for key, _ in filter_set:
-        if not any(key in applied_filter_set(m, ((key, ""),)) for m in filters):
-            raise ValueError(f"--filter-set: no method in --methods has the filter key '{key}'")
-
-
-def learned_methods() -> dict:
-    """The learned-belief methods (``learned`` in ``configs/bench/closed_loop.yaml``, e.g. ``dvrl``):
-    name -> ``{"trainer": ...}``."""
-    from escort_rl.bench.closed_loop import load_settings
-
-    return dict(load_settings().get("learned") or {})
-
-
-def check_at_least_one(**flags) -> None:
-    """Raise ``ValueError`` naming the flag (``particles`` -> ``--particles``) of the first value
-    below 1; ``None`` (not given) passes."""
-    for name, value in flags.items():
-        if value is not None and value < 1:
-            raise ValueError(f"--{name.replace('_', '-')}: must be >= 1, got {value}")
-
-
-def parse_filter_set(items) -> tuple[tuple[str, str], ...]:
-    """``["num_steps=10", ...]`` -> ``(("num_steps", "10"), ...)``; the ``filter.`` prefix is optional."""
-    out = []
-    for item in items or ():
-        if "=" not in item:
-            raise ValueError(f"--filter-set: '{item}' is not of the form KEY=VALUE (e.g. num_steps=10)")
-        key, value = item.split("=", 1)
-        key = key.removeprefix("filter.")
-        if key in ("name", "kind") or not key:
-            raise ValueError(f"--filter-set: cannot set '{key}'; pick the filter with --methods")
-        out.append((key, value))
-    return tuple(out)
-
-
-@lru_cache(maxsize=None)
-def _config(domain: str, method: str, filter_set: tuple = ()):
-    """The composed config for ``filter=method env=domain``, with each ``filter_set`` (key, value)
-    applied where the method's config has that key (``num_steps`` changes ESCORT and SVGD, not SIR)."""
-    from escort_rl.config import compose
-
-    base = [f"filter={method}", f"env={domain}"]
-    if not filter_set:
-        return compose(base)
-    keys = set(compose(base).filter.keys())
-    return compose(base + [f"filter.{k}={v}" for k, v in filter_set if k in keys])
-
-
-def applied_filter_set(method: str, filter_set: tuple) -> dict:
-    """The subset of ``filter_set`` that applies to ``method``."""
-    keys = set(_config(DEFAULT_DOMAINS[0], method).filter.keys())
-    return {k: v for k, v in filter_set if k in keys}
-
-
-@lru_cache(maxsize=None)
-def build_domain(domain: str):
-    """The model of ``configs/env/<domain>.yaml`` and its ``max_steps``."""
-    from escort_rl.trainers.builders import build_model
-
-    cfg = _config(domain, "sir")
-    return build_model(cfg.env), int(cfg.env.max_steps)
-
-
-def build_method(domain: str, method: str, filter_set: tuple = ()):
-    from escort_rl.trainers.builders import build_filter
-
-    return build_filter(_config(domain, method, tuple(filter_set)).filter)
-
-
-def position_error_label(model) -> str:
-    if callable(getattr(model, "position_error", None)):
-        return f"{type(model).__name__}.position_error (see its docstring)"
-    dims = list(position_dims(model))
-    return f"‖E_b[s[{dims}]] − s_true[{dims}]‖₂"
-
-
-# ---------------------------------------------------------------------------------------- protocol (a)
-def generate_trajectory(model, steps: int, seed: int, base_seed: int = 0) -> dict:
-    """One seeded trajectory under the behaviour policy (uniform random actions).
-
-    Returns ``states`` ``[T+1, d]`` (index 0 is the start), ``actions`` ``[T]`` (int64) and
-    ``observations`` ``[T, obs_dim]`` (``observations[t]`` is seen after ``actions[t]``).
+    Examples:
+        >>> cell = FilterCell(domain="lightdark10d", method="sir", particles=10, steps=2, seeds=(0, 1))
+        >>> cell.key()
+        'domains/lightdark10d/sir/N10-T2-seeds0-1'
+        >>> len(cell.run()["errors"][0])  # [S, T + 1] position errors, index 0 the prior's
+        3
     """
-    g = torch.Generator().manual_seed(derived_seed("trajectory", base_seed, seed))
-    s = model.initial_state((), g)
-    states, actions, observations = [s], [], []
-    for _ in range(steps):
-        a = torch.randint(model.n_actions, (), generator=g)
-        s = model.transition(s, a, g)
-        o = model.observe(s, a, g)
-        states.append(s)
-        actions.append(a)
-        observations.append(o)
-    return {"states": torch.stack(states), "actions": torch.stack(actions).long(),
-            "observations": torch.stack(observations)}
+
+    domain: str
+    method: str
+    particles: int
+    steps: int
+    seeds: tuple
+    base_seed: int = 0
+    filter_set: tuple = ()
+
+    def key(self) -> str:
+        return (f"domains/{self.domain}/{self.method}/N{self.particles}-T{self.steps}-"
+                f"seeds{self.seeds[0]}-{self.seeds[-1]}")
+
+    def run(self) -> dict:
+        model, _ = build_domain(self.domain)
+        seeds = list(self.seeds)
+        traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
+        return _part(filter_trajectories(self.domain, self.method, traj, seeds, self.particles, self.base_seed,
+                                         self.filter_set))
 
 
-def generate_trajectories(model, steps: int, seeds: list[int], base_seed: int = 0) -> dict:
-    """:func:`generate_trajectory` of every seed, stacked: ``states`` ``[B, T+1, d]``, ``actions``
-    ``[B, T]``, ``observations`` ``[B, T, obs_dim]``, and ``hashes``: one per seed."""
-    trajs = [generate_trajectory(model, steps, s, base_seed) for s in seeds]
-    out = {k: torch.stack([t[k] for t in trajs]) for k in ("states", "actions", "observations")}
-    out["hashes"] = [tensor_hash(t["states"], t["actions"], t["observations"]) for t in trajs]
-    return out
+@dataclass(frozen=True)
+class LearnedCell(Cell):
+    """A learned belief (DVRL, from ``checkpoint``) on one domain's shared trajectories of ``seeds``.
+    Not stored: the checkpoint may be trained further between runs."""
 
+    domain: str
+    method: str
+    steps: int
+    seeds: tuple
+    checkpoint: str
+    base_seed: int = 0
+    stored = False
 
-def initial_beliefs(filt, model, seeds: list[int], n: int, base_seed: int = 0):
-    """The prior of each seed, drawn by ``filt.init`` with the seed's own generator, stacked into one
-    ``ParticleBelief`` with particles ``[B, n, d]``; and the per-seed hashes of the particles."""
-    from escort_rl.belief import ParticleBelief
+    def key(self) -> str:
+        return f"domains/{self.domain}/{self.method}/T{self.steps}-seeds{self.seeds[0]}-{self.seeds[-1]}"
 
-    parts = []
-    for s in seeds:
-        g = torch.Generator().manual_seed(derived_seed("belief", base_seed, s))
-        b = filt.init(model, (), n, g)
-        parts.append((b.particles, b.log_weights))
-    particles = torch.stack([p for p, _ in parts])
-    log_w = torch.stack([w for _, w in parts])
-    return ParticleBelief(particles, log_w), [tensor_hash(p) for p, _ in parts]
-
-
-def _check_finite(belief, method: str, domain: str, step: int, seeds: list[int]) -> None:
-    x, lw = belief.particles, belief.log_weights
-    bad = ~torch.isfinite(x).all(-1).all(-1) | torch.isnan(lw).any(-1) | torch.isposinf(lw).any(-1)
-    if bad.any():
-        which = [seeds[i] for i in bad.nonzero().flatten().tolist()]
-        raise NonFiniteBeliefError(f"method '{method}' on domain '{domain}': the belief became non-finite "
-                                   f"(NaN/Inf particles or weights) at step {step}, seeds {which[:8]}")
-
-
-def filter_trajectories(domain: str, method: str, traj: dict, seeds: list[int], n: int, base_seed: int = 0,
-                        filter_set: tuple = ()) -> dict:
-    """Run ``method`` on the shared trajectories ``traj`` of ``seeds`` (one batch), from the seeds'
-    priors. Returns per-seed errors ``errors`` ``[B, T+1]`` (index 0: the prior), the filter seconds,
-    and the per-seed hashes of the inputs it was fed and of its priors."""
-    model, _ = build_domain(domain)
-    filt = build_method(domain, method, filter_set)
-    states, actions, obs = traj["states"], traj["actions"], traj["observations"]
-    steps = actions.shape[1]
-    belief, belief_hashes = initial_beliefs(filt, model, seeds, n, base_seed)
-    g = torch.Generator().manual_seed(derived_seed("filter", base_seed, seeds[0]))
-    errors = [position_error(model, belief.mean(), states[:, 0])]
-    input_hashes = [tensor_hash(states[i], actions[i], obs[i]) for i in range(len(seeds))]
-    out = {"seconds": 0.0, "first_seconds": 0.0, "timed_steps": max(steps - 1, 1), "steps": steps,
-           "input_hashes": input_hashes, "belief_hashes": belief_hashes, "filter": repr(filt), "failed": None}
-    for t in range(steps):
-        t0 = time.perf_counter()
-        try:
-            belief = filt.update(model, belief, actions[:, t], obs[:, t], g)
-            _check_finite(belief, method, domain, t + 1, seeds)
-        except _belief_failures() as e:
-            out["failed"] = {"step": t + 1, "message": str(e)}
-            break
-        # the first update is a warm-up (and, with compile=True, compiles): timed on its own
-        if t == 0 and steps > 1:
-            out["first_seconds"] = time.perf_counter() - t0
-        else:
-            out["seconds"] += time.perf_counter() - t0
-        errors.append(position_error(model, belief.mean().detach(), states[:, t + 1]))
-    out["errors"] = torch.stack(errors, dim=1).detach()
-    # particle-evolution iterations per update (K, or fewer with the adaptive stop); NaN for SIR
-    out["iterations"] = filt.mean_iterations() if hasattr(filt, "mean_iterations") else float("nan")
-    return out
+    def run(self) -> dict:
+        model, _ = build_domain(self.domain)
+        seeds = list(self.seeds)
+        traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
+        return _part(learned_trajectories(self.domain, self.method, traj, seeds, self.checkpoint, self.base_seed))
 
 
 def train_learned_beliefs(domains, methods, runs_dir: Path, progress: bool = False) -> dict:
     """Train (or resume, or reuse) each learned-belief method of ``methods`` on each domain in
     ``runs_dir/<domain>/<method>``, with protocol (b)'s run config and budget (the same folder layout,
     so ``--output`` of a protocol (b) run can share its runs). Returns ``{(domain, method): checkpoint}``."""
-    from escort_rl.bench.closed_loop import load_settings, run_config, train_run
+    from escort_rl.bench.closed_loop import run_config, train_run
 
-    settings, learned = load_settings(), learned_methods()
+    settings = registry.load_settings()
+    learned = registry.learned_methods(settings)
     out = {}
     for d in domains:
         for m in methods:
@@ -300,79 +130,9 @@ def train_learned_beliefs(domains, methods, runs_dir: Path, progress: bool = Fal
     return out
 
 
-@torch.no_grad()
-def learned_trajectories(domain: str, method: str, traj: dict, seeds: list[int], checkpoint: str,
-                         base_seed: int = 0) -> dict:
-    """A learned belief (DVRL) on the shared trajectories: the same output as :func:`filter_trajectories`.
-
-    The belief starts fresh (``h = z = 0``, the readout of that summary is the step-0 estimate) and
-    takes ``(actions[t], observations[t])`` at each step, as in its training (``a_{t-1}``, ``o_t``); the
-    position error is that of its readout's state estimate. It has no particles in state space, so
-    there is no prior hash (``belief_hashes`` are empty strings)."""
-    from escort_rl.trainers.dvrl_a2c import load_dvrl_policy
-
-    model, _ = build_domain(domain)
-    _, policy = load_dvrl_policy(checkpoint)
-    dvrl, readout = policy.dvrl, policy.readout
-    states, actions, obs = traj["states"], traj["actions"], traj["observations"]
-    b, steps = actions.shape
-    g = torch.Generator().manual_seed(derived_seed("filter", base_seed, seeds[0]))
-    state = dvrl.initial_state(b)
-    errors = [position_error(model, readout(dvrl.summarize(state)), states[:, 0])]
-    out = {"seconds": 0.0, "first_seconds": 0.0, "timed_steps": max(steps - 1, 1), "steps": steps,
-           "input_hashes": [tensor_hash(states[i], actions[i], obs[i]) for i in range(b)],
-           "belief_hashes": [""] * b, "filter": f"{method} ({display_path(Path(checkpoint))})", "failed": None}
-    for t in range(steps):
-        t0 = time.perf_counter()
-        state, _, summary = dvrl.step(state, actions[:, t], obs[:, t], None, g)
-        estimate = readout(summary)
-        if t == 0 and steps > 1:
-            out["first_seconds"] = time.perf_counter() - t0
-        else:
-            out["seconds"] += time.perf_counter() - t0
-        errors.append(position_error(model, estimate, states[:, t + 1]))
-    out["errors"] = torch.stack(errors, dim=1)
-    return out
-
-
-def _chunk_task(domain: str, method: str, seeds: list[int], n: int, steps: int, base_seed: int,
-                filter_set: tuple = ()) -> dict:
-    """One worker process's share: regenerate its seeds' trajectories (identical to the main process's:
-    same per-seed generators; the hashes are checked) and filter them. Module-level for spawn."""
-    model, _ = build_domain(domain)
-    traj = generate_trajectories(model, steps, seeds, base_seed)
-    out = filter_trajectories(domain, method, traj, seeds, n, base_seed, filter_set)
-    out["errors"] = out["errors"].tolist()
-    return out
-
-
-def _worker_init(threads: int) -> None:
-    torch.set_num_threads(threads)
-
-
-def split_seeds(seeds: list[int], workers: int) -> list[list[int]]:
-    """``workers`` contiguous chunks (fewer if there are fewer seeds), sizes differing by at most 1."""
-    k = max(1, min(workers, len(seeds)))
-    q, r = divmod(len(seeds), k)
-    chunks, start = [], 0
-    for i in range(k):
-        size = q + (1 if i < r else 0)
-        chunks.append(seeds[start:start + size])
-        start += size
-    return chunks
-
-
-def mean_se(values) -> tuple[float, float]:
-    v = [float(a) for a in values if not math.isnan(float(a))]
-    if not v:
-        return float("nan"), float("nan")
-    m = sum(v) / len(v)
-    if len(v) < 2:
-        return m, 0.0
-    return m, math.sqrt(sum((a - m) ** 2 for a in v) / (len(v) - 1) / len(v))
-
-
+# ---------------------------------------------------------------------------------------- rows
 def _row(domain: str, method: str, n: int, parts: list[dict], seeds: list[int]) -> dict:
+    """A table row from the results of the row's cells (in seed order)."""
     failed = [p["failed"] for p in parts if p.get("failed")]
     if failed:  # a diverged belief: no error figures, the earliest failure is reported
         first = min(failed, key=lambda f: f["step"])
@@ -384,9 +144,9 @@ def _row(domain: str, method: str, n: int, parts: list[dict], seeds: list[int]) 
     errors = torch.tensor([e for p in parts for e in p["errors"]], dtype=torch.float64)  # [B, T+1]
     b = errors.shape[0]
     steps = parts[0]["steps"]
-    seconds = sum(p["seconds"] for p in parts)
+    seconds = sum(p["timing"]["seconds"] for p in parts)
     timed = parts[0]["timed_steps"]
-    first = sum(p["first_seconds"] for p in parts)
+    first = sum(p["timing"]["first_seconds"] for p in parts)
     final = errors[:, -1]
     avg = errors[:, 1:].mean(1) if steps > 0 else errors[:, 0]
     se_t = errors.std(0, unbiased=True) / math.sqrt(b) if b > 1 else torch.zeros(errors.shape[1])
@@ -408,114 +168,93 @@ def _row(domain: str, method: str, n: int, parts: list[dict], seeds: list[int]) 
     }
 
 
-class _Runner:
-    """Runs (domain, method, N) jobs over seed chunks, inline (``workers = 1``) or in a spawn pool."""
+class _Grid:
+    """Runs (domain, method, N) rows as cells on a backend and assembles the rows."""
 
-    def __init__(self, workers: int, seeds: list[int], base_seed: int, trajs: dict, filter_set: tuple,
-                 threads: int | None = None, learned: dict | None = None) -> None:
-        self.learned = learned or {}  # (domain, method) -> checkpoint: run inline, on all seeds
-        self.chunks = split_seeds(seeds, workers)
-        self.filter_set = filter_set
-        self.trajs = trajs
-        self.seeds = seeds
-        self.base_seed = base_seed
-        self.pool = None
-        self.worker_threads = None
-        if len(self.chunks) > 1:
-            import multiprocessing as mp
+    def __init__(self, backend, store, seeds: list[int], per_cell, base_seed: int, horizon: dict, filter_set: tuple,
+                 threads: int, learned: dict, progress) -> None:
+        self.backend, self.store, self.seeds, self.base_seed = backend, store, seeds, base_seed
+        self.blocks = seed_blocks(seeds, per_cell)
+        self.horizon, self.filter_set, self.threads, self.learned = horizon, filter_set, threads, learned
+        self.progress = progress
 
-            threads = threads or max(1, (os.cpu_count() or 1) // len(self.chunks))
-            self.worker_threads = threads
-            self.pool = ProcessPoolExecutor(len(self.chunks), mp_context=mp.get_context("spawn"),
-                                            initializer=_worker_init, initargs=(threads,))
+    def cells(self, d: str, m: str, n: int) -> list[Cell]:
+        common = dict(domain=d, method=m, steps=self.horizon[d], base_seed=self.base_seed, threads=self.threads)
+        if (d, m) in self.learned:
+            return [LearnedCell(seeds=b, checkpoint=str(self.learned[(d, m)]), **common) for b in self.blocks]
+        return [FilterCell(particles=n, seeds=b, filter_set=self.filter_set, **common) for b in self.blocks]
 
-    def run(self, jobs: list[tuple[str, str, int, int]], on_row=None) -> list[dict]:
-        """``jobs``: (domain, method, N, steps). Rows in job order; ``on_row`` is called as each completes."""
-        rows = []
-        inline = self.pool is None
-        futures = [None if inline or (d, m) in self.learned else
-                   [self.pool.submit(_chunk_task, d, m, c, n, s, self.base_seed, self.filter_set) for c in self.chunks]
-                   for d, m, n, s in jobs]
-        for (domain, method, n, _), fs in zip(jobs, futures):
-            if fs is not None:
-                parts = [f.result() for f in fs]
-            else:
-                if (domain, method) in self.learned:
-                    part = learned_trajectories(domain, method, self.trajs[domain], self.seeds,
-                                                self.learned[(domain, method)], self.base_seed)
-                else:
-                    part = filter_trajectories(domain, method, self.trajs[domain], self.seeds, n, self.base_seed,
-                                               self.filter_set)
-                part["errors"] = part["errors"].tolist()
-                parts = [part]
-            rows.append(_row(domain, method, n, parts, self.seeds))
-            if on_row is not None:
-                on_row(rows[-1])
-        return rows
+    def run(self, jobs: list[tuple[str, str, int]], desc: str) -> list[dict]:
+        """``jobs``: (domain, method, N). Rows in job order; each is reported to ``progress`` as
+        soon as its last cell is in."""
+        cells = {job: self.cells(*job) for job in jobs}
+        flat = [c for job in jobs for c in cells[job]]
+        owner = {id(c): job for job in jobs for c in cells[job]}
+        done: dict = {job: {} for job in jobs}
+        rows = {}
 
-    def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(cancel_futures=True)
+        def on_result(cell, result):
+            job = owner[id(cell)]
+            done[job][cell.seeds] = result
+            if len(done[job]) == len(cells[job]):
+                rows[job] = _row(*job, [done[job][c.seeds] for c in cells[job]], self.seeds)
+                if self.progress is not None:
+                    self.progress("row", rows[job])
+
+        run_cells(flat, self.backend, self.store, on_result, desc=desc)
+        return [rows[job] for job in jobs]
 
 
-def time_per_step(domain: str, method: str, traj: dict, seeds: list[int], n: int, steps: int,
-                  base_seed: int = 0, filter_set: tuple = ()) -> float:
-    """Seconds per batched update of ``method`` at ``n`` particles: one warm-up update, then the mean
-    of ``steps`` timed updates on the shared trajectories of ``seeds``."""
-    model, _ = build_domain(domain)
-    filt = build_method(domain, method, filter_set)
-    belief, _ = initial_beliefs(filt, model, seeds, n, base_seed)
-    g = torch.Generator().manual_seed(derived_seed("filter", base_seed, seeds[0]))
-    total_steps = min(traj["actions"].shape[1], steps + 1)
-    seconds = 0.0
-    for t in range(total_steps):
-        t0 = time.perf_counter()
-        belief = filt.update(model, belief, traj["actions"][:, t], traj["observations"][:, t], g)
-        if t > 0 or total_steps == 1:
-            seconds += time.perf_counter() - t0
-        _check_finite(belief, method, domain, t + 1, seeds)
-    return seconds / max(total_steps - 1, 1)
-
-
-def run_domains(domains=DEFAULT_DOMAINS, methods=DEFAULT_METHODS, seeds: int = 30, n: int = 100,
-                steps: int | None = None, workers: int = 1, equal_time: bool = True,
-                max_particles: int = 2000, particle_grid=PARTICLE_GRID, reference: str = "escort",
-                calibration_steps: int = 3, base_seed: int = 0, filter_set=(), threads: int | None = None,
-                progress=None, plot_dir=None, runs_dir=None) -> dict:
+# ---------------------------------------------------------------------------------------- protocol (a)
+def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, seeds: int = 30, n: int = 100,
+                steps: int | None = None, backend=None, equal_time: bool = True, max_particles: int = 2000,
+                particle_grid=PARTICLE_GRID, reference: str = "escort", calibration_steps: int = 3,
+                base_seed: int = 0, filter_set=(), threads: int | None = None, seeds_per_cell: int | None = None,
+                progress=None, plot_dir=None, runs_dir=None, cells_dir=None) -> dict:
     """Protocol (a) for every method on every domain; per-seed values and mean ± s.e.
 
-    ``steps``: the horizon (default: each domain's ``env.max_steps``). ``filter_set``: (key, value)
+    ``steps``: the horizon (default: each domain's ``env.max_steps``). ``backend``: a runner backend
+    (:func:`escort_rl.bench.runner.make_backend`; default in-process). ``threads``: torch threads in
+    every cell and in the equal-time measurement (default 1: small batched updates are often fastest
+    on one thread). ``seeds_per_cell``: seeds per cell (default all). ``filter_set``: (key, value)
     pairs set on every method's filter config that has the key (e.g. ``("num_steps", "10")``).
-    ``threads``: torch threads in this process and in each worker (default: torch's default here,
-    ``cpu_count // workers`` in workers); restored on return. Small batched updates are often fastest
-    on one thread, and much slower with several threads on a busy machine. ``progress(kind, payload)`` is
-    called with ``("row", row)`` after each (domain, method) and ``("calibration", dict)`` after each
-    equal-time measurement. With ``plot_dir``, writes ``error_over_time_<domain>.png``.
-    Learned-belief methods (``dvrl``) are trained first in ``runs_dir/<domain>/<method>`` (required
-    for them; see :func:`train_learned_beliefs`); they have no particle count, so they sit out the
-    equal-time table.
+    ``progress(kind, payload)`` is called with ``("row", row)`` after each (domain, method) and
+    ``("calibration", dict)`` after each equal-time measurement. With ``plot_dir``, writes
+    ``error_over_time_<domain>.png``; with ``cells_dir``, each cell's result is saved there as it
+    finishes and a rerun skips the finished cells. Learned-belief methods (``dvrl``) are trained
+    first in ``runs_dir/<domain>/<method>`` (required for them; see :func:`train_learned_beliefs`);
+    they have no particle count, so they sit out the equal-time table.
+
+    Examples:
+        >>> r = run_domains(["lightdark10d"], ["sir"], seeds=2, n=10, steps=2, equal_time=False)
+        >>> r["rows"][0]["per_seed"]["final_error"]  # doctest: +SKIP
+        [1.93..., 2.41...]
     """
+    from escort_rl.bench.runner import InProcessBackend
+
     domains, methods = list(domains), list(methods)
     filter_set = tuple(tuple(kv) for kv in filter_set)
     check_names(domains, methods, filter_set)
-    check_at_least_one(seeds=seeds, particles=n, steps=steps, workers=workers, threads=threads)
-    learned = [m for m in methods if m in learned_methods()]
+    check_at_least_one(seeds=seeds, particles=n, steps=steps, threads=threads, seeds_per_cell=seeds_per_cell)
+    learned = [m for m in methods if m in registry.learned_methods()]
     if learned and runs_dir is None:
         raise ValueError(f"--output: the learned beliefs {', '.join(learned)} need a folder to train in")
+    threads = threads or 1
+    backend = backend or InProcessBackend()
     previous_threads = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(threads)
+    torch.set_num_threads(threads)
     try:
         checkpoints = train_learned_beliefs(domains, learned, Path(runs_dir)) if learned else {}
-        return _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_particles, particle_grid,
-                            reference, calibration_steps, base_seed, filter_set, threads, progress, plot_dir,
-                            checkpoints)
+        return _run_domains(domains, methods, seeds, n, steps, backend, equal_time, max_particles, particle_grid,
+                            reference, calibration_steps, base_seed, filter_set, threads, seeds_per_cell, progress,
+                            plot_dir, checkpoints, CellStore(cells_dir) if cells_dir is not None else None)
     finally:
         torch.set_num_threads(previous_threads)
 
 
-def _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_particles, particle_grid, reference,
-                 calibration_steps, base_seed, filter_set, threads, progress, plot_dir, checkpoints) -> dict:
+def _run_domains(domains, methods, seeds, n, steps, backend, equal_time, max_particles, particle_grid, reference,
+                 calibration_steps, base_seed, filter_set, threads, seeds_per_cell, progress, plot_dir, checkpoints,
+                 store) -> dict:
     seed_list = list(range(seeds))
     horizon = {d: (steps if steps is not None else build_domain(d)[1]) for d in domains}
     t_start = time.perf_counter()
@@ -533,20 +272,17 @@ def _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_par
             info["shared_final_distance_to_goal"] = mean_se(dist)
         domain_info[d] = info
 
-    def on_row(row):
-        if progress is not None:
-            progress("row", row)
-
-    runner = _Runner(workers, seed_list, base_seed, trajs, filter_set, threads, checkpoints)
+    grid = _Grid(backend, store, seed_list, seeds_per_cell, base_seed, horizon, filter_set, threads, checkpoints,
+                 progress)
     filters = [m for m in methods if not any((d, m) in checkpoints for d in domains)]
     try:
-        rows = runner.run([(d, m, n, horizon[d]) for d in domains for m in methods], on_row)
+        rows = grid.run([(d, m, n) for d in domains for m in methods], desc="protocol (a) cells")
         equal = None
         if equal_time and filters:
-            equal = _equal_time(domains, filters, rows, trajs, seed_list, n, horizon, runner, max_particles,
-                                particle_grid, reference, calibration_steps, base_seed, progress)
+            equal = _equal_time(domains, filters, rows, trajs, seed_list, n, grid, max_particles, particle_grid,
+                                reference, calibration_steps, base_seed, progress)
     finally:
-        runner.close()
+        backend.close()
     for row in rows:
         if row["input_hashes"] != domain_info[row["domain"]]["trajectory_hashes"]:
             raise RuntimeError(f"method '{row['method']}' on '{row['domain']}' saw a different trajectory")
@@ -554,12 +290,13 @@ def _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_par
     result = {
         "protocol": "a: shared trajectories",
         "behaviour_policy": BEHAVIOUR_POLICY,
-        "seeds": seeds, "particles": n, "workers": workers, "base_seed": base_seed,
+        "seeds": seeds, "particles": n, "base_seed": base_seed,
+        "backend": backend.name, "workers": getattr(backend, "workers", 1), "cell_threads": threads,
+        "seeds_per_cell": len(grid.blocks[0]),
         "methods": methods, "domains": domains, "domain_info": domain_info,
         "filter_set": {m: applied_filter_set(m, filter_set) for m in filters},
         "learned": {f"{d}/{m}": display_path(Path(c)) for (d, m), c in checkpoints.items()},
-        "torch_threads": torch.get_num_threads(),
-        "worker_threads": (runner.worker_threads if workers > 1 else None), "seconds": time.perf_counter() - t_start,
+        "seconds": time.perf_counter() - t_start,
         "rows": rows, "equal_time": equal,
     }
     if plot_dir is not None:
@@ -568,7 +305,7 @@ def _run_domains(domains, methods, seeds, n, steps, workers, equal_time, max_par
     return result
 
 
-def _calibrate(domains, methods, trajs, seed_list, n, runner, grid, ref, calibration_steps, base_seed,
+def _calibrate(domains, methods, trajs, seed_list, n, filter_set, grid, ref, calibration_steps, base_seed,
                progress, failed: dict) -> dict:
     """Per domain: the reference's seconds per step at ``n`` (the budget), each other method's seconds
     per step on the grid (stopping at the first ``N'`` over the budget), and the ``N'`` chosen: the
@@ -576,7 +313,7 @@ def _calibrate(domains, methods, trajs, seed_list, n, runner, grid, ref, calibra
     ``failed``: domain -> methods whose equal-N run failed; they are not timed."""
     out = {}
     for d in domains:
-        budget = time_per_step(d, ref, trajs[d], seed_list, n, calibration_steps, base_seed, runner.filter_set)
+        budget = time_per_step(d, ref, trajs[d], seed_list, n, calibration_steps, base_seed, filter_set)
         calib, chosen = {}, {}
         for m in methods:
             if m == ref or m in failed.get(d, ()):  # a failed method keeps N (its failed row is reused)
@@ -585,7 +322,7 @@ def _calibrate(domains, methods, trajs, seed_list, n, runner, grid, ref, calibra
             times = {}
             for k in grid:
                 times[str(k)] = time_per_step(d, m, trajs[d], seed_list, k, calibration_steps, base_seed,
-                                              runner.filter_set)
+                                              filter_set)
                 if times[str(k)] > budget:
                     break  # time grows with N: larger N' cannot fit either
             fits = [int(k) for k, t in times.items() if t <= budget]
@@ -600,31 +337,20 @@ def _calibrate(domains, methods, trajs, seed_list, n, runner, grid, ref, calibra
     return out
 
 
-def _equal_time(domains, methods, rows, trajs, seed_list, n, horizon, runner, max_particles, particle_grid,
-                reference, calibration_steps, base_seed, progress) -> dict:
+def _equal_time(domains, methods, rows, trajs, seed_list, n, grid, max_particles, particle_grid, reference,
+                calibration_steps, base_seed, progress) -> dict:
     ref = reference if reference in methods else methods[0]
-    grid = sorted({int(k) for k in particle_grid if k <= max_particles} | {n})
-    out = {"reference": ref, "reference_particles": n, "grid": grid, "calibration_steps": calibration_steps,
+    sizes = sorted({int(k) for k in particle_grid if k <= max_particles} | {n})
+    out = {"reference": ref, "reference_particles": n, "grid": sizes, "calibration_steps": calibration_steps,
            "domains": {}, "rows": []}
+    failed = {d: {r["method"] for r in rows if r["domain"] == d and r["failed"]} for d in domains}
+    choices = _calibrate(domains, methods, trajs, seed_list, n, grid.filter_set, sizes, ref, calibration_steps,
+                         base_seed, progress, failed)
     jobs = []
-    threads_here = torch.get_num_threads()
-    if runner.worker_threads:  # time under the workers' thread count, as the runs they are compared with
-        torch.set_num_threads(runner.worker_threads)
-    try:
-        failed = {d: {r["method"] for r in rows if r["domain"] == d and r["failed"]} for d in domains}
-        choices = _calibrate(domains, methods, trajs, seed_list, n, runner, grid, ref, calibration_steps, base_seed,
-                             progress, failed)
-    finally:
-        torch.set_num_threads(threads_here)
     for d in domains:
         out["domains"][d] = choices[d]
-        jobs += [(d, m, choices[d]["chosen"][m], horizon[d]) for m in methods if choices[d]["chosen"][m] != n]
-
-    def on_row(row):
-        if progress is not None:
-            progress("row", row)
-
-    rerun = {(r["domain"], r["method"]): r for r in runner.run(jobs, on_row)}
+        jobs += [(d, m, choices[d]["chosen"][m]) for m in methods if choices[d]["chosen"][m] != n]
+    rerun = {(r["domain"], r["method"]): r for r in grid.run(jobs, desc="equal-time cells")}
     for d in domains:
         for m in methods:
             if (d, m) in rerun:
@@ -639,50 +365,19 @@ def _equal_time(domains, methods, rows, trajs, seed_list, n, horizon, runner, ma
 # ---------------------------------------------------------------------------------------- reporting
 def plot_error_over_time(result: dict, domain: str, path: Path) -> Path:
     """Mean position error against the step, one line per method, shaded ± s.e."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    for row in (r for r in result["rows"] if r["domain"] == domain and not r["failed"]):
-        m = torch.tensor(row["error_over_time"]["mean"])
-        se = torch.tensor(row["error_over_time"]["se"])
-        t = torch.arange(m.shape[0])
-        ax.plot(t.numpy(), m.numpy(), label=row["method"], lw=1.2)
-        ax.fill_between(t.numpy(), (m - se).numpy(), (m + se).numpy(), alpha=0.2)
-    ax.set_xlabel("step (0: prior)")
-    ax.set_ylabel("position error ‖E_b[pos] − pos_true‖₂")
-    ax.set_title(f"{domain}: protocol (a), N = {result['particles']}, {result['seeds']} seeds (mean ± s.e.)",
-                 fontsize=9)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def _fmt(pair, digits: int = 3) -> str:
-    m, se = pair
-    return "—" if m is None or math.isnan(m) else f"{m:.{digits}f} ± {se:.{digits}f}"
+    curves = {r["method"]: (r["error_over_time"]["mean"], r["error_over_time"]["se"])
+              for r in result["rows"] if r["domain"] == domain and not r["failed"]}
+    return plot_curves(curves, path, "step (0: prior)", "position error ‖E_b[pos] − pos_true‖₂",
+                       f"{domain}: protocol (a), N = {result['particles']}, {result['seeds']} seeds (mean ± s.e.)")
 
 
 def _table(result: dict, rows: list[dict], cell) -> list[str]:
     """One row per method, one column per domain; a failed run's cell says at which step it failed."""
-    domains = result["domains"]
-    lines = ["| method | " + " | ".join(domains) + " |", "| --- | " + " | ".join("---" for _ in domains) + " |"]
-    by = {(r["domain"], r["method"]): r for r in rows}
-
-    def show(r):
-        return f"failed at step {r['failed']['step']}" if r["failed"] else cell(r)
-
     learned = {key.split("/", 1)[1] for key in result.get("learned", {})}
-    for m in result["methods"]:
-        label = f"{m.upper()} (learned belief, readout)" if m in learned else m
-        if not any((d, m) in by for d in domains):
-            continue  # e.g. a learned belief in the equal-time table
-        lines.append(f"| {label} | " + " | ".join(show(by[(d, m)]) if (d, m) in by else "—" for d in domains) + " |")
-    return lines
+    cells = {(r["domain"], r["method"]): f"failed at step {r['failed']['step']}" if r["failed"] else cell(r)
+             for r in rows}
+    return method_table(result["domains"], result["methods"], cells,
+                        label=lambda m: f"{m.upper()} (learned belief, readout)" if m in learned else m)
 
 
 def domains_markdown(result: dict) -> str:
@@ -707,18 +402,17 @@ def domains_markdown(result: dict) -> str:
             "count and are not in the equal-time table."), ""] if result.get("learned") else []),
         "## Final position error (after the last step)",
         "",
-        *_table(result, result["rows"], lambda r: _fmt(r["summary"]["final_error"])),
+        *_table(result, result["rows"], lambda r: format_mean_se(r["summary"]["final_error"])),
         "",
         "## Time-averaged position error (steps 1..T)",
         "",
-        *_table(result, result["rows"], lambda r: _fmt(r["summary"]["mean_error"])),
+        *_table(result, result["rows"], lambda r: format_mean_se(r["summary"]["mean_error"])),
         "",
         "## Wall-clock per filter update",
         "",
-        f"Milliseconds per step for the whole batch of {result['seeds']} beliefs / per belief "
-        f"(`--workers {result['workers']}`" + (
-            f": the sum over the worker processes, each with {result['worker_threads']} torch threads"
-            if result.get("worker_threads") else f", torch threads: {result['torch_threads']}") + "), "
+        f"Milliseconds per step for the whole batch of {result['seeds']} beliefs / per belief (the sum over "
+        f"the row's cells of {result['seeds_per_cell']} seeds, each with {result['cell_threads']} torch threads; "
+        f"backend {result['backend']}" + (f", {result['workers']} workers" if result["workers"] > 1 else "") + "), "
         "over steps 2..T; the first update is a warm-up (it compiles, for `compile=true`) and its "
         "seconds are in brackets.",
         "",
@@ -736,11 +430,11 @@ def domains_markdown(result: dict) -> str:
             f"warm-up, then the mean of {eq['calibration_steps']} updates on the same trajectories) is not "
             f"above {eq['reference']}'s at N = {eq['reference_particles']}; {eq['reference']} keeps N = "
             f"{eq['reference_particles']}. Cells: final error mean ± s.e. (N', ms per step in the timing "
-            "measurement / in the run itself). A row at N' = N reuses the equal-N run. With `--workers` > 1 the "
-            "runs' own times are sums over processes running side by side; the choice of N' uses the timing "
-            "measurement, one process at a time.",
+            "measurement / in the run itself). A row at N' = N reuses the equal-N run. The runs' own times are sums "
+            "over the row's cells, which may have run side by side; the choice of N' uses the timing "
+            "measurement, one method at a time in one process.",
             "",
-            *_table(result, eq["rows"], lambda r: f"{_fmt(r['summary']['final_error'])} "
+            *_table(result, eq["rows"], lambda r: f"{format_mean_se(r['summary']['final_error'])} "
                                                   f"(N'={r['particles']}, {1e3 * r['calibrated_seconds_per_step']:.1f}"
                                                   f" / {1e3 * r['seconds_per_step']:.1f} ms)"),
             "",
@@ -771,9 +465,93 @@ def domains_markdown(result: dict) -> str:
         "method; only the error metrics above differ between methods. The closed-loop task outcome "
         "(each filter driving its own trained policy, or POMCPOW) is protocol (b), reported separately.",
     ]
-    shared = [f"{d} {_fmt(info[d]['shared_final_distance_to_goal'])}" for d in result["domains"]
+    shared = [f"{d} {format_mean_se(info[d]['shared_final_distance_to_goal'])}" for d in result["domains"]
               if "shared_final_distance_to_goal" in info[d]]
     if shared:
         lines.append("Shared trajectories' final true distance to goal (the same for all methods): "
                      + ", ".join(shared) + ".")
     return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------------------- command line
+QUICK = dict(domains=list(registry.DOMAINS), methods=list(registry.QUICK_METHODS), seeds=2, particles=30, steps=20,
+             max_particles=60, filter_set=[], threads=1)
+"""``bench domains --quick`` (flags given explicitly win)."""
+
+
+def register(subparsers) -> None:
+    """Add ``bench domains`` (protocols (a) and (b)) to the ``bench`` subparsers."""
+    dom = subparsers.add_parser(
+        "domains", help="filters on Light-Dark, Kidnapped Robot, MTT: shared trajectories",
+        description="Protocol (a) of SPEC §6 (paper Table 1 layout): every method filters the same seeded "
+        "trajectories (uniform random actions) from the same seeded priors; final and time-averaged position "
+        "error (mean ± s.e. over seeds), ms per step, and a table at equal wall-clock per step. Methods are "
+        "filter config names. The grid's cells (domain × method × seeds) run on --backend; each is saved in "
+        "<output>/cells as it finishes and a rerun skips it.")
+    dom.add_argument("--domains", nargs="+", default=None,
+                     help=f"env configs (default: {' '.join(registry.DOMAINS)})")
+    dom.add_argument("--methods", nargs="+", default=None, help=registry.methods_help())
+    dom.add_argument("--seeds", type=int, default=None, help="seeds 0..S-1 (default 30)")
+    dom.add_argument("--particles", type=int, default=None, help="N for every method (default 100)")
+    dom.add_argument("--steps", type=int, default=None, help="steps per trajectory (default: env.max_steps)")
+    add_runner_arguments(dom, threads_help="torch threads in each cell and in the equal-time measurement "
+                         "(default 1; small updates are often fastest with 1)")
+    dom.add_argument("--max-particles", type=int, default=None,
+                     help="largest N' for the equal wall-clock table (default 2000)")
+    dom.add_argument("--no-equal-time", action="store_true", help="skip the equal wall-clock table")
+    dom.add_argument("--filter-set", nargs="+", default=None, metavar="KEY=VALUE",
+                     help="set a filter key on every method that has it, e.g. num_steps=10 or compile=true")
+    dom.add_argument("--quick", action="store_true",
+                     help="smoke run (flags given explicitly win): all three domains, "
+                     f"{' '.join(registry.QUICK_METHODS)}, 2 seeds, 20 steps, N=30, 1 torch thread, equal-time grid "
+                     "up to N'=60 with 1 timed step; protocol b: 10 steps, N=20, 1 training iteration of 2 envs")
+    dom.add_argument("--protocol", choices=("a", "b"), default="a",
+                     help="a: shared trajectories (default); b: closed loop, each method trains its own DeepSets "
+                     "policy (budget per domain in configs/bench/closed_loop.yaml) and drives it on --seeds "
+                     "evaluation episodes; a rerun with the same --output resumes from the checkpoints")
+    dom.add_argument("--train-iterations", type=int, default=None,
+                     help="protocol b: trainer.iterations for every domain (default: the yaml's)")
+    dom.add_argument("--train-envs", type=int, default=None,
+                     help="protocol b: trainer.num_envs for every domain (default: the yaml's)")
+    dom.add_argument("--output", default="outputs/bench/domains", help="folder for domains.json, domains.md, PNGs "
+                     "and cells/ (protocol b: closed_loop.json, closed_loop.md, PNGs and runs/)")
+    dom.set_defaults(handler=main)
+
+
+def main(args) -> None:
+    """``bench domains``: protocol (a) here, protocol (b) in :func:`escort_rl.bench.closed_loop.main`."""
+    if args.protocol == "b":
+        from escort_rl.bench import closed_loop
+
+        return closed_loop.main(args)
+    if args.train_iterations is not None or args.train_envs is not None:
+        raise ValueError("--train-iterations/--train-envs: only for --protocol b")
+    full = dict(domains=list(registry.DOMAINS), methods=list(registry.PROTOCOL_A_METHODS), seeds=30, particles=100,
+                steps=None, max_particles=2000, filter_set=[], threads=None)
+    kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
+    backend = backend_from_args(args)
+
+    def show(kind, payload):
+        if kind == "row" and payload["failed"]:
+            f = payload["failed"]
+            print(f"{payload['domain']:>13} {payload['method']:>14} N={payload['particles']:<5} FAILED at step "
+                  f"{f['step']}: {f['message']}", flush=True)
+        elif kind == "row":
+            s = payload["summary"]
+            print(f"{payload['domain']:>13} {payload['method']:>14} N={payload['particles']:<5} final error "
+                  f"{format_mean_se(s['final_error'])}  mean error {format_mean_se(s['mean_error'])}  "
+                  f"{1e3 * payload['seconds_per_step']:.1f} ms/step", flush=True)
+        else:
+            times = ", ".join(f"N'={k}: {1e3 * v:.1f} ms" for k, v in payload["times"].items())
+            print(f"{payload['domain']:>13} {payload['method']:>14} equal-time: budget "
+                  f"{1e3 * payload['budget']:.1f} ms; {times} -> N'={payload['chosen']}", flush=True)
+
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    result = run_domains(kw["domains"], kw["methods"], seeds=kw["seeds"], n=kw["particles"], steps=kw["steps"],
+                         backend=backend, equal_time=not args.no_equal_time, max_particles=kw["max_particles"],
+                         calibration_steps=1 if args.quick else 3, filter_set=parse_filter_set(kw["filter_set"]),
+                         threads=kw["threads"], seeds_per_cell=args.seeds_per_cell, progress=show, plot_dir=out,
+                         runs_dir=out / "runs", cells_dir=out / "cells")
+    write_results(out, "domains", result, domains_markdown(result), time.perf_counter() - t0)

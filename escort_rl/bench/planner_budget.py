@@ -229,3 +229,20 @@ def cli(args) -> dict:
     print(md)
     print(f"results: {out} ({result['seconds']:.1f} s)")
     return result
+
+
+def register(subparsers) -> None:
+    """Add ``bench planner-budget`` to the ``bench`` subparsers."""
+    pb = subparsers.add_parser("planner-budget", help="POMCPOW return against simulations per decision",
+                               description="POMCPOW on an SIR belief with each n_sim in --budgets, plus a "
+                               "uniform-random policy, on the same seeded episodes: return, final distance to goal "
+                               "and ms per decision (mean ± s.e.); writes planner_budget.json and planner_budget.md.")
+    pb.add_argument("--domain", default="lightdark1d", help="lightdark1d (default) or a configs/planner domain")
+    pb.add_argument("--budgets", type=int, nargs="+", default=None,
+                    help="n_sim values (default: lightdark1d 10 30 100 300, others 10 50 200)")
+    pb.add_argument("--episodes", type=int, default=None, help="episodes, one seeded batch (default 30 / 10)")
+    pb.add_argument("--steps", type=int, default=None, help="steps per episode (default 15 / 100)")
+    pb.add_argument("--output", default="outputs/bench/planner_budget", help="folder for the JSON and markdown")
+    pb.add_argument("--quick", action="store_true", help="smoke run (flags given win): budgets 2 5, 2 episodes, "
+                    "3 steps, 20 particles")
+    pb.set_defaults(handler=cli)

@@ -5,20 +5,29 @@ F_temp is off), SIR (importance resampling of the initial cloud by ``p/q``), a D
 parametric fit (DVRL's diagonal-Gaussian proposal family fitted by the importance-weighted ELBO with
 K = 100, then sampled; :mod:`escort_rl.bench.parametric`), and an oracle of N exact i.i.d. samples of
 the target (the floor N particles can reach). Every metric compares the
-particles with a fresh set of N exact samples. Seeds are batched: all seeds of a method are fitted
-in one ``[S, N, d]`` call.
+particles with a fresh set of N exact samples.
+
+The grid's cells are (target × method × block of seeds) (:class:`SyntheticCell`), run on any backend
+of :mod:`escort_rl.bench.runner` and saved under ``<output>/cells/`` as they finish; the seeds of a
+cell are fitted in one ``[S, N, d]`` call, and the random streams depend only on the cell's fields
+(the initial cloud, the oracle and the reference samples on each seed; the filters' noise on the
+cell's first seed), so every backend gives the same numbers.
 """
 
 from __future__ import annotations
 
-import math
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
 from escort_rl.belief import ESCORTFilter, SVGDFilter
 from escort_rl.belief.sir import systematic_resample_indices
 from escort_rl.bench import metrics
+from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices
+from escort_rl.bench.runner import Cell, CellStore, InProcessBackend, run_cells, seed_blocks
+from escort_rl.reporting.stats import format_mean_se, mean_se
 from escort_rl.bench.targets import (
     GaussianMixture,
     initial_distribution,
@@ -28,7 +37,7 @@ from escort_rl.bench.targets import (
 )
 
 SYNTHETIC_TARGETS = ("gmm1d", "gmm2d", "gmm3d", "gmm5d", "gmm20d")
-METHODS = ("escort", "escort_nocorr", "svgd", "sir", "dvrl", "oracle")
+SCALING_DIMS = (1, 5, 20, 50, 100, 200)
 
 
 def _sample_batch(dist: GaussianMixture, seeds: list[int], n: int, offset: int) -> torch.Tensor:
@@ -82,85 +91,147 @@ def score_particles(x: torch.Tensor, target: GaussianMixture, seeds: list[int], 
     return out
 
 
-def mean_se(values: list[float]) -> tuple[float, float]:
-    v = [a for a in values if not math.isnan(a)]
-    if not v:
-        return float("nan"), float("nan")
-    m = sum(v) / len(v)
-    if len(v) < 2:
-        return m, 0.0
-    var = sum((a - m) ** 2 for a in v) / (len(v) - 1)
-    return m, math.sqrt(var / len(v))
+@dataclass(frozen=True)
+class SyntheticCell(Cell):
+    """One method fitted to one static target on ``seeds`` (one batch ``[S, N, d]``) and scored.
+
+    The target is a named GMM of ``configs/bench/synthetic.yaml`` (``target``), or, with
+    ``structure``, the 5-mode scalability GMM of dimension ``dim``. With ``keep_particles`` the
+    result also holds seed 0's particles (for the figures).
+
+    Examples:
+        >>> cell = SyntheticCell(target="gmm1d", method="oracle", seeds=(0, 1), particles=20, num_steps=1)
+        >>> sorted(cell.run()["per_seed"])
+        ['corr_error', 'mmd2', 'mode_coverage', 'rmse', 'sliced_w1', 'w1']
+    """
+
+    target: str
+    method: str
+    seeds: tuple
+    particles: int
+    num_steps: int
+    filter_kwargs: tuple = ()
+    dim: int | None = None
+    structure: str | None = None
+    keep_particles: bool = False
+
+    def key(self) -> str:
+        return (f"synthetic/{self.target}/{self.method}/N{self.particles}-K{self.num_steps}-"
+                f"seeds{self.seeds[0]}-{self.seeds[-1]}")
+
+    def distributions(self) -> tuple[GaussianMixture, GaussianMixture]:
+        """The target and the initial cloud's distribution."""
+        if self.structure is None:
+            return load_target(self.target), initial_distribution(self.target)
+        return scalability_target(self.dim, self.structure, 0), scalability_initial(self.dim)
+
+    def run(self) -> dict:
+        target, initial = self.distributions()
+        seeds = list(self.seeds)
+        x, seconds = fit_particles(self.method, target, initial, seeds, self.particles, self.num_steps,
+                                   dict(self.filter_kwargs))
+        out = {"per_seed": score_particles(x, target, seeds), "timing": {"seconds": seconds}}
+        if self.keep_particles and 0 in seeds:
+            out["seed0_particles"] = x[seeds.index(0)].tolist()
+        return out
 
 
-def run_synthetic(targets=SYNTHETIC_TARGETS, methods=METHODS, seeds: int = 30, n: int = 1000,
-                  num_steps: int = 500, progress=None, plot_dir=None, filter_kwargs: dict | None = None) -> dict:
+def _run_grid(rows: list[dict], cells: dict, backend, cells_dir, progress) -> list[dict]:
+    """Run the cells of every row (``cells``: row index -> its cells, in seed order) and fill in
+    each row's ``per_seed``, ``summary`` and ``seconds`` as its last cell arrives."""
+    owner = {id(c): i for i, cs in cells.items() for c in cs}
+    done: dict = {i: {} for i in cells}
+
+    def on_result(cell, result):
+        i = owner[id(cell)]
+        done[i][cell.seeds] = result
+        if len(done[i]) < len(cells[i]):
+            return
+        parts = [done[i][c.seeds] for c in cells[i]]
+        per_seed = {k: [v for p in parts for v in p["per_seed"][k]] for k in parts[0]["per_seed"]}
+        rows[i].update(seconds=sum(p["timing"]["seconds"] for p in parts), per_seed=per_seed,
+                       summary={k: mean_se(v) for k, v in per_seed.items()})
+        shown = [p["seed0_particles"] for p in parts if "seed0_particles" in p]
+        if shown:
+            rows[i]["_shown"] = torch.tensor(shown[0])
+        if progress is not None:
+            progress(rows[i])
+
+    backend = backend or InProcessBackend()
+    try:
+        run_cells([c for i in sorted(cells) for c in cells[i]], backend,
+                  CellStore(cells_dir) if cells_dir is not None else None, on_result, desc="synthetic cells")
+    finally:
+        backend.close()
+    return rows
+
+
+def run_synthetic(targets=SYNTHETIC_TARGETS, methods=SYNTHETIC_METHODS, seeds: int = 30, n: int = 1000,
+                  num_steps: int = 500, progress=None, plot_dir=None, filter_kwargs: dict | None = None,
+                  backend=None, threads: int | None = None, seeds_per_cell: int | None = None,
+                  cells_dir=None) -> dict:
     """Fit and score every method on every target; per-seed values and mean ± s.e.
 
-    With ``plot_dir``, writes ``<target>_particles.png``: seed 0's particles of every method on the
-    target's contours (first two coordinates), and ``metrics_vs_dimension.png``.
+    ``backend``, ``threads`` (per cell, default 1), ``seeds_per_cell`` (default all) and
+    ``cells_dir`` (saved cells, skipped on a rerun): see :mod:`escort_rl.bench.runner`. With
+    ``plot_dir``, writes ``<target>_particles.png``: seed 0's particles of every method on the
+    target's contours (first two coordinates), and ``<metric>_vs_dimension.png``.
     """
-    from pathlib import Path
-
     from escort_rl.reporting.plots import plot_metric_against_dimension, plot_particles_on_target
 
-    seed_list = list(range(seeds))
-    results = []
+    check_choices("--methods", methods, SYNTHETIC_METHODS)
+    blocks = seed_blocks(list(range(seeds)), seeds_per_cell)
+    rows, cells = [], {}
     for name in targets:
-        target, initial = load_target(name), initial_distribution(name)
-        shown = {}
+        dim = load_target(name).dim
         for method in methods:
-            x, seconds = fit_particles(method, target, initial, seed_list, n, num_steps, filter_kwargs)
-            shown[method] = x[0]
-            per_seed = score_particles(x, target, seed_list)
-            row = {"target": name, "dim": target.dim, "method": method, "seconds": seconds,
-                   "per_seed": per_seed, "summary": {k: mean_se(v) for k, v in per_seed.items()}}
-            results.append(row)
-            if progress is not None:
-                progress(row)
-        if plot_dir is not None:
-            plot_particles_on_target(target.log_prob, shown, Path(plot_dir) / f"{name}_particles.png",
-                                     title=f"{name}: seed 0, N = {n}")
+            cells[len(rows)] = [SyntheticCell(target=name, method=method, seeds=b, particles=n, num_steps=num_steps,
+                                              filter_kwargs=tuple(sorted((filter_kwargs or {}).items())),
+                                              keep_particles=plot_dir is not None, threads=threads or 1)
+                                for b in blocks]
+            rows.append({"target": name, "dim": dim, "method": method})
+    _run_grid(rows, cells, backend, cells_dir, progress)
+    shown = {r["target"]: {} for r in rows}
+    for r in rows:
+        particles = r.pop("_shown", None)
+        if particles is not None:
+            shown[r["target"]][r["method"]] = particles
     if plot_dir is not None:
+        for name in targets:
+            plot_particles_on_target(load_target(name).log_prob, shown[name], Path(plot_dir) / f"{name}_particles.png",
+                                     title=f"{name}: seed 0, N = {n}")
         for metric in ("sliced_w1", "corr_error", "mmd2"):
-            plot_metric_against_dimension(results, metric, Path(plot_dir) / f"{metric}_vs_dimension.png")
+            plot_metric_against_dimension(rows, metric, Path(plot_dir) / f"{metric}_vs_dimension.png")
     return {"n": n, "seeds": seeds, "num_steps": num_steps, "filter_kwargs": dict(filter_kwargs or {}),
-            "rows": results}
+            "rows": rows}
 
 
-def run_scaling(dims=(1, 5, 20, 50, 100, 200), structures=("block", "banded", "long_range", "sparse"),
-                methods=("escort", "escort_nocorr", "svgd", "oracle"), seeds: int = 5, n: int = 1000,
-                num_steps: int = 500, progress=None, plot_dir=None, filter_kwargs: dict | None = None) -> dict:
+def run_scaling(dims=SCALING_DIMS, structures=("block", "banded", "long_range", "sparse"),
+                methods=SCALING_METHODS, seeds: int = 5, n: int = 1000, num_steps: int = 500, progress=None,
+                plot_dir=None, filter_kwargs: dict | None = None, backend=None, threads: int | None = None,
+                seeds_per_cell: int | None = None, cells_dir=None) -> dict:
     """RMSE (and the other metrics) of the 5-mode scalability GMMs against the dimension; with
-    ``plot_dir``, ``rmse_vs_dimension.png`` (averaged over the correlation structures)."""
-    from pathlib import Path
-
+    ``plot_dir``, ``rmse_vs_dimension.png`` (averaged over the correlation structures). The runner
+    arguments are those of :func:`run_synthetic`."""
     from escort_rl.reporting.plots import plot_metric_against_dimension
 
-    seed_list = list(range(seeds))
-    results = []
+    blocks = seed_blocks(list(range(seeds)), seeds_per_cell)
+    rows, cells = [], {}
     for d in dims:
         for structure in structures if d > 1 else structures[:1]:
-            target, initial = scalability_target(d, structure, 0), scalability_initial(d)
             for method in methods:
-                x, seconds = fit_particles(method, target, initial, seed_list, n, num_steps, filter_kwargs)
-                per_seed = score_particles(x, target, seed_list)
-                row = {"dim": d, "structure": structure, "method": method, "seconds": seconds,
-                       "per_seed": per_seed, "summary": {k: mean_se(v) for k, v in per_seed.items()}}
-                results.append(row)
-                if progress is not None:
-                    progress(row)
+                cells[len(rows)] = [SyntheticCell(target=f"scaling-{structure}-{d}d", method=method, seeds=b,
+                                                  particles=n, num_steps=num_steps, dim=d, structure=structure,
+                                                  filter_kwargs=tuple(sorted((filter_kwargs or {}).items())),
+                                                  threads=threads or 1) for b in blocks]
+                rows.append({"dim": d, "structure": structure, "method": method})
+    _run_grid(rows, cells, backend, cells_dir, progress)
     if plot_dir is not None:
-        plot_metric_against_dimension(results, "rmse", Path(plot_dir) / "rmse_vs_dimension.png",
+        plot_metric_against_dimension(rows, "rmse", Path(plot_dir) / "rmse_vs_dimension.png",
                                       ylabel="RMSE of the mean")
-        plot_metric_against_dimension(results, "mode_coverage", Path(plot_dir) / "coverage_vs_dimension.png")
+        plot_metric_against_dimension(rows, "mode_coverage", Path(plot_dir) / "coverage_vs_dimension.png")
     return {"n": n, "seeds": seeds, "num_steps": num_steps, "filter_kwargs": dict(filter_kwargs or {}),
-            "rows": results}
-
-
-def _fmt(pair: tuple[float, float], digits: int = 3) -> str:
-    m, se = pair
-    return "—" if math.isnan(m) else f"{m:.{digits}f} ± {se:.{digits}f}"
+            "rows": rows}
 
 
 def _filter_kwargs_note(result: dict) -> str:
@@ -188,14 +259,14 @@ def synthetic_markdown(result: dict) -> str:
     ]
     for r in result["rows"]:
         s = r["summary"]
-        lines.append(f"| {r['target']} | {r['method']} | {_fmt(s['mmd2'], 4)} | {_fmt(s['w1'])} | "
-                     f"{_fmt(s['sliced_w1'])} | {_fmt(s['mode_coverage'], 2)} | {_fmt(s['corr_error'])} | "
-                     f"{_fmt(s['rmse'])} | {r['seconds']:.1f} |")
+        lines.append(f"| {r['target']} | {r['method']} | {format_mean_se(s['mmd2'], 4)} | {format_mean_se(s['w1'])} | "
+                     f"{format_mean_se(s['sliced_w1'])} | {format_mean_se(s['mode_coverage'], 2)} | {format_mean_se(s['corr_error'])} | "
+                     f"{format_mean_se(s['rmse'])} | {r['seconds']:.1f} |")
     return "\n".join(lines) + "\n"
 
 
 def scaling_markdown(result: dict) -> str:
-    methods = sorted({r["method"] for r in result["rows"]}, key=lambda m: METHODS.index(m) if m in METHODS else 99)
+    methods = sorted({r["method"] for r in result["rows"]}, key=lambda m: SYNTHETIC_METHODS.index(m) if m in SYNTHETIC_METHODS else 99)
     lines = [
         "# Scalability: RMSE of the mean against the dimension (paper's RMSE table layout)",
         "",
@@ -211,8 +282,86 @@ def scaling_markdown(result: dict) -> str:
             keys.append((r["dim"], r["structure"]))
     for d, st in keys:
         by = {r["method"]: r for r in result["rows"] if (r["dim"], r["structure"]) == (d, st)}
-        cells = [_fmt(by[m]["summary"]["rmse"]) if m in by else "—" for m in methods]
+        cells = [format_mean_se(by[m]["summary"]["rmse"]) if m in by else "—" for m in methods]
         gap = (by["escort_nocorr"]["summary"]["rmse"][0] - by["escort"]["summary"]["rmse"][0]
                if "escort" in by and "escort_nocorr" in by else float("nan"))
         lines.append(f"| {d} | {st} | " + " | ".join(cells) + f" | {gap:+.4f} |")
     return "\n".join(lines) + "\n"
+
+
+def register(subparsers) -> None:
+    """Add ``bench synthetic`` and ``bench scaling`` to the ``bench`` subparsers."""
+    from escort_rl.bench.runner import add_runner_arguments
+    from escort_rl.bench.targets import SCALABILITY_STRUCTURES
+
+    syn = subparsers.add_parser("synthetic", help="fit the paper's GMM targets: ESCORT, NoCorr, SVGD, SIR, oracle",
+                                description="Static-target benchmark (paper Table 2 layout): MMD², W1, sliced W1, "
+                                "mode coverage, correlation error and RMSE, mean ± s.e. over seeds.")
+    syn.add_argument("--targets", nargs="+", default=list(SYNTHETIC_TARGETS))
+    syn.add_argument("--methods", nargs="+", default=list(SYNTHETIC_METHODS))
+    syn.add_argument("--seeds", type=int, default=30)
+    syn.add_argument("--particles", type=int, default=1000)
+    syn.add_argument("--num-steps", type=int, default=500)
+    syn.add_argument("--quick", action="store_true", help="smoke run: gmm1d, gmm2d, gmm3d, 2 seeds, N=100, 30 steps")
+    syn.add_argument("--output", default="outputs/bench/synthetic")
+    syn.set_defaults(handler=main)
+    sca = subparsers.add_parser("scaling", help="RMSE of ESCORT vs ESCORT-NoCorr vs SVGD on 5-mode GMMs, 1D-200D",
+                                description="The paper's RMSE-vs-dimension table, with the NoCorr gap.")
+    sca.add_argument("--dims", type=int, nargs="+", default=list(SCALING_DIMS))
+    sca.add_argument("--structures", nargs="+", default=list(SCALABILITY_STRUCTURES))
+    sca.add_argument("--seeds", type=int, default=5)
+    sca.add_argument("--particles", type=int, default=1000)
+    sca.add_argument("--num-steps", type=int, default=500)
+    sca.add_argument("--quick", action="store_true", help="smoke run: d 1 5, block, 2 seeds, N=100, 30 steps")
+    sca.add_argument("--output", default="outputs/bench/scaling")
+    sca.set_defaults(handler=main)
+    for p in (syn, sca):
+        p.add_argument("--bandwidth-scale", type=float, default=1.0,
+                       help="multiply ESCORT's and SVGD's median-heuristic bandwidth (default 1)")
+        p.add_argument("--compile", action="store_true", help="ESCORT and SVGD with compile=True")
+        add_runner_arguments(p)
+
+
+def main(args) -> None:
+    """``bench synthetic`` and ``bench scaling``."""
+    from escort_rl.bench.runner import backend_from_args
+    from escort_rl.bench.targets import SCALABILITY_STRUCTURES, synthetic_config
+    from escort_rl.reporting.paths import write_results
+
+    if args.bench == "synthetic":
+        check_choices("--methods", args.methods, SYNTHETIC_METHODS)
+        check_choices("--targets", args.targets, sorted(synthetic_config()["targets"]))
+    else:
+        check_choices("--structures", args.structures, SCALABILITY_STRUCTURES, "structure")
+    filter_kwargs = {}
+    if args.bandwidth_scale != 1.0:
+        filter_kwargs["bandwidth_scale"] = args.bandwidth_scale
+    if args.compile:
+        filter_kwargs["compile"] = True
+
+    def show(row):
+        where = row.get("target") or f"d={row['dim']} {row['structure']}"
+        s = row["summary"]
+        print(f"{where:>18} {row['method']:>14}: MMD2 {s['mmd2'][0]:.4f} SW1 {s['sliced_w1'][0]:.3f} "
+              f"cover {s['mode_coverage'][0]:.2f} corr {s['corr_error'][0]:.3f} RMSE {s['rmse'][0]:.3f} "
+              f"({row['seconds']:.1f} s)", flush=True)
+
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    runner = dict(backend=backend_from_args(args), threads=args.threads, seeds_per_cell=args.seeds_per_cell,
+                  cells_dir=out / "cells", filter_kwargs=filter_kwargs, progress=show, plot_dir=out)
+    if args.bench == "synthetic":
+        kw = dict(targets=args.targets, methods=args.methods, seeds=args.seeds, n=args.particles,
+                  num_steps=args.num_steps)
+        if args.quick:
+            kw.update(targets=["gmm1d", "gmm2d", "gmm3d"], seeds=2, n=100, num_steps=30)
+        result = run_synthetic(**kw, **runner)
+        md = synthetic_markdown(result)
+    else:
+        kw = dict(dims=args.dims, structures=args.structures, seeds=args.seeds, n=args.particles,
+                  num_steps=args.num_steps)
+        if args.quick:
+            kw.update(dims=[1, 5], structures=["block"], seeds=2, n=100, num_steps=30)
+        result = run_scaling(**kw, **runner)
+        md = scaling_markdown(result)
+    write_results(out, args.bench, result, md)

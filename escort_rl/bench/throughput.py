@@ -45,3 +45,39 @@ def collection_throughput(cfg: DictConfig, workers: int, num_envs: int, steps_pe
     return {"workers": workers, "num_envs": num_envs, "num_particles": int(cfg.num_particles),
             "filter": cfg.filter.name, "frames": n, "seconds": elapsed, "frames_per_second": n / elapsed,
             "torch_threads": torch.get_num_threads()}
+
+
+def register(subparsers) -> None:
+    """Add ``bench throughput`` to the ``bench`` subparsers."""
+    thr = subparsers.add_parser("throughput", help="collector frames/s with the belief transform",
+                                description="Env frames per second through Collector (1 worker) or "
+                                "MultiSyncCollector (K workers), belief transform and DeepSets policy in the loop.")
+    thr.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to time")
+    thr.add_argument("--num-envs", type=int, default=32, help="environments in all (B)")
+    thr.add_argument("--steps", type=int, default=100, help="steps per env per batch")
+    thr.add_argument("--batches", type=int, default=3, help="timed batches (after one warm-up batch)")
+    thr.add_argument("--output", default=None, help="write the results as JSON here")
+    thr.add_argument("overrides", nargs="*", help="Hydra-style overrides of the training config, e.g. filter=sir")
+    thr.set_defaults(handler=main, output_is_file=True)
+
+
+def main(args) -> None:
+    import json
+    from pathlib import Path
+
+    from escort_rl.config import compose
+
+    bad = [k for k in args.workers if args.num_envs % k]
+    if bad:
+        raise ValueError(f"--workers: {bad[0]} does not divide --num-envs {args.num_envs}; each worker runs "
+                         "num_envs / workers environments")
+    cfg = compose(args.overrides)
+    rows = []
+    for k in args.workers:
+        row = collection_throughput(cfg, k, args.num_envs, args.steps, args.batches)
+        rows.append(row)
+        print(f"workers={k} B={row['num_envs']} N={row['num_particles']} filter={row['filter']}: "
+              f"{row['frames_per_second']:.0f} frames/s ({row['frames']} frames in {row['seconds']:.2f} s)")
+    if args.output:
+        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.output).write_text(json.dumps(rows, indent=1))

@@ -123,3 +123,31 @@ def plot_metric_against_dimension(rows: list[dict], metric: str, path: Path, gro
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_curves(curves: dict, path: Path, xlabel: str, ylabel: str, title: str = "", start: int = 0) -> Path:
+    """One line per name against the step, shaded ± s.e. where given.
+
+    ``curves``: name -> ``(mean, se)``, each a list of length ``T`` (``se`` may be ``None``); the
+    x axis runs ``start .. start + T - 1``. A curve that is all NaN (a method without the metric) is
+    left out.
+    """
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for name, (mean, se) in curves.items():
+        m = torch.tensor(mean, dtype=torch.float64)
+        if torch.isnan(m).all():
+            continue
+        t = torch.arange(start, start + m.shape[0])
+        ax.plot(t.numpy(), m.numpy(), label=name, lw=1.2)
+        if se is not None:
+            s = torch.tensor(se, dtype=torch.float64)
+            ax.fill_between(t.numpy(), (m - s).numpy(), (m + s).numpy(), alpha=0.2)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

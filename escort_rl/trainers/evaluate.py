@@ -13,6 +13,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from escort_rl.reporting.paths import display_path
 from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
 from escort_rl.models import position_dims, position_error
 from escort_rl.modules import make_deepsets_policy
@@ -53,19 +54,11 @@ def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor 
         "success": rollout["next", "terminated"].squeeze(-1)[torch.arange(e), end],
         "episode_return": (rewards * inside).sum(1),
         "length": end + 1,
-        "position_error": torch.where(inside, pos_err, torch.full_like(pos_err, float("nan"))),
         # env steps: with an action repeat a decision spans several
         "steps": (rollout["next", "repeats"].squeeze(-1).cumsum(1)[torch.arange(e), end]
                   if ("next", "repeats") in rollout.keys(True) else end + 1),
+        "position_error": torch.where(inside, pos_err, torch.full_like(pos_err, float("nan"))),
     }
-
-
-def display_path(path: Path) -> str:
-    """The path relative to the working directory when it lies below it (reports stay portable)."""
-    try:
-        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
-    except ValueError:
-        return str(path)
 
 
 def summarise_episodes(metrics: dict) -> dict:
@@ -94,7 +87,6 @@ def summarise_episodes(metrics: dict) -> dict:
 def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = None,
                  make=make_env) -> tuple[TensorDict, float]:
     """Roll ``policy`` (or uniform-random actions when ``None``) for one episode in each of
-    repeat = action_repeat_of(env)
     ``episodes`` envs seeded with ``seed``. Returns the rollout ``[E, T]`` and the seconds per
     batched step (policy + env + belief update) over steps 2..T: the first step is a warm-up (with
     ``filter.compile=true`` it compiles) and its seconds go to ``timing["first_step_seconds"]``.
@@ -102,6 +94,7 @@ def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = No
     an :class:`~escort_rl.transforms.ActionRepeat` of ``k`` in the env, ``T = ⌈max_steps / k⌉``
     decisions, and the seconds are per env step (a decision's seconds over ``k``)."""
     env = make(cfg, episodes, seed=seed)
+    repeat = action_repeat_of(env)
     torch.manual_seed(seed)
     stamps = []
     t0 = time.perf_counter()

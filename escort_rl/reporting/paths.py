@@ -1,0 +1,25 @@
+"""Where reports go: portable paths in reports, and one writer for a benchmark's JSON and Markdown."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def display_path(path: Path) -> str:
+    """The path relative to the working directory when it lies below it (reports stay portable)."""
+    try:
+        return str(Path(path).resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
+
+
+def write_results(out: Path, stem: str, result, markdown: str, seconds: float | None = None) -> None:
+    """Write a benchmark's ``<stem>.json`` and ``<stem>.md`` into ``out`` (created), print the Markdown
+    and where the results are (with the run's seconds, if given)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    (out / f"{stem}.md").write_text(markdown)
+    print(markdown)
+    print(f"results: {out.resolve()}" + (f" ({seconds:.1f} s)" if seconds is not None else ""))
