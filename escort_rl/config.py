@@ -4,22 +4,14 @@ errors of one line that name the bad key."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from importlib import resources
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from escort_rl.schema import ConfigError, config_dir  # noqa: F401 - part of this module's API
+
 UNKNOWN_KEY_HINT = ("check the spelling against `escort-rl config`, or add a new key on purpose with "
                     "+key=value")
-
-
-class ConfigError(ValueError):
-    """A bad configuration value or key; the message names the key and the fix."""
-
-
-def config_dir() -> Path:
-    """The folder holding ``config.yaml`` and the groups ``env/``, ``filter/``, ``trainer/``."""
-    return Path(str(resources.files("escort_rl.configs")))
 
 
 def compose(overrides: list[str] | None = None, config_name: str = "config") -> DictConfig:

@@ -36,12 +36,22 @@ import math
 import os
 import typing
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException,
                               ValidationError)
+
+
+class ConfigError(ValueError):
+    """A bad configuration value or key; the message names the key and the fix."""
+
+
+def config_dir() -> Path:
+    """The folder holding ``config.yaml`` and the groups ``env/``, ``filter/``, ``trainer/``."""
+    return Path(str(resources.files("escort_rl.configs")))
 
 
 def _f(default: Any = MISSING, **meta) -> Any:
@@ -135,8 +145,6 @@ def check_number_or_list(value) -> str | None:
 
 def option_names(group: str) -> list[str]:
     """The options of a Hydra group: the yaml files in ``configs/<group>/``."""
-    from escort_rl.config import config_dir
-
     return sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
 
 
@@ -400,6 +408,7 @@ class PPOConfig(BeliefTrainerConfig):
     critic_coef: float = _f(MISSING, ge=0)
     critic_input: str = _f("belief", choices=["belief", "state"])
     action_repeat: int = _f(1, ge=1)
+    update_particles: Optional[int] = _f(None, ge=1)
 
 
 @dataclass
@@ -634,9 +643,24 @@ class ActorConfig:
     encoder_layers: int = _f(2, ge=1)
 
 
+def check_ray_installed(value: str) -> str | None:
+    """``ray`` needs the ``ray`` package (the ``ray`` extra)."""
+    if value != "ray":
+        return None
+    import importlib.util
+
+    return None if importlib.util.find_spec("ray") else "ray is not installed; install with pip install escort-rl[ray]"
+
+
 @dataclass
 class CollectorConfig:
+    """``local``: a TorchRL ``Collector`` (``workers=1``) or ``MultiSyncCollector`` (K worker
+    processes); ``ray``: TorchRL's ``RayCollector`` with ``workers`` remote collectors, on the Ray
+    cluster at ``ray_address`` (``null``: ``RAY_ADDRESS``, else a local Ray)."""
+
     workers: int = _f(MISSING, ge=1)
+    backend: str = _f("local", choices=["local", "ray"], check=check_ray_installed)
+    ray_address: Optional[str] = None
 
 
 @dataclass
@@ -791,8 +815,6 @@ def check_config(cfg, schema: type | None = None, *, stage: str = "compose", pre
     """Raise ``ConfigError(prefix + "<full key>: <what is wrong>")`` for the first value that breaks
     its schema's type or metadata. ``schema``: for a config without types (default: the root
     :class:`Config`); a typed config carries its own. ``stage="train"`` adds the checks marked so."""
-    from escort_rl.config import ConfigError
-
     problem = find_problem(cfg, schema or Config, stage=stage)
     if problem is not None:
         raise ConfigError(prefix + problem)
@@ -891,8 +913,6 @@ def load_typed(path: str | Path, schema: type) -> DictConfig:
     ``schema`` applied: ``OmegaConf.merge(OmegaConf.structured(schema), yaml)``, then the checks of
     its metadata. Raises ``ConfigError("<path>: <key>: ...")``. A top-level ``defaults`` list (Hydra's)
     is dropped, so a group option can be read too."""
-    from escort_rl.config import ConfigError
-
     loaded = OmegaConf.load(path)
     if isinstance(loaded, DictConfig) and "defaults" in loaded:
         loaded = OmegaConf.masked_copy(loaded, [k for k in loaded if k != "defaults"])

@@ -317,7 +317,7 @@ def mode_coverage(particles, means, tau: float = 1.0, threshold: float | None = 
 
 # ----------------------------------------------------------------------------- correlations
 
-def _cov_to_corr(cov: Tensor) -> Tensor:
+def cov_to_corr(cov: Tensor) -> Tensor:
     """Correlation from covariance [..., d, d]; a zero-variance dimension gets correlation 0 with
     every other dimension and 1 with itself."""
     var = torch.diagonal(cov, dim1=-2, dim2=-1)
@@ -351,7 +351,7 @@ def correlation_matrix(x, weights=None) -> Tensor:
         m = (w[..., :, None] * x).sum(-2, keepdim=True)
         xc = x - m
         cov = (w[..., :, None] * xc).transpose(-1, -2) @ xc
-    return _cov_to_corr(cov)
+    return cov_to_corr(cov)
 
 
 def correlation_error(c_true, x, weights=None) -> Tensor:
@@ -413,7 +413,7 @@ def mixture_correlation(weights, means, covs) -> Tensor:
     r"""Exact correlation matrix of the whole mixture: ``C_ab = Σ_ab / √(Σ_aa Σ_bb)`` with Σ from
     :func:`mixture_mean_and_covariance`. Returns [d, d]."""
     _, cov = mixture_mean_and_covariance(weights, means, covs)
-    return _cov_to_corr(cov)
+    return cov_to_corr(cov)
 
 
 # ----------------------------------------------------------------------------- RMSE

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -177,9 +176,9 @@ class RayBackend:
         except ImportError:
             raise ValueError(f"--backend ray: {RAY_MISSING}") from None
         if not ray.is_initialized():
-            address = self.address or os.environ.get("RAY_ADDRESS") or None
-            kwargs = {} if address else {"include_dashboard": False}
-            ray.init(address=address, log_to_driver=False, logging_level="warning", **kwargs)
+            from escort_rl.trainers.ray_collection import ray_init_kwargs
+
+            ray.init(**ray_init_kwargs(self.address))
             self.started = True
         return ray
 

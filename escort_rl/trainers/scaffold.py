@@ -129,7 +129,12 @@ def make_logger(cfg: DictConfig, run_dir: Path, start_iteration: int = 0):
 def make_collector(cfg: DictConfig, factory, policy, frames_per_batch: int, reset_at_each_iter: bool):
     """A TorchRL ``Collector`` (``collector.workers=1``) or ``MultiSyncCollector`` (K workers, each
     running ``trainer.num_envs / K`` envs) over ``factory(num_envs, seed)``, without a frame limit:
-    the scaffold decides when to stop."""
+    the scaffold decides when to stop. ``collector.backend=ray``: TorchRL's ``RayCollector`` with K
+    remote collectors (:mod:`escort_rl.trainers.ray_collection`)."""
+    if cfg.collector.get("backend", "local") == "ray":
+        from escort_rl.trainers.ray_collection import make_ray_collector
+
+        return make_ray_collector(cfg, factory, policy, frames_per_batch, reset_at_each_iter)
     workers = int(cfg.collector.workers)
     common = dict(frames_per_batch=frames_per_batch, total_frames=-1, reset_at_each_iter=reset_at_each_iter,
                   device=cfg.device, auto_register_policy_transforms=False)

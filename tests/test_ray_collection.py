@@ -1,0 +1,73 @@
+"""Training collection on Ray (``collector.backend=ray``): TorchRL's RayCollector with K remote
+collectors inside the trainer scaffold. Needs the ``ray`` extra, which ``make test`` installs."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from escort_rl.config import ConfigError, compose
+from conftest import tiny_overrides
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    import ray  # the ray extra: make test installs it
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+@pytest.mark.slow
+def test_remote_collectors_get_the_policy_weights_and_stack_their_batches(local_ray):
+    from escort_rl.modules import make_deepsets_policy
+    from escort_rl.trainers.builders import belief_keys, build_actor, build_model, env_factory
+    from escort_rl.trainers.scaffold import make_collector
+
+    cfg = compose(tiny_overrides("filter=sir", "collector.backend=ray", "collector.workers=2"))
+    model = build_model(cfg.env)
+    policy = make_deepsets_policy(build_actor(cfg, model.state_dim, model.n_actions), *belief_keys(cfg))
+    steps = int(cfg.env.max_steps)
+    collector = make_collector(cfg, lambda n, s: env_factory(cfg, n, seed=s), policy, 4 * steps, False)
+    try:
+        collector.set_seed(0)
+        collector.reset()
+        batch = next(iter(collector))
+        assert batch.shape == (2, 2, steps)  # [K, num_envs / K, T], as a MultiSyncCollector's
+        with torch.no_grad():
+            for p in policy.parameters():
+                p.zero_()  # uniform logits: every action has probability 1 / n_actions
+        collector.update_policy_weights_()
+        batch = next(iter(collector))
+        expected = torch.full_like(batch["action_log_prob"], -math.log(model.n_actions))
+        torch.testing.assert_close(batch["action_log_prob"], expected)
+    finally:
+        collector.shutdown()
+
+
+@pytest.mark.slow
+def test_a_run_trains_on_ray_collectors(tmp_path, local_ray):
+    from escort_rl.trainers.checkpointing import load_checkpoint
+    from escort_rl.trainers.registry import train
+
+    run = tmp_path / "run"
+    train(compose(tiny_overrides("trainer.iterations=2", "collector.backend=ray", "collector.workers=2",
+                                 f"output_dir={run}")), progress=False)
+    history = load_checkpoint(run)["trainer_state"]["history"]
+    assert len(history) == 2 and all(h["episodes"] == 4 for h in history)  # 4 envs over 2 remote collectors
+    assert all(math.isfinite(h["loss_actor"]) for h in history)
+
+
+def test_ray_missing_is_one_line_naming_the_key(monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "ray" else real(name, *a))
+    with pytest.raises(ConfigError, match=r"collector.backend: ray is not installed; install with pip install "
+                                          r"escort-rl\[ray\]"):
+        compose(tiny_overrides("collector.backend=ray"))
+    with pytest.raises(ConfigError, match="collector.backend"):
+        compose(tiny_overrides("collector.backend=spark"))
