@@ -35,7 +35,7 @@ import torch
 from escort_rl.bench import methods as registry
 from escort_rl.bench.methods import (applied_filter_set, build_domain, check_at_least_one, check_names,
                                      parse_filter_set)
-from escort_rl.bench.runner import Cell, CellStore, add_runner_arguments, backend_from_args, run_cells, seed_blocks
+from escort_rl.bench.runner import Cell, CellStore, add_runner_arguments, backend_from_args, run_groups, seed_blocks
 from escort_rl.bench.trajectories import (BEHAVIOUR_POLICY, NonFiniteBeliefError, filter_trajectories,
                                           generate_trajectories, learned_trajectories, position_error_label,
                                           time_per_step)
@@ -187,21 +187,14 @@ class _Grid:
     def run(self, jobs: list[tuple[str, str, int]], desc: str) -> list[dict]:
         """``jobs``: (domain, method, N). Rows in job order; each is reported to ``progress`` as
         soon as its last cell is in."""
-        cells = {job: self.cells(*job) for job in jobs}
-        flat = [c for job in jobs for c in cells[job]]
-        owner = {id(c): job for job in jobs for c in cells[job]}
-        done: dict = {job: {} for job in jobs}
         rows = {}
 
-        def on_result(cell, result):
-            job = owner[id(cell)]
-            done[job][cell.seeds] = result
-            if len(done[job]) == len(cells[job]):
-                rows[job] = _row(*job, [done[job][c.seeds] for c in cells[job]], self.seeds)
-                if self.progress is not None:
-                    self.progress("row", rows[job])
+        def on_group(job, parts):
+            rows[job] = _row(*job, parts, self.seeds)
+            if self.progress is not None:
+                self.progress("row", rows[job])
 
-        run_cells(flat, self.backend, self.store, on_result, desc=desc)
+        run_groups({job: self.cells(*job) for job in jobs}, self.backend, self.store, on_group, desc)
         return [rows[job] for job in jobs]
 
 

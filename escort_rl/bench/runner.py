@@ -247,6 +247,26 @@ def run_cells(cells: list[Cell], backend, store: CellStore | None = None, on_res
     return results
 
 
+def run_groups(groups: dict, backend, store: CellStore | None = None, on_group=None, desc: str = "cells") -> dict:
+    """Run the cells of every group (``groups``: key -> its cells, e.g. a table row's seed blocks)
+    and return key -> the results in the group's order. ``on_group(key, results)`` is called as soon
+    as a group's last cell is in (loaded or run)."""
+    owner = {id(c): key for key, cells in groups.items() for c in cells}
+    done: dict = {key: {} for key in groups}
+    out = {}
+
+    def on_result(cell, result):
+        key = owner[id(cell)]
+        done[key][id(cell)] = result
+        if len(done[key]) == len(groups[key]):
+            out[key] = [done[key][id(c)] for c in groups[key]]
+            if on_group is not None:
+                on_group(key, out[key])
+
+    run_cells([c for cells in groups.values() for c in cells], backend, store, on_result, desc)
+    return out
+
+
 def seed_blocks(seeds: list[int], per_cell: int | None) -> list[tuple[int, ...]]:
     """``seeds`` in consecutive blocks of ``per_cell`` (``None``: one block of all).
 

@@ -26,7 +26,7 @@ from escort_rl.belief import ESCORTFilter, SVGDFilter
 from escort_rl.belief.sir import systematic_resample_indices
 from escort_rl.bench import metrics
 from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices
-from escort_rl.bench.runner import Cell, CellStore, InProcessBackend, run_cells, seed_blocks
+from escort_rl.bench.runner import Cell, CellStore, InProcessBackend, run_groups, seed_blocks
 from escort_rl.reporting.stats import format_mean_se, mean_se
 from escort_rl.bench.targets import (
     GaussianMixture,
@@ -139,15 +139,8 @@ class SyntheticCell(Cell):
 def _run_grid(rows: list[dict], cells: dict, backend, cells_dir, progress) -> list[dict]:
     """Run the cells of every row (``cells``: row index -> its cells, in seed order) and fill in
     each row's ``per_seed``, ``summary`` and ``seconds`` as its last cell arrives."""
-    owner = {id(c): i for i, cs in cells.items() for c in cs}
-    done: dict = {i: {} for i in cells}
 
-    def on_result(cell, result):
-        i = owner[id(cell)]
-        done[i][cell.seeds] = result
-        if len(done[i]) < len(cells[i]):
-            return
-        parts = [done[i][c.seeds] for c in cells[i]]
+    def on_group(i, parts):
         per_seed = {k: [v for p in parts for v in p["per_seed"][k]] for k in parts[0]["per_seed"]}
         rows[i].update(seconds=sum(p["timing"]["seconds"] for p in parts), per_seed=per_seed,
                        summary={k: mean_se(v) for k, v in per_seed.items()})
@@ -159,8 +152,8 @@ def _run_grid(rows: list[dict], cells: dict, backend, cells_dir, progress) -> li
 
     backend = backend or InProcessBackend()
     try:
-        run_cells([c for i in sorted(cells) for c in cells[i]], backend,
-                  CellStore(cells_dir) if cells_dir is not None else None, on_result, desc="synthetic cells")
+        run_groups(cells, backend, CellStore(cells_dir) if cells_dir is not None else None, on_group,
+                   desc="synthetic cells")
     finally:
         backend.close()
     return rows
