@@ -227,3 +227,66 @@ def test_escort_latent_moves_particles_without_resampling_and_learns_its_model()
 def test_unknown_agent_is_named(tmp_path):
     with pytest.raises(ConfigError, match="agent: unknown 'ppo'"):
         AtariA2C(tiny_atari_config("ppo", tmp_path))
+
+
+# ---------------------------------------------------------------------------------------- bench
+import argparse  # noqa: E402
+import json  # noqa: E402
+
+from escort_rl.bench import atari as atari_bench  # noqa: E402
+
+TINY_SET = ["trainer.num_envs=2", "trainer.updates_per_iteration=10", "vrnn.num_particles=3", "vrnn.latent_dim=4",
+            "vrnn.hidden=8", "vrnn.encoding_dim=8", "escort.num_steps=2", "gru.hidden=8"]
+
+
+def bench_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    atari_bench.register(parser.add_subparsers())
+    return parser.parse_args(["atari", *argv])
+
+
+def test_bench_cell_resumes_from_its_checkpoint_and_reports_beside_the_paper(tmp_path, capsys):
+    out = tmp_path / "atari"
+    args = bench_args("--frames", "100", "--agents", "gru", "--output", str(out), "--set", *TINY_SET)
+    args.handler(args)  # 100 frames = 10 updates of 2 envs x 5 steps: one iteration
+    run_dir = out / "runs" / "pong" / "gru" / "seed0"
+    first = json.loads((run_dir / "history.json").read_text())
+    assert [r["iteration"] for r in first] == [1]
+    # a larger budget continues the same run from its checkpoint instead of starting again
+    args = bench_args("--frames", "200", "--agents", "gru", "--output", str(out), "--set", *TINY_SET)
+    args.handler(args)
+    history = json.loads((run_dir / "history.json").read_text())
+    assert [r["iteration"] for r in history] == [1, 2] and history[0] == first[0]
+    args.handler(args)  # a finished run is read, not trained again
+    assert json.loads((run_dir / "history.json").read_text()) == history
+    report = (out / "atari.md").read_text()
+    assert "| pong | gru |" in report and "50,000,000" not in report.split("| pong | gru |")[1].splitlines()[0]
+    assert (out / "learning_curves.png").stat().st_size > 0
+    row = json.loads((out / "atari.json").read_text())["rows"][0]
+    assert row["frames"] == 200 and row["fps"] > 0
+    capsys.readouterr()
+
+
+def test_bench_report_puts_paper_rows_beside_ours():
+    rows = atari_bench.summarise([
+        {"game": "pong", "agent": "escort_latent", "seed": 0, "frames": 1000, "fps": 5.0,
+         "game_returns": [-21.0] * 150 + [-19.0] * 100, "game_frames": list(range(250))},
+        {"game": "pong", "agent": "escort_latent", "seed": 1, "frames": 1200, "fps": 7.0,
+         "game_returns": [-17.0, -21.0], "game_frames": [5, 9]}])
+    assert len(rows) == 1 and rows[0]["games"] == 102 and rows[0]["frames"] == 1000 and rows[0]["fps"] == 6.0
+    assert rows[0]["return"][0] == pytest.approx((100 * -19.0 - 38.0) / 102)
+    table = atari_bench.markdown_table(rows, atari_bench.load_settings().paper)
+    assert "17.97 ± 3.74 (ESCORT)" in table and "50,000,000" in table
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--frames", "10"], "--frames: must be at least 80"),
+    (["--frames", "1000", "--games", "tetris"], "--games: unknown 'tetris'"),
+    (["--frames", "1000", "--agents", "ppo"], "--agents: unknown 'ppo'"),
+    (["--frames", "1000", "--set", "escort.num_steps=0"], "escort.num_steps"),
+    (["--frames", "1000", "--set", "vrnn.widht=3"], "widht"),
+])
+def test_bench_bad_arguments_name_the_flag(argv, message, tmp_path):
+    args = bench_args(*argv, "--output", str(tmp_path))
+    with pytest.raises(ValueError, match=message):
+        args.handler(args)

@@ -67,10 +67,11 @@ def build_atari_policy(cfg: DictConfig, n_actions: int) -> DVRLPolicy | FrameGRU
     return DVRLPolicy(ESCORTLatent(OBS_SHAPE, n_actions, escort=escort, **vrnn))
 
 
-def make_atari_env(game: str, num_envs: int, primer, parallel: bool = False, seed: int | None = None) -> TransformedEnv:
+def make_atari_env(game: str, num_envs: int, primer, parallel: bool = False, seed: int | None = None,
+                   device: str = "cpu") -> TransformedEnv:
     """``num_envs`` flickering games (a ``SerialEnv``, or a ``ParallelEnv`` of spawned workers) with
-    ``InitTracker`` and the agent's state ``primer``."""
-    factory = functools.partial(make_atari_torchrl_env, check_game(game))
+    ``InitTracker`` and the agent's state ``primer``, their tensors on ``device``."""
+    factory = functools.partial(make_atari_torchrl_env, check_game(game), device=device)
     batched = (ParallelEnv(num_envs, factory, mp_start_method="spawn") if parallel
                else SerialEnv(num_envs, factory))
     env = TransformedEnv(batched, Compose(InitTracker(), primer))
@@ -107,7 +108,7 @@ class AtariA2C:
         self.games = GameLog()
         self.components = {"actor": self.policy, "optimizer": self.optimizer, "games": self.games}
         self.env = make_atari_env(cfg.game, int(t.num_envs), self.policy.make_tensordict_primer(),
-                                  parallel=bool(t.parallel_envs))
+                                  parallel=bool(t.parallel_envs), device=cfg.device)
         self.td = None  # the envs' current tensordict, carried across iterations
         self.running = torch.zeros(int(t.num_envs))  # the unclipped return of each env's current game
         self.frames = 0  # frames of this session (for the game log, offset by the resumed frames)
@@ -158,8 +159,8 @@ class AtariA2C:
     def score_games(self, window) -> list[float]:
         """Add the window's unclipped rewards to each env's game and log the games that ended
         (``("next", "game_over")``); returns their returns."""
-        reward = window["next", "reward"].squeeze(-1).detach()
-        over = window["next", "game_over"].reshape(reward.shape)
+        reward = window["next", "reward"].squeeze(-1).detach().cpu()
+        over = window["next", "game_over"].reshape(reward.shape).cpu()
         ended = []
         for step in range(reward.shape[1]):
             self.frames += reward.shape[0]

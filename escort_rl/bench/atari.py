@@ -1,0 +1,260 @@
+"""``escort-rl bench atari``: Flickering Atari, the paper's Table 4 (SPEC §12).
+
+Each (game, agent, seed) is one cell (:class:`AtariCell`): an A2C training run
+(:class:`escort_rl.trainers.atari_a2c.AtariA2C`) on the training scaffold, in
+``<output>/runs/<game>/<agent>/seed<k>``. The scaffold checkpoints it every iteration, so a killed or
+stopped benchmark resumes each unfinished cell from its last checkpoint when the same command runs
+again, and a larger ``--frames`` continues finished cells. The cells run on the runner's backends
+(``--backend inprocess | process | ray``).
+
+The report (``atari.md``, ``atari.json``, ``learning_curves.png``): per game and agent the mean ±
+s.e. of the last 100 games' returns (unclipped game scores, pooled over seeds: the last 100 of each
+seed), the frames trained, and the training frames/s; beside it, the paper's Table 4 with its budget.
+Frames are agent steps (4 emulator frames each), as DVRL counted them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from escort_rl.bench.runner import Cell, CellStore, add_runner_arguments, backend_from_args, run_cells
+from escort_rl.reporting.paths import write_results
+from escort_rl.reporting.stats import format_mean_se, mean_se
+
+LAST_GAMES = 100  # the returns of the last games of each seed that the table averages
+PAPER_METHOD = {"escort_latent": "escort", "dvrl": "dvrl"}  # our agent -> the paper's Table 4 column
+
+
+def settings_path() -> Path:
+    from escort_rl.config import config_dir
+
+    return config_dir() / "bench" / "atari.yaml"
+
+
+def load_settings(overrides: tuple[str, ...] | list[str] = ()) -> DictConfig:
+    """``configs/bench/atari.yaml`` with ``overrides`` (``KEY=VALUE``, e.g. ``escort.num_steps=10``),
+    typed and checked (:class:`escort_rl.schema.AtariBenchConfig`); a bad key or value raises
+    ``ConfigError`` naming it."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    from escort_rl.config import ConfigError
+    from escort_rl.schema import AtariBenchConfig, check_config, describe_error, load_typed
+
+    settings = load_typed(settings_path(), AtariBenchConfig)
+    bad = [o for o in overrides if "=" not in o]
+    if bad:
+        raise ConfigError(f"--set: '{bad[0]}' is not KEY=VALUE, e.g. escort.num_steps=10")
+    try:
+        settings = OmegaConf.merge(settings, OmegaConf.from_dotlist(list(overrides)))
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"--set: {describe_error(err)}") from None
+    check_config(settings, AtariBenchConfig, prefix="--set: ")
+    return settings
+
+
+def frames_per_update(settings: DictConfig) -> int:
+    return int(settings.trainer.num_envs) * int(settings.trainer.rollout_steps)
+
+
+def cell_config(settings: DictConfig, game: str, agent: str, seed: int, frames: int, run_dir: Path,
+                device: str = "cpu") -> DictConfig:
+    """The run config of one cell for :class:`~escort_rl.trainers.atari_a2c.AtariA2C` and the scaffold.
+
+    ``frames`` is rounded up to whole A2C updates of ``num_envs × rollout_steps`` frames; an iteration
+    is ``updates_per_iteration`` updates, or all of them when the budget is smaller than one iteration.
+    """
+    per_update = frames_per_update(settings)
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < per_update:
+        raise ValueError(f"--frames: must be at least {per_update} (one A2C update of "
+                         f"{settings.trainer.num_envs} envs × {settings.trainer.rollout_steps} steps), got {frames}")
+    updates = math.ceil(frames / per_update)
+    per_iteration = min(int(settings.trainer.updates_per_iteration), updates)
+    cfg = OmegaConf.create({"seed": int(seed), "device": device, "output_dir": str(run_dir),
+                            "logger": {"backend": "csv"}, "game": game, "agent": agent,
+                            **OmegaConf.to_container(settings, resolve=True)})
+    cfg.trainer.updates_per_iteration = per_iteration
+    cfg.trainer.iterations = math.ceil(updates / per_iteration)
+    return cfg
+
+
+def run_atari_cell(cfg: DictConfig, progress: bool = False) -> dict:
+    """Train (or resume, or skip when finished) the run of ``cfg`` (:func:`cell_config`) and return
+    its history, the returns of its games and its training frames/s."""
+    import torch
+
+    from escort_rl.trainers.atari_a2c import AtariA2C, GameLog
+    from escort_rl.trainers.checkpointing import checkpoint_dir, list_checkpoints, load_checkpoint
+    from escort_rl.trainers.scaffold import run_training
+
+    run_dir = Path(cfg.output_dir)
+    history_file = run_dir / "history.json"
+    finished = history_file.exists() and any(r["iteration"] >= int(cfg.trainer.iterations)
+                                             for r in json.loads(history_file.read_text()))
+    if not finished:
+        resume = {"path": str(run_dir)} if list_checkpoints(checkpoint_dir(run_dir)) else None
+        torch.manual_seed(int(cfg.seed))  # the initial weights
+        run_training(cfg, AtariA2C(cfg), resume_state=resume, progress=progress,
+                     desc=f"{cfg.game} {cfg.agent} seed {cfg.seed}", watch=("episode_return", "fps"))
+    games = GameLog()
+    state = load_checkpoint(run_dir, games=games)["trainer_state"]
+    history = state["history"][: int(cfg.trainer.iterations)]
+    seconds = sum(r["seconds"] for r in history)
+    frames = int(history[-1]["frames"])
+    return {"game": cfg.game, "agent": cfg.agent, "seed": int(cfg.seed), "frames": frames,
+            "fps": frames / seconds if seconds > 0 else float("nan"),
+            "game_returns": games.returns, "game_frames": games.frames,
+            "curve": [{"frames": r["frames"], "episode_return": r["episode_return"]} for r in history]}
+
+
+@dataclass(frozen=True, kw_only=True)
+class AtariCell(Cell):
+    """One (game, agent, seed) training run under ``runs`` (see the module docstring)."""
+
+    game: str
+    agent: str
+    seed: int
+    frames: int
+    runs: str
+    overrides: tuple[str, ...] = ()
+    stored = False  # its result lives in the run's checkpoints, which a later run may extend
+
+    def key(self) -> str:
+        return f"atari/{self.game}/{self.agent}/seed{self.seed}"
+
+    def run(self) -> dict:
+        run_dir = Path(self.runs) / self.game / self.agent / f"seed{self.seed}"
+        cfg = cell_config(load_settings(self.overrides), self.game, self.agent, self.seed, self.frames, run_dir, self.device)
+        return run_atari_cell(cfg)
+
+
+# ------------------------------------------------------------------------------------ the report
+def summarise(results: list[dict]) -> list[dict]:
+    """One row per (game, agent): the last :data:`LAST_GAMES` game returns of each seed pooled,
+    their mean ± s.e., the frames and the frames/s (mean over seeds)."""
+    rows: dict[tuple[str, str], dict] = {}
+    for r in results:
+        row = rows.setdefault((r["game"], r["agent"]), {"game": r["game"], "agent": r["agent"], "returns": [],
+                                                        "frames": [], "fps": [], "seeds": 0})
+        row["returns"] += r["game_returns"][-LAST_GAMES:]
+        row["frames"].append(r["frames"])
+        row["fps"].append(r["fps"])
+        row["seeds"] += 1
+    out = []
+    for row in rows.values():
+        out.append({"game": row["game"], "agent": row["agent"], "seeds": row["seeds"], "games": len(row["returns"]),
+                    "return": mean_se(row["returns"]), "frames": min(row["frames"]),
+                    "fps": sum(row["fps"]) / len(row["fps"])})
+    return out
+
+
+def markdown_table(rows: list[dict], paper: DictConfig) -> str:
+    """Ours beside the paper's Table 4, each with its budget in frames (agent steps)."""
+    lines = ["| game | agent | ours: last 100 games, mean ± s.e. | games (seeds) | our frames | frames/s "
+             "| paper (same method) | paper frames |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for row in rows:
+        method = PAPER_METHOD.get(row["agent"])
+        ref = paper.table4.get(row["game"], {}).get(method) if method else None
+        paper_text, paper_frames = ((f"{ref[0]} ± {ref[1]} ({method.upper()})", f"{int(paper.frames):,}")
+                                    if ref is not None else ("—", "—"))
+        lines.append(f"| {row['game']} | {row['agent']} | {format_mean_se(row['return'], 2)} | {row['games']} "
+                     f"({row['seeds']}) | {row['frames']:,} | {row['fps']:.1f} | {paper_text} | {paper_frames} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(results: list[dict], path: Path, window: int = 20) -> Path:
+    """Learning curves, one panel per game: each agent's game returns (all seeds pooled, in the
+    order of the frame at which each game ended), smoothed by a running mean over ``window`` games
+    per seed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    games = sorted({r["game"] for r in results})
+    fig, axes = plt.subplots(1, len(games), figsize=(5 * len(games), 3.6), squeeze=False)
+    for ax, game in zip(axes[0], games):
+        for agent in sorted({r["agent"] for r in results if r["game"] == game}):
+            runs = [r for r in results if r["game"] == game and r["agent"] == agent]
+            points = sorted(p for r in runs for p in zip(r["game_frames"], r["game_returns"]))
+            if not points:
+                continue
+            w = window * len(runs)
+            xs = [x for x, _ in points]
+            ys = [sum(y for _, y in points[max(0, i - w + 1): i + 1]) / (i + 1 - max(0, i - w + 1))
+                  for i in range(len(points))]
+            ax.plot(xs, ys, label=f"{agent} ({len(runs)} seeds)")
+        ax.set_title(f"Flickering {game}")
+        ax.set_xlabel("frames (agent steps)")
+        ax.set_ylabel("game return")
+        if ax.lines:
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no game has ended yet", ha="center", va="center", transform=ax.transAxes)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+# ------------------------------------------------------------------------------------ the command
+def check_names(flag: str, given: list[str], known) -> None:
+    for name in given:
+        if name not in known:
+            raise ValueError(f"{flag}: unknown '{name}'; choose from {', '.join(known)}")
+
+
+def main(args) -> None:
+    from escort_rl.envs.atari import GAMES
+    from escort_rl.trainers.atari_a2c import AGENTS
+
+    check_names("--games", args.games, list(GAMES))
+    check_names("--agents", args.agents, list(AGENTS))
+    from escort_rl.schema import check_device
+
+    problem = check_device(args.device)
+    if problem is not None:
+        raise ValueError(f"--device: {problem}")
+    if args.seeds_per_cell not in (None, 1):
+        raise ValueError(f"--seeds-per-cell: bench atari runs one seed per cell (a training run), got {args.seeds_per_cell}")
+    settings = load_settings(tuple(args.set))
+    out = Path(args.output).expanduser()
+    for game in args.games:  # checks --frames before any run starts
+        cell_config(settings, game, args.agents[0], 0, args.frames, out, args.device)
+    cells = [AtariCell(game=g, agent=a, seed=s, frames=args.frames, runs=str(out / "runs"), overrides=tuple(args.set),
+                       threads=args.threads or 1, device=args.device)
+             for g in args.games for a in args.agents for s in range(args.seeds)]
+    t0 = time.perf_counter()
+    results = run_cells(cells, backend_from_args(args), CellStore(out / "cells"), desc="atari cells")
+    rows = summarise(results)
+    curves = plot_curves(results, out / "learning_curves.png")
+    markdown = (f"# Flickering Atari (Table 4): {args.frames:,} frames per run\n\n"
+                + markdown_table(rows, settings.paper)
+                + f"\nFrames are agent steps (4 emulator frames each), as DVRL counted them. The paper's rows ran "
+                f"{int(settings.paper.frames):,} frames. Learning curves: {curves.name}.\n")
+    write_results(out, "atari", {"rows": rows, "runs": results}, markdown, time.perf_counter() - t0)
+
+
+def register(subparsers) -> None:
+    """Add ``bench atari`` to the ``bench`` subparsers."""
+    p = subparsers.add_parser("atari", help="Flickering Atari: DVRL, ESCORT-latent and a GRU by A2C (Table 4)",
+                              description="Trains each agent on each flickering game for --frames frames per seed "
+                              "(A2C, DVRL's Atari settings in configs/bench/atari.yaml), then reports the last 100 "
+                              "games' returns (mean ± s.e.) and frames/s beside the paper's Table 4, and learning "
+                              "curves. Rerunning the same command resumes unfinished runs from their checkpoints.")
+    p.add_argument("--games", nargs="+", default=["pong"], help="pong icehockey mspacman asteroids (default: pong)")
+    p.add_argument("--agents", nargs="+", default=["dvrl", "escort_latent", "gru"],
+                   help="dvrl escort_latent gru (default: all three)")
+    p.add_argument("--frames", type=int, required=True, help="frames (agent steps) per run")
+    p.add_argument("--seeds", type=int, default=1, help="seeds 0..S-1 per game and agent (default 1)")
+    p.add_argument("--device", default="cpu", help="torch device of the networks (default cpu)")
+    p.add_argument("--output", default="outputs/bench/atari", help="folder for the runs and the report")
+    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
+                   help="override configs/bench/atari.yaml, e.g. escort.num_steps=10 trainer.parallel_envs=true")
+    add_runner_arguments(p)
+    p.set_defaults(handler=main)
