@@ -290,3 +290,10 @@ def test_bench_bad_arguments_name_the_flag(argv, message, tmp_path):
     args = bench_args(*argv, "--output", str(tmp_path))
     with pytest.raises(ValueError, match=message):
         args.handler(args)
+
+
+def test_cli_registers_bench_atari(capsys):
+    from escort_rl.cli import main
+
+    assert main(["bench", "atari", "--frames", "10"]) == 2
+    assert "--frames: must be at least 80" in capsys.readouterr().err
