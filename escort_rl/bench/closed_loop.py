@@ -21,7 +21,10 @@ are named in the yaml (:func:`method_spec`):
 
 Learned and recurrent rows are both of the ``learned`` policy kind (their own trainer, evaluated by
 :func:`escort_rl.trainers.evaluate.trained_policy`); only the ``learned`` section is a learned
-*belief* (protocol (a) reads it, see :func:`escort_rl.bench.domains.learned_methods`).
+*belief* (protocol (a) reads it, see :func:`escort_rl.bench.methods.learned_methods`).
+
+Each (domain, method) row is one cell (:class:`ClosedLoopCell`) of :mod:`escort_rl.bench.runner`, so
+the rows run on any backend (``--backend process --workers K``, ``--backend ray``).
 
 Equal frames: every trainer's iteration is ``num_envs`` episodes of ``env.max_steps`` steps, so the
 budget ``{iterations, num_envs}`` means the same frames for every trained row. PPO and recurrent PPO

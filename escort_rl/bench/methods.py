@@ -97,8 +97,12 @@ def learned_methods(settings: dict | None = None) -> dict:
 
 
 def methods_help() -> str:
-    """The ``--methods`` help of ``bench domains``, from the registry."""
-    settings = load_settings()
+    """The ``--methods`` help of ``bench domains``, from the registry (a broken yaml is reported when
+    a benchmark reads it, not while the command line is built)."""
+    try:
+        settings = load_settings()
+    except (ValueError, OSError):
+        settings = {}
     rows = {s: ", ".join(settings.get(s) or {}) for s in SECTIONS}
     return (f"filter configs (default: {' '.join(PROTOCOL_A_METHODS)}; any of {' '.join(filter_methods())}); "
             f"protocol b adds the planner rows {rows['planners']}, the scripted rows {rows['scripted']}, the "
