@@ -186,3 +186,31 @@ def test_recurrent_ppo_refuses_an_action_repeat(tmp_path):
 
     with pytest.raises(ConfigError, match="^trainer.action_repeat: trainer=recurrent_ppo"):
         train(compose(["trainer=recurrent_ppo", "trainer.action_repeat=2", f"output_dir={tmp_path}"]), progress=False)
+
+
+def test_update_particles_trains_on_a_subset_with_the_old_log_prob_recomputed_on_it(tmp_path):
+    """trainer.update_particles = 3 of 5: each frame keeps 3 of its own particles (with their
+    log-weights), and action_log_prob is the policy's log-probability on that subset."""
+    from escort_rl.models import LightDark10D
+    from escort_rl.trainers.ppo import PPO
+
+    cfg = compose([*TINY_PPO, "trainer.update_particles=3", f"output_dir={tmp_path}"])
+    algorithm = PPO(cfg, LightDark10D())
+    try:
+        batch = _tiny_batch().reshape(2, 3)  # [E, T] frames of 5 particles
+        batch["particle_log_weights"] = torch.randn(2, 3, 5, generator=torch.Generator().manual_seed(2))
+        sub = algorithm.subsample_particles(batch)
+        assert sub["particles"].shape == (2, 3, 3, 10)
+        for e in range(2):
+            for t in range(3):
+                rows = [int((batch["particles"][e, t] == p).all(-1).nonzero()) for p in sub["particles"][e, t]]
+                assert len(set(rows)) == 3  # distinct particles of the same frame
+                torch.testing.assert_close(sub["particle_log_weights"][e, t], batch["particle_log_weights"][e, t, rows])
+        expected = algorithm.policy.get_dist(sub).log_prob(sub["action"])
+        torch.testing.assert_close(sub["action_log_prob"], expected)
+        assert not torch.allclose(sub["action_log_prob"], batch["action_log_prob"])
+        full = compose([*TINY_PPO, "trainer.update_particles=5", f"output_dir={tmp_path}"])
+        algorithm.cfg = full
+        assert algorithm.subsample_particles(batch) is batch  # M >= N: the batch as collected
+    finally:
+        algorithm.close()

@@ -102,6 +102,25 @@ class PPO:
     def loss_terms(self, minibatch):
         return self.loss(minibatch)
 
+    def subsample_particles(self, batch):
+        """The batch the epochs train on: with ``trainer.update_particles = M`` below the belief's
+        ``N``, each frame keeps M of its particles drawn without replacement (with their log-weights;
+        pooling renormalises them), and ``action_log_prob`` is recomputed on that subset, so that the
+        PPO ratio compares the new and the old policy on the same input. The policy still acts on all
+        N particles; the update's cost, mostly the per-particle encoder, falls by ``N / M``."""
+        m = self.cfg.trainer.get("update_particles")
+        particles_key, log_weights_key = belief_keys(self.cfg)
+        x = batch[particles_key]  # [E, T, N, d]
+        if m is None or int(m) >= x.shape[-2]:
+            return batch
+        keep = torch.rand(x.shape[:-1], device=x.device).argsort(-1)[..., : int(m)]  # [E, T, M]
+        batch = batch.clone(False)
+        batch[particles_key] = x.gather(-2, keep.unsqueeze(-1).expand(*keep.shape, x.shape[-1]))
+        batch[log_weights_key] = batch[log_weights_key].gather(-1, keep)
+        with torch.no_grad():
+            batch["action_log_prob"] = self.policy.get_dist(batch).log_prob(batch["action"])
+        return batch
+
     def total_loss(self, minibatch, out):
         """What one Adam step minimises."""
         return out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
@@ -111,7 +130,7 @@ class PPO:
         of one Adam step per minibatch; returns the mean losses."""
         t = self.cfg.trainer
         self.estimate_advantages(batch)
-        source = self.fill(batch)
+        source = self.fill(self.subsample_particles(batch))
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
                 "clip_fraction": 0.0, "grad_norm": 0.0}
         steps = 0
