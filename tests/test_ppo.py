@@ -181,11 +181,13 @@ def test_action_repeat_counts_env_steps_and_decides_every_k_steps(tmp_path):
     assert math.isfinite(stats["loss_objective"])
 
 
-def test_recurrent_ppo_refuses_an_action_repeat(tmp_path):
+def test_recurrent_ppo_refuses_an_action_repeat_and_particle_subsampling(tmp_path):
     from escort_rl.config import ConfigError
 
     with pytest.raises(ConfigError, match="^trainer.action_repeat: trainer=recurrent_ppo"):
         train(compose(["trainer=recurrent_ppo", "trainer.action_repeat=2", f"output_dir={tmp_path}"]), progress=False)
+    with pytest.raises(ConfigError, match="^trainer.update_particles: trainer=recurrent_ppo"):
+        train(compose(["trainer=recurrent_ppo", "trainer.update_particles=8", f"output_dir={tmp_path}"]), progress=False)
 
 
 def test_update_particles_trains_on_a_subset_with_the_old_log_prob_recomputed_on_it(tmp_path):

@@ -109,9 +109,11 @@ class PPO:
         PPO ratio compares the new and the old policy on the same input. The policy still acts on all
         N particles; the update's cost, mostly the per-particle encoder, falls by ``N / M``."""
         m = self.cfg.trainer.get("update_particles")
+        if m is None:
+            return batch
         particles_key, log_weights_key = belief_keys(self.cfg)
         x = batch[particles_key]  # [E, T, N, d]
-        if m is None or int(m) >= x.shape[-2]:
+        if int(m) >= x.shape[-2]:
             return batch
         keep = torch.rand(x.shape[:-1], device=x.device).argsort(-1)[..., : int(m)]  # [E, T, M]
         batch = batch.clone(False)

@@ -126,6 +126,9 @@ def validate_recurrent_ppo_config(cfg: DictConfig) -> None:
     if int(t.get("action_repeat", 1) or 1) != 1:
         raise ConfigError("trainer.action_repeat: trainer=recurrent_ppo decides at every step (its GRU reads every "
                           f"observation), got {t.action_repeat}; set it to 1")
+    if t.get("update_particles", None) is not None:
+        raise ConfigError("trainer.update_particles: trainer=recurrent_ppo reads raw observations, no particles, "
+                          f"got {t.update_particles}; set it to null")
     per_worker = int(t.num_envs) // int(cfg.collector.workers)
     if int(t.minibatches) > int(t.num_envs):
         raise ConfigError(f"trainer.minibatches: minibatches are whole env rows, so at most trainer.num_envs "
