@@ -41,6 +41,7 @@ BENCHMARKS = (
     "escort_rl.bench.domains",
     "escort_rl.bench.curves",
     "escort_rl.bench.calibration",
+    "escort_rl.bench.decisions",
     "escort_rl.bench.adaptive_stop",
     "escort_rl.bench.planner_budget",
     "escort_rl.bench.compare",

@@ -307,7 +307,7 @@ class SIRConfig:
 
 
 def _prior() -> Any:
-    return _f("smoothed", choices=["smoothed", "exact"])
+    return _f("smoothed", choices=["smoothed", "shrunk", "exact"])
 
 
 def _jitter() -> Any:

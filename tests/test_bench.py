@@ -123,3 +123,32 @@ def test_bench_adaptive_stop_reports_iterations_per_tolerance(tmp_path, capsys):
     assert "--tolerances" in capsys.readouterr().err
     assert main(["bench", "adaptive-stop", "--domains", "atlantis", "--output", str(tmp_path)]) == 2
     assert "--domains" in capsys.readouterr().err
+
+
+def test_bench_decisions_rows_share_episodes_and_report_what_the_controller_reads(tmp_path):
+    from escort_rl.bench.decisions import paired_difference
+
+    rows = ["sir", "eager: filter=escort filter.num_steps=2 filter.compile=false"]
+    argv = ["bench", "decisions", "--rows", *rows, "--episodes", "3", "--steps", "12", "--particles", "16",
+            "--output", str(tmp_path)]
+    assert main(argv) == 0
+    result = json.loads((tmp_path / "decisions.json").read_text())
+    assert [r["label"] for r in result["rows"]] == ["sir", "eager"]
+    for r in result["rows"]:
+        assert len(r["success"]) == len(r["agreement"]) == 3 and r["particles"] == 16
+        assert all(0.0 <= a <= 1.0 for a in r["agreement"])
+        assert all(s == 12 for s in r["steps"])  # no episode reaches the goal in 12 steps from the start box
+        assert all(e > 0 for e in r["position_error"] + r["velocity_error"] + r["velocity_spread"])
+        assert len(r["velocity_error_over_time"][0]) == 12
+    assert result["rows"][1]["filter"] == "escort"
+    assert (tmp_path / "velocity_error_over_time.png").stat().st_size > 0
+    assert "| eager | 16 |" in (tmp_path / "decisions.md").read_text()
+    assert paired_difference([1.0, 0.0, 1.0], [0.0, 0.0, 1.0]) == pytest.approx((1 / 3, 1 / 3))
+
+
+@pytest.mark.parametrize("row, message", [("nonsense", "--rows: unknown row 'nonsense'"),
+                                          ("label:", "--rows: 'label:' needs a label"),
+                                          ("x: filter.no_such_key=1", "no_such_key")])
+def test_bench_decisions_bad_rows_get_one_line(row, message, tmp_path, capsys):
+    assert main(["bench", "decisions", "--rows", row, "--output", str(tmp_path)]) != 0
+    assert message in capsys.readouterr().err

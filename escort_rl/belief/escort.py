@@ -188,8 +188,10 @@ class ESCORTFilter(BeliefFilter):
         likelihood_pull: the paper's ``α w_i (μ_obs − x̃_i)`` pull, applied once after prediction
             when ``> 0`` (needs a model with ``position``-like observations: ``o`` compared with the
             first ``obs_dim`` coordinates). Default 0 (off).
-        prior: ``"smoothed"`` (default) or ``"exact"`` (the transition mixture, for models that
-            give only ``transition_log_prob``).
+        prior: ``"smoothed"`` (default), ``"shrunk"`` (the smoothed prior with its centres shrunk
+            toward their mean so that it keeps the predicted covariance instead of widening it by
+            ``1 + h²``; :class:`~escort_rl.belief.prior.SmoothedPrior`) or ``"exact"`` (the transition
+            mixture, for models that give only ``transition_log_prob``).
         jitter: std of the Gaussian jitter added at the end; ``None`` gives
             ``sqrt(0.01 (1 + 0.1 d))``, 0 turns it off.
         compile: run each iteration (:func:`evolution_step`) through ``torch.compile``, which fuses
@@ -263,7 +265,7 @@ class ESCORTFilter(BeliefFilter):
             ("corr_form", corr_form in ("velocity", "position"), "'velocity' or 'position'"),
             ("temp_schedule", temp_schedule in ("anneal", "constant"), "'anneal' or 'constant'"),
             ("likelihood_pull", likelihood_pull >= 0, ">= 0"),
-            ("prior", prior in ("smoothed", "exact"), "'smoothed' or 'exact'"),
+            ("prior", prior in ("smoothed", "shrunk", "exact"), "'smoothed', 'shrunk' or 'exact'"),
             ("jitter", jitter is None or jitter >= 0, "None or >= 0"),
             ("compile", isinstance(compile, bool), "True or False"),
             ("temp_clip", math.isfinite(temp_clip) and temp_clip > 0, "a finite number > 0"),
@@ -450,10 +452,11 @@ class ESCORTFilter(BeliefFilter):
             guard.model_values("model.transition", x_pred)
             means = model.transition_mean(x_t, a)
             guard.model_values("model.transition_mean", means)
-            if self.prior == "smoothed":
+            if self.prior in ("smoothed", "shrunk"):
                 scale_tril = model.transition_scale_tril()
                 guard.model_values("model.transition_scale_tril", scale_tril, per_particle=False)
-                prior_score = smoothed_prior_score(SmoothedPrior(means, scale_tril, belief.log_weights))
+                prior_score = smoothed_prior_score(SmoothedPrior(means, scale_tril, belief.log_weights,
+                                                                 shrink=self.prior == "shrunk"))
             else:
                 prior_score = self._exact_prior_score(model, x_t, belief.log_weights, a)
             score_fn, channels = self._target_score(model, observation, a, prior_score)

@@ -58,6 +58,12 @@ class SmoothedPrior:
     the weighted covariance of the ``μ_j`` and ``h`` Silverman's factor. With the precision
     ``P = S⁻¹``:
 
+    The kernel adds ``h² Σ̂`` to the covariance of the predicted prior, whose exact value is
+    ``Σ̂ + Σ_T``: every update widens the target by ``1 + h²`` in the directions the observation does
+    not inform (``h² ≈ 0.44`` at ``N = 100``, ``d = 10``). ``shrink=True`` moves each centre toward the
+    weighted mean first, ``μ_j ← a μ_j + (1 − a) μ̄`` with ``a = sqrt(1 − h²)`` (Liu & West 2001), so
+    that the mixture keeps the predicted mean and covariance exactly (``a² Σ̂ + h² Σ̂ + Σ_T``).
+
         log p̂(x) = logsumexp_j(ℓ_j(x)) − ½ log det(2π S),  ℓ_j(x) = log w_j − ½ (x − μ_j)ᵀ P (x − μ_j)
         ∇ log p̂(x) = −P (x − Σ_j r_j μ_j),   r_j = softmax_j ℓ_j(x)
 
@@ -66,11 +72,19 @@ class SmoothedPrior:
     """
 
     def __init__(self, means: Tensor, process_scale_tril: Tensor, log_weights: Tensor | None = None,
-                 bandwidth_factor: float | None = None, ridge: float = 1e-6) -> None:
+                 bandwidth_factor: float | None = None, ridge: float = 1e-6, shrink: bool = False) -> None:
         n, d = means.shape[-2], means.shape[-1]
         h = silverman_factor(n, d) if bandwidth_factor is None else bandwidth_factor
+        if shrink and not 0 < h < 1:
+            raise ValueError(f"SmoothedPrior.shrink: needs a bandwidth factor in (0, 1), got {h}")
         process_cov = process_scale_tril @ process_scale_tril.transpose(-1, -2)
         cov = process_cov + h * h * weighted_covariance(means, log_weights)
+        if shrink:
+            w = (torch.full(means.shape[:-1], 1.0 / n, dtype=means.dtype, device=means.device) if log_weights is None
+                 else torch.softmax(log_weights, dim=-1))
+            centre = (w.unsqueeze(-1) * means).sum(-2, keepdim=True)
+            a = math.sqrt(1.0 - h * h)
+            means = a * means + (1.0 - a) * centre
         cov = cov + ridge * torch.eye(d, dtype=means.dtype, device=means.device)
         self.scale_tril = robust_cholesky(cov)  # [*B, d, d]
         self.precision = torch.cholesky_inverse(self.scale_tril)  # [*B, d, d], symmetric

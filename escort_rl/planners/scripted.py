@@ -69,6 +69,7 @@ __all__ = [
     "TrueStateController",
     "action_for_push",
     "belief_mean",
+    "controlled_dims",
     "direction_action",
     "pd_action",
     "pd_signal",
@@ -146,6 +147,19 @@ def belief_mean(particles: Tensor, log_weights: Tensor | None = None) -> Tensor:
 
 
 # ---------------------------------------------------------------------- per-domain controllers
+def controlled_dims(model) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The state indices the domain's scripted controller reads: ``(position, velocity)``.
+    Light-Dark 10D: ``s[:5]``, ``s[5:10]``; Multi-Target Tracking 20D: the agent's ``s[0:2]``,
+    ``s[2:4]``; other models: ``ValueError`` (as :func:`scripted_controller_for`)."""
+    if isinstance(model, LightDark10D):
+        k = int(model.n_pos)
+        return tuple(range(k)), tuple(range(k, 2 * k))
+    if isinstance(model, MultiTargetTracking20D):
+        return (0, 1), (2, 3)
+    scripted_controller_for(model)  # raises the domain's reason
+    raise ValueError(f"controlled_dims: no scripted controller for {type(model).__name__}")
+
+
 class LightDarkPD:
     """Light-Dark 10D: :func:`pd_action` on ``x̂ = s[..., :5]``, ``v̂ = s[..., 5:10]`` toward
     ``model.goal``. Call it on a state estimate ``[*B, 10]`` to get actions int64 ``[*B]``."""
@@ -155,8 +169,8 @@ class LightDarkPD:
         self.n_pos = int(model.n_pos)
 
     def __call__(self, state: Tensor) -> Tensor:
-        k = self.n_pos
-        return pd_action(state[..., :k], state[..., k : 2 * k], self.model.goal, self.gain_v)
+        pos, vel = controlled_dims(self.model)
+        return pd_action(state[..., list(pos)], state[..., list(vel)], self.model.goal, self.gain_v)
 
 
 class MultiTargetPD:
@@ -169,7 +183,8 @@ class MultiTargetPD:
         self.model, self.gain_v = model, _check_gain(gain_v)
 
     def __call__(self, state: Tensor) -> Tensor:
-        u = pd_signal(state[..., 0:2], state[..., 2:4], self.model.goal, self.gain_v)
+        pos, vel = controlled_dims(self.model)
+        u = pd_signal(state[..., list(pos)], state[..., list(vel)], self.model.goal, self.gain_v)
         return direction_action(u, self.model.action_directions)
 
 
