@@ -130,7 +130,7 @@ def test_bench_decisions_rows_share_episodes_and_report_what_the_controller_read
 
     rows = ["sir", "eager: filter=escort filter.num_steps=2 filter.compile=false"]
     argv = ["bench", "decisions", "--rows", *rows, "--episodes", "3", "--steps", "12", "--particles", "16",
-            "--output", str(tmp_path)]
+            "--baseline", "eager", "--output", str(tmp_path)]
     assert main(argv) == 0
     result = json.loads((tmp_path / "decisions.json").read_text())
     assert [r["label"] for r in result["rows"]] == ["sir", "eager"]
@@ -142,7 +142,8 @@ def test_bench_decisions_rows_share_episodes_and_report_what_the_controller_read
         assert len(r["velocity_error_over_time"][0]) == 12
     assert result["rows"][1]["filter"] == "escort"
     assert (tmp_path / "velocity_error_over_time.png").stat().st_size > 0
-    assert "| eager | 16 |" in (tmp_path / "decisions.md").read_text()
+    table = (tmp_path / "decisions.md").read_text()
+    assert "| eager | 16 |" in table and "success − eager" in table
     assert paired_difference([1.0, 0.0, 1.0], [0.0, 0.0, 1.0]) == pytest.approx((1 / 3, 1 / 3))
 
 
@@ -152,3 +153,8 @@ def test_bench_decisions_rows_share_episodes_and_report_what_the_controller_read
 def test_bench_decisions_bad_rows_get_one_line(row, message, tmp_path, capsys):
     assert main(["bench", "decisions", "--rows", row, "--output", str(tmp_path)]) != 0
     assert message in capsys.readouterr().err
+
+
+def test_bench_decisions_baseline_must_be_a_row(tmp_path, capsys):
+    assert main(["bench", "decisions", "--rows", "sir", "--baseline", "svgd", "--output", str(tmp_path)]) != 0
+    assert "--baseline: 'svgd' is not one of the rows (sir)" in capsys.readouterr().err

@@ -141,7 +141,9 @@ def _episode_errors(filt, steps=12, n=300, batch=4, seed=0):
     return kalman_calibration(filt, steps=steps, n=n, batch=batch, seed=seed)
 
 
-@pytest.mark.parametrize("filt", [SVGDFilter(), ESCORTFilter()], ids=["svgd", "escort"])
+@pytest.mark.parametrize("filt", [SVGDFilter(), ESCORTFilter(), ESCORTFilter(prior="shrunk"),
+                                  ESCORTFilter(num_steps=15, step_size=0.15, prior="shrunk")],
+                         ids=["svgd", "escort", "escort-shrunk", "escort-train-shrunk"])
 def test_calibrated_against_the_kalman_filter(filt):
     """SPEC §4: over a 12-step episode with N=300, mean within 0.6 Mahalanobis units of the Kalman
     mean on average, and total variance within [0.6, 1.6]× the Kalman variance."""

@@ -57,7 +57,10 @@ def main(args) -> None:
                 ("escort jitter=0", ESCORTFilter(jitter=0.0)),
                 ("svgd repulsion=enhanced", SVGDFilter(repulsion="enhanced")),
                 ("escort num_steps=15 step_size=0.15 (filter=escort_train)", ESCORTFilter(num_steps=15, step_size=0.15)),
-                ("escort num_steps=10", ESCORTFilter(num_steps=10))]
+                ("escort num_steps=10", ESCORTFilter(num_steps=10)),
+                ("escort prior=shrunk", ESCORTFilter(prior="shrunk")),
+                ("escort num_steps=15 step_size=0.15 prior=shrunk", ESCORTFilter(num_steps=15, step_size=0.15,
+                                                                                 prior="shrunk"))]
     print("| filter | mean Mahalanobis error | variance ratio |")
     print("| --- | --- | --- |")
     for name, filt in variants:

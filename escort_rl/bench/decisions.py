@@ -17,7 +17,8 @@ row records what the controller reads from the belief:
 - error over time (mean over the episodes still running at each step), as plots.
 
 Every figure is a mean ± standard error over episodes; the success difference of each row to the
-first row is paired by episode (same start state), with its own standard error.
+baseline row (``--baseline``, default the first) is paired by episode (same start state), with its
+own standard error.
 Each row is a cell of :mod:`escort_rl.bench.runner`: saved as it finishes, skipped on a rerun.
 """
 
@@ -162,7 +163,7 @@ def paired_difference(a: list[float], b: list[float]) -> tuple[float, float]:
 
 def decisions_markdown(result: dict) -> str:
     rows = result["rows"]
-    base = rows[0]
+    base = next(r for r in rows if r["label"] == result.get("baseline", rows[0]["label"]))
     head = ["row", "N", *(name for _, name in COLUMNS), f"success − {base['label']}", "ms/step"]
     lines = [
         f"# Scripted controller on beliefs: {result['domain']}",
@@ -173,8 +174,8 @@ def decisions_markdown(result: dict) -> str:
         f"position and velocity inputs, averaged over each episode's steps; *near*: over its steps with the true "
         f"state within {result['near']} of the goal. Spread: the belief's per-coordinate standard deviation, "
         "averaged over the inputs and steps. Action agreement: the fraction of steps at which the action "
-        "taken on the belief equals the rule's action on the true state. The success difference to the first "
-        "row is paired by episode.",
+        "taken on the belief equals the rule's action on the true state. The success difference to the "
+        f"{base['label']} row is paired by episode.",
         "",
         "| " + " | ".join(head) + " |",
         "| " + " | ".join("---" for _ in head) + " |",
@@ -194,7 +195,7 @@ def decisions_markdown(result: dict) -> str:
 
 def run_decisions(domain: str = "lightdark10d", rows=DEFAULT_ROWS, episodes: int = 100, particles: int = 100,
                   seed: int | None = None, steps: int | None = None, near: float = 1.0, output="outputs/bench/decisions",
-                  backend=None, threads: int = 1) -> dict:
+                  backend=None, threads: int = 1, baseline: str | None = None) -> dict:
     """Run the rows (labels of :data:`ROWS` or ``(label, overrides)`` pairs) and write
     ``decisions.md``, ``decisions.json`` and the error-over-time plots into ``output``."""
     from escort_rl.bench.runner import make_backend
@@ -204,6 +205,8 @@ def run_decisions(domain: str = "lightdark10d", rows=DEFAULT_ROWS, episodes: int
     labels = [label for label, _ in specs]
     if len(set(labels)) != len(labels):
         raise ValueError(f"--rows: labels must differ, got {labels}")
+    if baseline is not None and baseline not in labels:
+        raise ValueError(f"--baseline: '{baseline}' is not one of the rows ({', '.join(labels)})")
     for name, value in (("episodes", episodes), ("particles", particles), ("threads", threads)):
         if value < 1:
             raise ValueError(f"--{name}: must be >= 1, got {value}")
@@ -222,7 +225,7 @@ def run_decisions(domain: str = "lightdark10d", rows=DEFAULT_ROWS, episodes: int
                                                      f"velocity error {mean_se(r['velocity_error'])[0]:.3f}",
                                                      flush=True))
     result = {"domain": domain, "episodes": episodes, "particles": particles, "seed": seed, "near": near,
-              "steps": steps, "rows": results}
+              "steps": steps, "baseline": baseline or labels[0], "rows": results}
     write_results(out, "decisions", result, decisions_markdown(result), time.perf_counter() - t0)
     for key, what in (("position_error_over_time", "position"), ("velocity_error_over_time", "velocity")):
         curves = {r["label"]: tuple(r[key]) for r in results}
@@ -249,6 +252,8 @@ def register(subparsers) -> None:
                    "(default 100)")
     p.add_argument("--seed", type=int, default=None, help="first env seed (default: the config's evaluate.seed)")
     p.add_argument("--steps", type=int, default=None, help="episode length (default: env.max_steps)")
+    p.add_argument("--baseline", default=None, metavar="LABEL",
+                   help="the row each row's success is compared with, paired by episode (default: the first row)")
     p.add_argument("--near", type=float, default=1.0, help="distance to goal that counts as near (default 1.0)")
     p.add_argument("--quick", action="store_true",
                    help=f"smoke run (flags given explicitly win): rows {' '.join(QUICK['rows'])}, "
@@ -265,7 +270,7 @@ def main(args) -> None:
     full = dict(episodes=100, steps=None, rows=DEFAULT_ROWS, particles=100)
     pick = QUICK if args.quick else full
     kw = {k: getattr(args, k) if getattr(args, k) is not None else pick[k] for k in full}
-    run_decisions(domain=args.domain, near=args.near, seed=args.seed, output=args.output,
+    run_decisions(domain=args.domain, near=args.near, seed=args.seed, output=args.output, baseline=args.baseline,
                   backend=backend_from_args(args), threads=args.threads or 1, **kw)
 
 
