@@ -158,3 +158,15 @@ def test_bench_decisions_bad_rows_get_one_line(row, message, tmp_path, capsys):
 def test_bench_decisions_baseline_must_be_a_row(tmp_path, capsys):
     assert main(["bench", "decisions", "--rows", "sir", "--baseline", "svgd", "--output", str(tmp_path)]) != 0
     assert "--baseline: 'svgd' is not one of the rows (sir)" in capsys.readouterr().err
+
+
+def test_bench_decisions_cell_changes_with_the_composed_config():
+    """A row is named by its overrides, but its stored result belongs to the config they compose to."""
+    from escort_rl.bench.decisions import DecisionCell
+
+    def cell(*overrides):
+        return DecisionCell(label="x", domain="lightdark10d", overrides=overrides, particles=20, episodes=2, seed=0)
+
+    assert cell("filter=escort").spec() == cell("filter=escort").spec()
+    assert cell("filter=escort").spec() != cell("filter=escort", "filter.prior=shrunk").spec()
+    assert cell("filter=escort").spec()["config"]["filter"]["prior"] == "smoothed"

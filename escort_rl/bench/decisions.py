@@ -39,12 +39,13 @@ ROWS: dict[str, tuple[str, ...]] = {
     "sir": ("filter=sir",),
     "sir N=1000": ("filter=sir", "num_particles=1000"),
     "escort_train": ("filter=escort_train",),
-    "escort_train jitter=0": ("filter=escort_train", "filter.jitter=0"),
-    "escort_train lambda_temp=0": ("filter=escort_train", "filter.lambda_temp=0"),
+    "escort_train prior=smoothed": ("filter=escort_train", "filter.prior=smoothed"),
+    "escort_train prior=smoothed jitter=0": ("filter=escort_train", "filter.prior=smoothed", "filter.jitter=0"),
+    "escort_train prior=smoothed lambda_temp=0": ("filter=escort_train", "filter.prior=smoothed",
+                                                  "filter.lambda_temp=0"),
+    "escort_train prior=smoothed K=50 step=0.1": ("filter=escort_train", "filter.prior=smoothed",
+                                                  "filter.num_steps=50", "filter.step_size=0.1"),
     "escort_train K=50 step=0.1": ("filter=escort_train", "filter.num_steps=50", "filter.step_size=0.1"),
-    "escort_train prior=shrunk": ("filter=escort_train", "filter.prior=shrunk"),
-    "escort_train prior=shrunk K=50 step=0.1": ("filter=escort_train", "filter.prior=shrunk", "filter.num_steps=50",
-                                                "filter.step_size=0.1"),
 }
 """The named rows: label -> config overrides (on ``env=<domain> num_particles=<N>``)."""
 DEFAULT_ROWS = tuple(ROWS)
@@ -80,6 +81,12 @@ class DecisionCell(Cell):
     def key(self) -> str:
         safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in self.label)
         return f"{self.domain}/{safe}"
+
+    def spec(self) -> dict:
+        """The cell's fields and the config they compose to: a changed config file is a new cell."""
+        from omegaconf import OmegaConf
+
+        return {**super().spec(), "config": OmegaConf.to_container(self.config(), resolve=True)}
 
     def config(self):
         from escort_rl.config import compose
