@@ -353,6 +353,7 @@ class ESCORTConfig(SVGDConfig):
     corr_form: str = _f("velocity", choices=["velocity", "position"])
     temp_schedule: str = _f("anneal", choices=["anneal", "constant"])
     temp_clip: float = _f(10.0, gt=0)
+    temporal_ascent_steps: int = _f(10, ge=0)
     likelihood_pull: float = _f(0.0, ge=0)
 
 
@@ -404,6 +405,7 @@ class PPOConfig(BeliefTrainerConfig):
     gae_lambda: float = _f(MISSING, ge=0, le=1)
     clip_epsilon: float = _f(MISSING, gt=0)
     epochs: int = _f(MISSING, ge=1)
+    warm_start_epochs: Optional[int] = _f(None, ge=1)
     minibatches: int = _f(MISSING, ge=1)
     critic_coef: float = _f(MISSING, ge=0)
     critic_input: str = _f("belief", choices=["belief", "state"])

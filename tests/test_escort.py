@@ -296,6 +296,7 @@ def test_smoothed_prior_survives_an_ill_conditioned_spread():
     ({"step_size": float("inf")}, "step_size"), ({"step_size": float("nan")}, "step_size"),
     ({"lambda_temp": float("inf")}, "lambda_temp"), ({"jitter": float("nan")}, "jitter"),
     ({"temp_clip": -1.0}, "temp_clip"), ({"temp_clip": float("inf")}, "temp_clip"),
+    ({"temporal_ascent_steps": -1}, "temporal_ascent_steps"), ({"temporal_ascent_steps": 2.5}, "temporal_ascent_steps"),
 ])
 def test_non_finite_or_out_of_range_arguments_are_refused(kwargs, name):
     with pytest.raises(ValueError, match=f"^ESCORTFilter.{name}: must be"):

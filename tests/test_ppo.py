@@ -15,7 +15,7 @@ from escort_rl.trainers.registry import train
 
 TINY_PPO = ["trainer=ppo", "filter=sir", "trainer.num_envs=4", "trainer.rollout_steps=6", "env.max_steps=12",
             "num_particles=8", "actor.hidden=8", "trainer.minibatches=2", "trainer.epochs=2",
-            "trainer.checkpoint_every=1"]
+            "trainer.warm_start_epochs=null", "trainer.checkpoint_every=1"]
 
 
 def _tiny_batch(n: int = 6, particles: int = 5, d: int = 10, keys=("particles", "particle_log_weights")):
@@ -216,3 +216,28 @@ def test_update_particles_trains_on_a_subset_with_the_old_log_prob_recomputed_on
         assert algorithm.subsample_particles(batch) is batch  # M >= N: the batch as collected
     finally:
         algorithm.close()
+
+
+def test_warm_start_epochs_apply_to_the_warm_start_iterations_only():
+    """``trainer.warm_start_epochs`` sets the passes per batch while the warm-start filter collects;
+    ``trainer.epochs`` after it, and everywhere when there is no warm start."""
+    from escort_rl.models import LightDark10D
+    from escort_rl.trainers.ppo import PPO
+
+    cfg = compose([*TINY_PPO, "trainer.warm_start_filter=sir", "trainer.warm_start_iterations=1",
+                   "trainer.warm_start_epochs=3"])
+    ppo = PPO(cfg, LightDark10D())
+    assert [ppo.epochs_for(i) for i in range(3)] == [3, 2, 2]
+    steps = []
+    step = ppo.optimizer.step
+    ppo.optimizer.step = lambda *a, **k: (steps.append(1), step(*a, **k))[1]
+    try:
+        per_pass = ppo.batches * int(cfg.trainer.minibatches)  # Adam steps in one pass over every batch
+        ppo.iteration(0, seed=1)
+        assert len(steps) == 3 * per_pass
+        ppo.iteration(1, seed=2)
+        assert len(steps) == 3 * per_pass + 2 * per_pass
+    finally:
+        ppo.close()
+    plain = PPO(compose([*TINY_PPO, "trainer.warm_start_filter=null", "trainer.warm_start_epochs=3"]), LightDark10D())
+    assert plain.epochs_for(0) == 2

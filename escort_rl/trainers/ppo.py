@@ -36,7 +36,7 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory, trained_action_repeat
-from escort_rl.trainers.scaffold import StagedCollector, episode_stats, make_collector
+from escort_rl.trainers.scaffold import StagedCollector, episode_stats, in_warm_start, make_collector
 
 
 def make_ppo_loss(actor, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:
@@ -67,6 +67,7 @@ class PPO:
         self.policy = make_deepsets_policy(self.actor, *belief_keys(cfg))  # what the collector runs
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
         self.components = {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
+        self.epochs = int(t.epochs)  # this iteration's (see epochs_for)
         self.repeat = trained_action_repeat(cfg)
         decisions = -(-int(cfg.env.max_steps) // self.repeat)  # per env and episode
         self.rollout_steps = min(int(t.rollout_steps), decisions)  # never past one episode
@@ -78,6 +79,14 @@ class PPO:
         self.collectors = StagedCollector(cfg, lambda c: make_collector(
             c, lambda n, s: env_factory(c, n, seed=s, action_repeat=self.repeat), self.policy, frames,
             reset_at_each_iter=False))
+
+    def epochs_for(self, index: int) -> int:
+        """The epochs of iteration ``index``'s updates: ``trainer.warm_start_epochs`` during the warm
+        start when set, else ``trainer.epochs``. Where collection is cheap (SIR beliefs: a batch
+        costs about what its update does) fresh batches beat more passes; where it is dear (ESCORT
+        beliefs: about twenty times the update) more passes over each batch pay."""
+        warm = self.cfg.trainer.get("warm_start_epochs", None)
+        return int(warm) if warm is not None and in_warm_start(self.cfg, index) else int(self.cfg.trainer.epochs)
 
     # The hooks a variant overrides (RecurrentPPO: whole env rows, recurrent mode).
     def prepare(self, batch):
@@ -136,7 +145,7 @@ class PPO:
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
                 "clip_fraction": 0.0, "grad_norm": 0.0}
         steps = 0
-        for _ in range(int(t.epochs)):
+        for _ in range(self.epochs):
             for minibatch in self.minibatches(source):
                 out = self.loss_terms(minibatch)
                 total = self.total_loss(minibatch, out)
@@ -153,6 +162,7 @@ class PPO:
 
     def iteration(self, index: int, seed: int) -> dict:
         collector = self.collectors.for_iteration(index)
+        self.epochs = self.epochs_for(index)
         collector.set_seed(seed)
         collector.reset()
         stats, seen, collect_s, frames = {}, [], 0.0, 0
