@@ -167,6 +167,7 @@ class LightDark10DModelConfig:
     success_radius: float = 0.5
     start_low: float = 0.0
     start_high: float = 2.0
+    prior_width: Optional[float] = _f(None, gt=0)
 
 
 @dataclass

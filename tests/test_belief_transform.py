@@ -193,6 +193,25 @@ def test_partial_reset_reinitialises_only_selected_rows():
     assert nxt["particles"].shape == (4, 20, 10)
 
 
+def test_reset_places_the_prior_around_each_start_under_exploring_starts():
+    """With a model whose prior is placed around the start (``prior_width``), every reset row's
+    particles lie within ``prior_width`` of that row's start, partial resets included."""
+    model = LightDark10D(start_low=0.0, start_high=10.0, prior_width=0.5)
+    env = TransformedEnv(POMDPEnv(model, batch_size=(6,), seed=1, max_steps=None),
+                         BeliefTransform(model, SIRFilter(), 16, seed=2))
+    td = env.reset()
+
+    def near(out, rows):
+        gap = out["particles"][rows][..., :5] - out["true_state"][rows][:, None, :5]
+        return bool((gap.abs() <= 0.5).all())
+
+    assert near(td, slice(None))
+    mask = torch.tensor([True, False, False, True, False, False])
+    td["_reset"] = mask.unsqueeze(-1)
+    out = env.reset(td)
+    assert near(out, mask)
+
+
 def test_auto_reset_in_rollout_reinitialises_done_rows():
     env = make_belief_env(7, 8, batch=2, num_particles=20, max_steps=4)
     roll = env.rollout(6, cyclic_policy(), break_when_any_done=False)

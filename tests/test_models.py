@@ -182,6 +182,40 @@ def test_initial_state_and_belief(model):
     torch.testing.assert_close(model.initial_state((4,), gen(9)), model.initial_state((4,), gen(9)))
 
 
+def test_prior_around_an_exploring_start_is_a_box_of_prior_width_that_holds_the_start():
+    """Exploring starts (``prior_width``): the prior is a box of side ``w`` that holds the start, with
+    the start uniform in it, so the particles' mean is unbiased for the start; velocities are zero."""
+    w = 2.0
+    model = LightDark10D(start_low=0.0, start_high=10.0, prior_width=w)
+    start = model.initial_state((2000,), gen(3))
+    prior = model.initial_belief_around(start, 50, gen(4))
+    assert prior.shape == (2000, 50, 10) and bool((prior[..., 5:] == 0).all())
+    gap = prior[..., :5] - start[:, None, :5]
+    # every particle and the start lie in one box of side w
+    span = gap.amax(-2).clamp_min(0.0) - gap.amin(-2).clamp_max(0.0)  # of the particles and the start
+    assert bool((span <= w + 1e-5).all())
+    # start uniform in its box: E[mean − start] = 0 per coordinate; the per-belief std is about
+    # w/sqrt(12) = 0.58, so over 2000 beliefs the standard error is 0.013 (the bound is 6 of them)
+    assert float(gap.mean(-2).mean(0).abs().max()) < 0.08
+    with pytest.raises(ValueError, match="prior_width"):
+        LightDark10D().initial_belief_around(start, 5)
+    with pytest.raises(ValueError, match="prior_width"):
+        LightDark10D(prior_width=0.0)
+
+
+def test_filter_init_places_the_prior_around_the_start_only_where_the_model_asks():
+    from escort_rl.belief import SIRFilter
+
+    start = torch.full((3, 10), 7.0)
+    start[:, 5:] = 0.0
+    placed = SIRFilter().init(LightDark10D(prior_width=1.0), (3,), 40, gen(1), start_state=start)
+    assert bool(((placed.particles[..., :5] - 7.0).abs() <= 1.0).all())
+    plain = SIRFilter().init(LightDark10D(), (3,), 40, gen(1), start_state=start)  # no prior_width: ignored
+    torch.testing.assert_close(plain.particles, LightDark10D().initial_belief((3,), 40, gen(1)))
+    with pytest.raises(ValueError, match="^start_state: expected shape"):
+        SIRFilter().init(LightDark10D(prior_width=1.0), (3,), 40, gen(1), start_state=start[:2])
+
+
 # ---------------------------------------------------------------------------------------------
 # Light-Dark 10D: the light field and observations
 # ---------------------------------------------------------------------------------------------

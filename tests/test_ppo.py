@@ -121,9 +121,10 @@ def test_collection_config_applies_exploring_starts_and_the_warm_start_filter():
     warm, main = collection_config(cfg, 1), collection_config(cfg, 2)
     assert warm.filter.kind == "sir" and main.filter.kind == "escort"
     for c in (warm, main):
-        assert (c.env.model.start_low, c.env.model.start_high) == (0.0, 10.0)
+        assert (c.env.model.start_low, c.env.model.start_high, c.env.model.prior_width) == (0.0, 10.0, 2.0)
         assert c.env.model.goal == cfg.env.model.goal  # the other env keys are kept
-    assert (cfg.env.model.start_low, cfg.env.model.start_high) == (0.0, 2.0)  # evaluation's env unchanged
+    # evaluation's env unchanged: the paper's box, and the prior is the start distribution
+    assert (cfg.env.model.start_low, cfg.env.model.start_high, cfg.env.model.prior_width) == (0.0, 2.0, None)
     plain = compose([*TINY_PPO, "trainer.exploring_starts=false", "trainer.warm_start_filter=null"])
     assert collection_config(plain, 0) is plain
 

@@ -47,16 +47,26 @@ class BeliefFilter(ABC):
         batch_shape: tuple[int, ...] | torch.Size,
         num_particles: int,
         generator: torch.Generator | None = None,
+        start_state: Tensor | None = None,
     ) -> ParticleBelief:
         """The prior belief: ``num_particles`` draws of ``model.initial_belief`` per batch element.
 
-        Returns a belief with particles ``[*batch_shape, num_particles, d]`` and equal weights.
+        ``start_state`` ``[*batch_shape, d]``: the episode's start, for a model whose prior is placed
+        around it (exploring starts: ``model.prior_width`` set, and ``model.initial_belief_around``);
+        ignored otherwise. Returns a belief with particles ``[*batch_shape, num_particles, d]`` and
+        equal weights.
         """
         check_model(model)
         if not isinstance(num_particles, int) or isinstance(num_particles, bool) or num_particles < 1:
             raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
         batch_shape = validate_batch_shape(batch_shape)
-        particles = model.initial_belief(batch_shape, num_particles, generator)
+        if start_state is not None and getattr(model, "prior_width", None) is not None:
+            if tuple(start_state.shape) != (*batch_shape, model.state_dim):
+                raise ValueError(f"start_state: expected shape {(*batch_shape, model.state_dim)}, "
+                                 f"got {tuple(start_state.shape)}")
+            particles = model.initial_belief_around(start_state, num_particles, generator)
+        else:
+            particles = model.initial_belief(batch_shape, num_particles, generator)
         if particles.shape[-1] != model.state_dim:
             raise ValueError(
                 f"model.initial_belief: returned last dimension {particles.shape[-1]}, "

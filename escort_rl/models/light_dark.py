@@ -86,6 +86,9 @@ class LightDark10D(AdditiveGaussianTransition):
         dark_threshold: light level under which swaps happen (paper: 0.1).
         goal: goal position (paper: (8, 8, 8, 8, 8)); success_radius (paper: 0.5).
         start_low, start_high: the start box for positions (paper: [0, 2]^5).
+        prior_width: ``None`` (default): the belief's prior is the start distribution. A number
+            (exploring starts, where the start box is wider than the paper's): the prior is a box
+            of this side placed around the start (:meth:`initial_belief_around`).
         device: where the model's constant tensors live.
     """
 
@@ -110,6 +113,7 @@ class LightDark10D(AdditiveGaussianTransition):
         success_radius: float = 0.5,
         start_low: float = 0.0,
         start_high: float = 2.0,
+        prior_width: float | None = None,
         device: torch.device | str | None = None,
     ) -> None:
         for name, value in (
@@ -121,6 +125,8 @@ class LightDark10D(AdditiveGaussianTransition):
         ):
             if not value > 0:
                 raise ValueError(f"LightDark10D.{name}: must be > 0, got {value}")
+        if prior_width is not None and not prior_width > 0:
+            raise ValueError(f"LightDark10D.prior_width: must be None or > 0, got {prior_width}")
         if not 0.0 <= confusion_prob < 1.0:
             raise ValueError(f"LightDark10D.confusion_prob: must be in [0, 1), got {confusion_prob}")
         self.device = torch.device(device) if device is not None else torch.device("cpu")
@@ -129,6 +135,7 @@ class LightDark10D(AdditiveGaussianTransition):
         self.confusion_prob, self.dark_threshold = confusion_prob, dark_threshold
         self.success_radius = success_radius
         self.start_low, self.start_high = start_low, start_high
+        self.prior_width = prior_width
         self.goal = torch.full((self.n_pos,), float(goal), device=self.device)
 
         self.correlation = make_positive_definite(nearest_correlation_matrix(paper_correlations()))
@@ -200,6 +207,20 @@ class LightDark10D(AdditiveGaussianTransition):
     ) -> Tensor:
         """``n`` draws of the start distribution per batch element: ``[*shape, n, 10]``."""
         return self.initial_state((*shape, n), generator)
+
+    def initial_belief_around(self, state: Tensor, n: int, generator: torch.Generator | None = None) -> Tensor:
+        """The prior of an episode that starts at ``state`` under exploring starts: as informative as
+        the paper's start box, wherever the start. Positions uniform in a box of side
+        ``prior_width`` whose corner is ``x₀ − prior_width·u``, ``u ~ U[0, 1]^5``, so that ``x₀`` is
+        uniform in the box, as a start is in the paper's; velocity zero, as every start's.
+        ``state`` ``[*S, 10]`` -> ``[*S, n, 10]``."""
+        if self.prior_width is None:
+            raise ValueError("LightDark10D.prior_width: is None; set it to place the prior around the start")
+        pos = state[..., : self.n_pos]
+        corner = pos - self.prior_width * torch.rand(pos.shape, generator=generator, device=pos.device, dtype=pos.dtype)
+        u = torch.rand(*pos.shape[:-1], n, self.n_pos, generator=generator, device=pos.device, dtype=pos.dtype)
+        particles = corner.unsqueeze(-2) + self.prior_width * u
+        return torch.cat([particles, torch.zeros_like(particles)], dim=-1)
 
     def transition_mean(self, s: Tensor, a: Tensor) -> Tensor:
         """Noise-free dynamics. ``s``: ``[*S, 10]``, ``a``: ``[*S]`` -> ``[*S, 10]``."""

@@ -213,7 +213,11 @@ class BeliefTransform(Transform):
         log_w = old_w.clone() if old_w is not None else torch.full((*batch, n), -float(torch.log(torch.tensor(n))), device=device)
         k = int(rows.sum())
         if k:
-            prior = self.filter.init(self.model, (k,), n, self._get_generator(device))
+            # the env's start state places the prior only where the model asks for it (exploring
+            # starts with model.prior_width); the filter never sees it otherwise
+            start = tensordict_reset.get("true_state", None)
+            prior = self.filter.init(self.model, (k,), n, self._get_generator(device),
+                                     start_state=None if start is None else start[rows])
             particles[rows] = prior.particles.to(device, torch.float32)
             log_w[rows] = prior.log_weights.to(device, torch.float32)
         tensordict_reset.set(self.particles_key, particles)
