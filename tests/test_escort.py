@@ -7,15 +7,20 @@ import pytest
 import torch
 
 from escort_rl.belief import ESCORTFilter, ParticleBelief, SVGDFilter
+from escort_rl.belief.checks import is_finite, is_inf, is_nan
 from escort_rl.bench.calibration import kalman_calibration
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists, svgd_direction
 from escort_rl.belief.prior import SmoothedPrior, silverman_factor
 from escort_rl.belief.projections import (
     correlation_force,
     correlation_projections,
+    TemporalReference,
     max_sliced_directions,
+    permutation_ranks,
     projected_w1_grad,
     random_directions,
+    ranks,
+    sort_by_ranks,
     sorted_matching,
     temporal_force,
 )
@@ -235,6 +240,44 @@ def test_projected_w1_gradient_matches_autograd_through_the_sort():
     pr = torch.sort(theta @ r.transpose(-1, -2), dim=-1).values
     (expected,) = torch.autograd.grad((px - pr).abs().mean(-1).sum(), theta)
     torch.testing.assert_close(projected_w1_grad(x, r, theta.detach()), expected, atol=1e-5, rtol=1e-5)
+
+
+def test_ranks_by_counting_match_the_sort():
+    g = torch.Generator().manual_seed(11)
+    v = torch.randn(3, 4, 40, generator=g)
+    expected = torch.argsort(torch.argsort(v, dim=-1), dim=-1)
+    assert torch.equal(ranks(v), expected)
+    assert torch.equal(permutation_ranks(v), expected)
+    assert torch.equal(sort_by_ranks(v, permutation_ranks(v)), torch.sort(v, dim=-1).values)
+    # ties: shared lowest rank, or broken by position into a permutation
+    tied = torch.tensor([2.0, 1.0, 2.0, 2.0, 0.0])
+    assert ranks(tied).tolist() == [2, 1, 2, 2, 0]
+    assert permutation_ranks(tied).tolist() == [2, 1, 3, 4, 0]
+    assert torch.equal(sort_by_ranks(tied, permutation_ranks(tied)), torch.sort(tied).values)
+
+
+def test_rank_paths_of_the_temporal_term_equal_the_sort_paths():
+    """Counting ranks (what the compiled filter uses) gives the same directions, weights, sorted
+    reference and force as sorting, for distinct projections."""
+    g = torch.Generator().manual_seed(12)
+    x, r = torch.randn(3, 50, 6, generator=g), torch.randn(3, 50, 6, generator=g) + 0.3
+    theta0 = random_directions(x, 5, g)
+    theta, w = max_sliced_directions(x, r, theta0, ascent_steps=3)
+    theta_c, w_c = max_sliced_directions(x, r, theta0, ascent_steps=3, rank_fn=permutation_ranks)
+    torch.testing.assert_close(theta_c, theta, atol=1e-6, rtol=0)
+    torch.testing.assert_close(w_c, w, atol=1e-6, rtol=0)
+    torch.testing.assert_close(projected_w1_grad(x, r, theta0, permutation_ranks), projected_w1_grad(x, r, theta0))
+    by_sort = TemporalReference(r, theta, w)
+    by_count = TemporalReference(r, theta, w, count_ranks=True, rank_fn=permutation_ranks)
+    assert torch.equal(by_count.sorted_ref, by_sort.sorted_ref)
+    torch.testing.assert_close(by_count.force(x, 0.3), by_sort.force(x, 0.3))
+
+
+def test_finite_checks_match_torch():
+    t = torch.tensor([0.0, -1.5, float("nan"), float("inf"), -float("inf"), 3e38])
+    assert torch.equal(is_nan(t), torch.isnan(t))
+    assert torch.equal(is_inf(t), torch.isinf(t))
+    assert torch.equal(is_finite(t), torch.isfinite(t))
 
 
 def test_max_sliced_directions_find_the_shift():

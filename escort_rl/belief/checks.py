@@ -18,6 +18,7 @@ What counts as bad:
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator, Sequence
 
 import torch
@@ -32,6 +33,24 @@ class NonFiniteError(ValueError):
 
 
 # ------------------------------------------------------------------------------------ per-particle flags
+# The flags below run inside the (possibly compiled) particle-evolution loop at every iteration. They
+# are written with comparisons, which torch.compile vectorises on a CPU, where torch.isnan/isinf/
+# isfinite compile to a scalar loop (about 5 ns an entry at [64, 100, 10]).
+def is_nan(t: Tensor) -> Tensor:
+    """``torch.isnan(t)`` as ``t != t`` (NaN is the only value unequal to itself)."""
+    return t != t
+
+
+def is_inf(t: Tensor) -> Tensor:
+    """``torch.isinf(t)`` as ``|t| = inf``."""
+    return t.abs() == math.inf
+
+
+def is_finite(t: Tensor) -> Tensor:
+    """``torch.isfinite(t)`` as ``|t| < inf`` (false for NaN and ±inf)."""
+    return t.abs() < math.inf
+
+
 def log_density_flags(log_density: Tensor, score: Tensor) -> Tensor:
     """Per-particle flags of a log-density and its score, for :func:`log_density_channels`.
 
@@ -39,9 +58,9 @@ def log_density_flags(log_density: Tensor, score: Tensor) -> Tensor:
     NaN; the value is +inf; the value is finite but the gradient is not. (A ``-inf`` value is a zero
     density: its gradient is taken as 0, not flagged.)
     """
-    finite = torch.isfinite(log_density)
-    bad_grad = finite & ~torch.isfinite(score).all(-1)
-    return torch.stack([torch.isnan(log_density), torch.isposinf(log_density), bad_grad], dim=-1)
+    finite = is_finite(log_density)
+    bad_grad = finite & ~is_finite(score).all(-1)
+    return torch.stack([is_nan(log_density), log_density == math.inf, bad_grad], dim=-1)
 
 
 def log_density_channels(name: str, fix: str) -> tuple[tuple[str, str], ...]:
@@ -53,7 +72,7 @@ def log_density_channels(name: str, fix: str) -> tuple[tuple[str, str], ...]:
 def value_flags(t: Tensor) -> Tensor:
     """Per-particle flags of values ``t`` ``[*S, d]`` (e.g. a score) -> bool ``[*S, 2]``: some entry
     is NaN; some entry is ±inf."""
-    return torch.stack([torch.isnan(t).any(-1), torch.isinf(t).any(-1)], dim=-1)
+    return torch.stack([is_nan(t).any(-1), is_inf(t).any(-1)], dim=-1)
 
 
 def value_channels(name: str, fix: str) -> tuple[tuple[str, str], ...]:

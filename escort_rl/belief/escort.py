@@ -25,6 +25,7 @@ from escort_rl.belief.base import BeliefFilter
 from escort_rl.belief.checks import (
     OFF,
     FiniteGuard,
+    is_finite,
     log_density_channels,
     log_density_flags,
     value_channels,
@@ -34,10 +35,12 @@ from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists, svgd_d
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.prior import SmoothedPrior
 from escort_rl.belief.projections import (
+    RANK_COUNT_MAX,
     TemporalReference,
     correlation_force,
     correlation_projections,
     max_sliced_directions,
+    permutation_ranks,
     projector,
     random_directions,
     random_projections,
@@ -67,7 +70,7 @@ def autograd_score(log_density: Callable[[Tensor], Tensor], x: Tensor,
 
     def total(z: Tensor) -> tuple[Tensor, Tensor]:
         lp = log_density(z)
-        return torch.where(torch.isfinite(lp), lp, torch.full_like(lp, -1e30)).sum(), lp
+        return torch.where(is_finite(lp), lp, torch.full_like(lp, -1e30)).sum(), lp
 
     if torch.compiler.is_compiling():  # dynamo traces torch.func.grad, not torch.autograd.grad
         grad, lp = torch.func.grad(total, has_aux=True)(x.detach())
@@ -80,7 +83,7 @@ def autograd_score(log_density: Callable[[Tensor], Tensor], x: Tensor,
             grad = torch.zeros_like(xg) if grad is None else grad
     lp = lp.detach()
     # 0·∞ in the backward pass of an impossible particle gives NaN: its gradient is 0 by definition
-    grad = torch.where(torch.isfinite(lp).unsqueeze(-1), grad, torch.zeros_like(grad))
+    grad = torch.where(is_finite(lp).unsqueeze(-1), grad, torch.zeros_like(grad))
     return (grad, lp) if with_value else grad
 
 
@@ -131,7 +134,7 @@ def smoothed_prior_score(prior: SmoothedPrior) -> tuple[ScoreTerm, Channels]:
 
     def score(x: Tensor) -> tuple[Tensor, Tensor]:
         s = prior.score(x)
-        return s, ~torch.isfinite(s).all(-1, keepdim=True)
+        return s, ~is_finite(s).all(-1, keepdim=True)
 
     return score, (("the smoothed prior's score was NaN or inf",
                     "the particles overflowed; check the scale of the model's transition_mean and "
@@ -398,9 +401,13 @@ class ESCORTFilter(BeliefFilter):
                 with timer("temporal"):
                     theta0 = random_directions(x, self.n_proj, generator)
                     # once per update: eager (compiling it cost about 10 s per shape and saved nothing)
+                    # Compiled, ranking by counting beats torch.sort for short rows (projections.ranks):
+                    # the once-per-update ascent calls a compiled permutation_ranks, the iterations count.
+                    counting = fused and x.shape[-2] <= RANK_COUNT_MAX
+                    rank_fn = self._compiled(permutation_ranks) if counting else None
                     theta, theta_w = max_sliced_directions(
-                        x, reference, theta0, ascent_steps=self.temporal_ascent_steps)
-                    temporal = TemporalReference(reference, theta, theta_w)
+                        x, reference, theta0, ascent_steps=self.temporal_ascent_steps, rank_fn=rank_fn)
+                    temporal = TemporalReference(reference, theta, theta_w, count_ranks=counting, rank_fn=rank_fn)
             hist = torch.zeros_like(x)
             counts = None
             stop = self.stop_tolerance > 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -22,10 +23,11 @@ def median_bandwidth(sq_dists: Tensor, min_bandwidth: float = 1e-6, max_points: 
     of the squared pairwise distances ``‖x_i − x_j‖²`` over the pairs ``i ≠ j``, for the kernel
     ``k(x, y) = exp(−‖x − y‖² / h)``.
 
-    The median is taken by selection (``kthvalue``), not a full sort. For ``N > max_points`` it is
-    taken over the pairs among the first ``max_points`` particles (particles are exchangeable, so
-    this is an unbiased estimate of the median over all pairs, at O(max_points²) instead of O(N²)
-    cost). ``h`` is floored at ``min_bandwidth`` so that coincident particles give a finite kernel;
+    The median is taken by selection (``kthvalue``), not a full sort, over the ``N(N − 1)/2`` pairs
+    ``i < j`` (the matrix is symmetric, so this is the median over ``i ≠ j`` at half the cost). For
+    ``N > max_points`` it is taken over the pairs among the first ``max_points`` particles
+    (particles are exchangeable, so this is an unbiased estimate of the median over all pairs, at
+    O(max_points²) instead of O(N²) cost). ``h`` is floored at ``min_bandwidth`` so that coincident particles give a finite kernel;
     ``log N`` uses the full ``N``. ``[*B, N, N] -> [*B]``.
     """
     n_all = sq_dists.shape[-1]
@@ -34,11 +36,18 @@ def median_bandwidth(sq_dists: Tensor, min_bandwidth: float = 1e-6, max_points: 
     n = sq_dists.shape[-1]
     if n < 2:
         return torch.ones(sq_dists.shape[:-2], dtype=sq_dists.dtype, device=sq_dists.device)
-    flat = sq_dists.reshape(*sq_dists.shape[:-2], n * n)
-    # The N diagonal zeros sort first; the N(N-1) off-diagonal values come in symmetric pairs.
-    k = n + (n * (n - 1)) // 2
-    med = flat.kthvalue(k, dim=-1).values
+    pairs = sq_dists.reshape(*sq_dists.shape[:-2], n * n)[..., _upper_pairs(n, sq_dists.device)]  # [*B, N(N-1)/2]
+    # the median of the N(N-1) off-diagonal values, which come in equal pairs: the ceil(M/2)-th of
+    # the M = N(N-1)/2 pairs
+    med = pairs.kthvalue((pairs.shape[-1] + 1) // 2, dim=-1).values
     return (med / math.log(max(n_all, 2))).clamp_min(min_bandwidth)
+
+
+@functools.lru_cache(maxsize=16)
+def _upper_pairs(n: int, device: torch.device) -> Tensor:
+    """The flat indices ``i·N + j`` of the pairs ``i < j`` of an ``N × N`` matrix (cached per ``N``)."""
+    rows, cols = torch.triu_indices(n, n, 1, device=device)
+    return rows * n + cols
 
 
 def svgd_direction(x: Tensor, score: Tensor, bandwidth: Tensor, repulsion: float = 1.0,

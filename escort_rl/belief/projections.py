@@ -3,6 +3,8 @@ matchings (SPEC §4, step 3). Batched over beliefs ``[*B, N, d]``."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor
 
@@ -117,23 +119,29 @@ def random_directions(x: Tensor, n_dirs: int, generator=None) -> Tensor:
 
 
 def max_sliced_directions(x: Tensor, r: Tensor, theta: Tensor, ascent_steps: int = 10,
-                          ascent_lr: float = 0.5) -> tuple[Tensor, Tensor]:
+                          ascent_lr: float = 0.5, rank_fn: Callable[[Tensor], Tensor] | None = None
+                          ) -> tuple[Tensor, Tensor]:
     """Directions ``θ_j`` that maximise the projected W1 between ``x`` and ``r`` (equal weights).
 
     Starts from the unit vectors ``theta`` ``[*B, J, d]`` (e.g. :func:`random_directions`) and takes
     ``ascent_steps`` gradient ascent steps on ``W1_θ = (1/N) Σ_k |sort(x θ)_k − sort(r θ)_k|``
     (:func:`projected_w1_grad`), renormalising θ after each step.
     ``x``, ``r`` ``[*B, N, d]``. Returns ``θ`` ``[*B, J, d]`` and weights ``w_j ∝ W1_θj`` ``[*B, J]``.
+    ``rank_fn`` (e.g. a compiled :func:`permutation_ranks`) orders the projections instead of
+    ``torch.sort``: the same result, faster where it is compiled (see :func:`ranks`).
     """
     x, r = x.detach(), r.detach()
 
     def projected_w1(t: Tensor) -> Tensor:
-        px = torch.sort(x @ t.transpose(-1, -2), dim=-2).values  # [*B, N, J]
-        pr = torch.sort(r @ t.transpose(-1, -2), dim=-2).values
-        return (px - pr).abs().mean(-2)  # [*B, J]
+        if rank_fn is None:
+            px = torch.sort(x @ t.transpose(-1, -2), dim=-2).values  # [*B, N, J]
+            pr = torch.sort(r @ t.transpose(-1, -2), dim=-2).values
+            return (px - pr).abs().mean(-2)  # [*B, J]
+        px, pr = t @ x.transpose(-1, -2), t @ r.transpose(-1, -2)  # [*B, J, N]
+        return (sort_by_ranks(px, rank_fn(px)) - sort_by_ranks(pr, rank_fn(pr))).abs().mean(-1)
 
     for _ in range(ascent_steps):
-        theta = theta + ascent_lr * projected_w1_grad(x, r, theta)
+        theta = theta + ascent_lr * projected_w1_grad(x, r, theta, rank_fn)
         theta = theta / torch.linalg.vector_norm(theta, dim=-1, keepdim=True).clamp_min(1e-12)
     theta = theta.detach()
     w1 = projected_w1(theta)
@@ -141,18 +149,26 @@ def max_sliced_directions(x: Tensor, r: Tensor, theta: Tensor, ascent_steps: int
     return theta, weights
 
 
-def projected_w1_grad(x: Tensor, r: Tensor, theta: Tensor) -> Tensor:
+def projected_w1_grad(x: Tensor, r: Tensor, theta: Tensor,
+                      rank_fn: Callable[[Tensor], Tensor] | None = None) -> Tensor:
     """``∇_θ W1_θ`` for ``W1_θ = (1/N) Σ_k |θ·x_(k) − θ·r_(k)|``, where ``x_(k)`` and ``r_(k)`` are
     the points of rank ``k`` along ``θ``: ``(1/N) Σ_k sign(θ·x_(k) − θ·r_(k)) (x_(k) − r_(k))``
     (the gradient autograd gives through the sort; a test checks it).
-    ``x``, ``r`` ``[*B, N, d]``, ``theta`` ``[*B, J, d]``. Returns ``[*B, J, d]``."""
+    ``x``, ``r`` ``[*B, N, d]``, ``theta`` ``[*B, J, d]``. Returns ``[*B, J, d]``. ``rank_fn``: as in
+    :func:`max_sliced_directions`."""
     n = x.shape[-2]
-    px, ix = torch.sort(theta @ x.transpose(-1, -2), dim=-1)  # [*B, J, N]
-    pr, ir = torch.sort(theta @ r.transpose(-1, -2), dim=-1)
-    sign = torch.sign(px - pr)  # [*B, J, N]
-    # Σ_k s_k x_(k) = Σ_i s_{rank(i)} x_i: scatter the signs back to particle order, then one matmul
-    sx = torch.zeros_like(sign).scatter_(-1, ix, sign)
-    sr = torch.zeros_like(sign).scatter_(-1, ir, sign)
+    px, pr = theta @ x.transpose(-1, -2), theta @ r.transpose(-1, -2)  # [*B, J, N]
+    # Σ_k s_k x_(k) = Σ_i s_{rank(i)} x_i: the signs in particle order, then one matmul
+    if rank_fn is None:
+        px, ix = torch.sort(px, dim=-1)
+        pr, ir = torch.sort(pr, dim=-1)
+        sign = torch.sign(px - pr)  # [*B, J, N], by rank
+        sx = torch.zeros_like(sign).scatter_(-1, ix, sign)
+        sr = torch.zeros_like(sign).scatter_(-1, ir, sign)
+    else:
+        rx, rr = rank_fn(px), rank_fn(pr)
+        sign = torch.sign(sort_by_ranks(px, rx) - sort_by_ranks(pr, rr))
+        sx, sr = torch.gather(sign, -1, rx), torch.gather(sign, -1, rr)
     return (sx @ x - sr @ r) / n
 
 
@@ -169,34 +185,95 @@ def sorted_matching(x: Tensor, r: Tensor, theta: Tensor) -> Tensor:
     return sigma
 
 
+RANK_COUNT_MAX = 256  # ranks by counting (O(N²) compares, fused) up to this N; a sort beyond it
+
+
+def ranks(values: Tensor, break_ties: bool = False) -> Tensor:
+    """The rank of each entry along the last dimension, 0 for the smallest:
+
+        rank_i = #{j : v_j < v_i}                      (tied values share the lowest of their ranks),
+        rank_i = #{j : v_j < v_i} + #{j < i : v_j = v_i}   with ``break_ties`` (a permutation),
+
+    so distinct values get a permutation of ``0 … N − 1`` either way. ``[*B, N] -> [*B, N]`` (int64).
+
+    It counts with ``O(N²)`` comparisons instead of sorting. Compiled (:func:`torch.compile` fuses
+    the comparisons and the sum into one pass) it is several times faster than ``torch.sort`` on a
+    CPU for short rows: at ``[64, 5, 100]`` about 0.2 ms (0.37 ms with ``break_ties``) against 1 ms.
+    Eager, the ``[*B, N, N]`` comparison tensor makes it slower than a sort, so the uncompiled paths
+    sort.
+
+    Example:
+        >>> ranks(torch.tensor([0.3, -1.0, 2.0, 0.3]))
+        tensor([1, 0, 3, 1])
+        >>> ranks(torch.tensor([0.3, -1.0, 2.0, 0.3]), break_ties=True)
+        tensor([1, 0, 3, 2])
+    """
+    mine, other = values.unsqueeze(-1), values.unsqueeze(-2)  # [*B, N, 1] (i), [*B, 1, N] (j)
+    below = other < mine
+    if break_ties:
+        idx = torch.arange(values.shape[-1], device=values.device, dtype=values.dtype)
+        below = below | ((other == mine) & (idx < idx.unsqueeze(-1)))
+    # float32 counts are exact up to 2^24 and vectorise; int64 sums do not
+    return below.to(torch.float32).sum(-1).to(torch.int64)
+
+
+def permutation_ranks(values: Tensor) -> Tensor:
+    """:func:`ranks` with ``break_ties=True``: the rank permutation of every row. ``[*B, N] -> [*B, N]``."""
+    return ranks(values, break_ties=True)
+
+
+def sort_by_ranks(values: Tensor, rank: Tensor) -> Tensor:
+    """``values`` ``[*B, N]`` in ascending order, given their rank permutation ``rank`` ``[*B, N]``
+    (:func:`permutation_ranks`): what ``torch.sort(values).values`` gives."""
+    return torch.empty_like(values).scatter_(-1, rank, values)
+
+
 class TemporalReference:
     """The reference set ``r`` ``[*B, N, d]`` sorted once along each direction ``θ_j`` ``[*B, J, d]``,
-    so that each :meth:`force` call sorts only the moving particles."""
+    so that each :meth:`force` call ranks only the moving particles.
 
-    def __init__(self, r: Tensor, theta: Tensor, weights: Tensor) -> None:
+    ``count_ranks`` ranks the particles by counting (:func:`ranks`) instead of sorting them: the
+    same matching for distinct projections, and faster inside a compiled iteration for
+    ``N ≤`` :data:`RANK_COUNT_MAX` (particles tied along ``θ_j``, which must coincide along it, are
+    then pulled toward the same reference point instead of neighbouring ones)."""
+
+    def __init__(self, r: Tensor, theta: Tensor, weights: Tensor, count_ranks: bool = False,
+                 rank_fn: Callable[[Tensor], Tensor] | None = None) -> None:
         d = r.shape[-1]
+        self.count_ranks = count_ranks
         self.theta = theta  # [*B, J, d]
-        order = torch.argsort(theta @ r.transpose(-1, -2), dim=-1)  # [*B, J, N]: rank -> index
-        self.sorted_ref = torch.gather(r.unsqueeze(-3).expand(*order.shape, d), -2,
-                                       order.unsqueeze(-1).expand(*order.shape, d))  # [*B, J, N, d]
+        along = theta @ r.transpose(-1, -2)  # [*B, J, N]
+        shape = (*along.shape, d)
+        if rank_fn is None:
+            order = torch.argsort(along, dim=-1)  # [*B, J, N]: rank -> index
+            self.sorted_ref = torch.gather(r.unsqueeze(-3).expand(shape), -2, order.unsqueeze(-1).expand(shape))
+        else:  # the same from the rank permutation (rank_fn as in max_sliced_directions)
+            rank = rank_fn(along).unsqueeze(-1).expand(shape)
+            self.sorted_ref = torch.empty(shape, dtype=r.dtype, device=r.device).scatter_(
+                -2, rank, r.unsqueeze(-3).expand(shape))  # [*B, J, N, d]
         # the weights are folded in: the pull is Σ_j w_j r_{σ_j(i)} − x_i (Σ_j w_j = 1)
         self.weighted_sorted_ref = weights[..., None, None] * self.sorted_ref
         self.weights = weights
 
     def force(self, x: Tensor, strength: float, clip: float = 10.0) -> Tensor:
         """``F_temp(x_i) = λ Σ_j w_j (r_{σ_j(i)} − x_i)``, clipped elementwise to ``±clip``. ``[*B, N, d]``."""
-        rank_to_i = torch.argsort(self.theta @ x.transpose(-1, -2), dim=-1)  # [*B, J, N], sorted contiguously
-        idx = rank_to_i.unsqueeze(-1).expand(self.sorted_ref.shape)
-        matched = torch.zeros_like(self.weighted_sorted_ref).scatter_(-2, idx, self.weighted_sorted_ref)
+        along = self.theta @ x.transpose(-1, -2)  # [*B, J, N]
+        if self.count_ranks:  # matched[j, i] = w_j r_(rank_j(i)): a gather
+            idx = ranks(along).unsqueeze(-1).expand(self.sorted_ref.shape)
+            matched = torch.gather(self.weighted_sorted_ref, -2, idx)
+        else:  # the same by scattering the sorted reference to the particles' order
+            rank_to_i = torch.argsort(along, dim=-1)  # [*B, J, N]
+            idx = rank_to_i.unsqueeze(-1).expand(self.sorted_ref.shape)
+            matched = torch.zeros_like(self.weighted_sorted_ref).scatter_(-2, idx, self.weighted_sorted_ref)
         pull = matched.sum(-3) - self.weights.sum(-1)[..., None, None] * x
         return (strength * pull).clamp(-clip, clip)
 
 
 def temporal_force(x: Tensor, r: Tensor, theta: Tensor, weights: Tensor, strength: float,
-                   clip: float = 10.0) -> Tensor:
+                   clip: float = 10.0, count_ranks: bool = False) -> Tensor:
     """``F_temp(x_i) = λ Σ_j w_j (r_{σ_j(i)} − x_i)``, clipped elementwise to ``±clip``, where ``σ_j``
     is the sorted 1-D OT matching along ``θ_j`` (:func:`sorted_matching`).
 
     ``x``, ``r`` ``[*B, N, d]``; ``theta`` ``[*B, J, d]``; ``weights`` ``[*B, J]``. Returns ``[*B, N, d]``.
     """
-    return TemporalReference(r, theta, weights).force(x, strength, clip)
+    return TemporalReference(r, theta, weights, count_ranks).force(x, strength, clip)
