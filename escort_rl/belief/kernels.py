@@ -27,8 +27,8 @@ def median_bandwidth(sq_dists: Tensor, min_bandwidth: float = 1e-6, max_points: 
     ``i < j`` (the matrix is symmetric, so this is the median over ``i ≠ j`` at half the cost). For
     ``N > max_points`` it is taken over the pairs among the first ``max_points`` particles
     (particles are exchangeable, so this is an unbiased estimate of the median over all pairs, at
-    O(max_points²) instead of O(N²) cost). ``h`` is floored at ``min_bandwidth`` so that coincident particles give a finite kernel;
-    ``log N`` uses the full ``N``. ``[*B, N, N] -> [*B]``.
+    O(max_points²) instead of O(N²) cost). ``h`` is floored at ``min_bandwidth`` so that coincident
+    particles give a finite kernel; ``log N`` uses the full ``N``. ``[*B, N, N] -> [*B]``.
     """
     n_all = sq_dists.shape[-1]
     if n_all > max_points:
