@@ -268,7 +268,7 @@ def test_rank_paths_of_the_temporal_term_equal_the_sort_paths():
     torch.testing.assert_close(w_c, w, atol=1e-6, rtol=0)
     torch.testing.assert_close(projected_w1_grad(x, r, theta0, permutation_ranks), projected_w1_grad(x, r, theta0))
     by_sort = TemporalReference(r, theta, w)
-    by_count = TemporalReference(r, theta, w, count_ranks=True, rank_fn=permutation_ranks)
+    by_count = TemporalReference(r, theta, w, rank_fn=permutation_ranks)
     assert torch.equal(by_count.sorted_ref, by_sort.sorted_ref)
     torch.testing.assert_close(by_count.force(x, 0.3), by_sort.force(x, 0.3))
 

@@ -407,7 +407,7 @@ class ESCORTFilter(BeliefFilter):
                     rank_fn = self._compiled(permutation_ranks) if counting else None
                     theta, theta_w = max_sliced_directions(
                         x, reference, theta0, ascent_steps=self.temporal_ascent_steps, rank_fn=rank_fn)
-                    temporal = TemporalReference(reference, theta, theta_w, count_ranks=counting, rank_fn=rank_fn)
+                    temporal = TemporalReference(reference, theta, theta_w, rank_fn=rank_fn)
             hist = torch.zeros_like(x)
             counts = None
             stop = self.stop_tolerance > 0

@@ -232,22 +232,24 @@ class TemporalReference:
     """The reference set ``r`` ``[*B, N, d]`` sorted once along each direction ``θ_j`` ``[*B, J, d]``,
     so that each :meth:`force` call ranks only the moving particles.
 
-    ``count_ranks`` ranks the particles by counting (:func:`ranks`) instead of sorting them: the
-    same matching for distinct projections, and faster inside a compiled iteration for
-    ``N ≤`` :data:`RANK_COUNT_MAX` (particles tied along ``θ_j``, which must coincide along it, are
-    then pulled toward the same reference point instead of neighbouring ones)."""
+    With ``rank_fn`` (a rank permutation such as a compiled :func:`permutation_ranks`) everything
+    ranks by counting instead of sorting: the reference is ordered with ``rank_fn`` once, and each
+    :meth:`force` counts the particles' ranks (:func:`ranks`). That is the same matching for distinct
+    projections, and faster inside a compiled iteration for ``N ≤`` :data:`RANK_COUNT_MAX`
+    (particles tied along ``θ_j``, which must coincide along it, are then pulled toward the same
+    reference point instead of neighbouring ones)."""
 
-    def __init__(self, r: Tensor, theta: Tensor, weights: Tensor, count_ranks: bool = False,
+    def __init__(self, r: Tensor, theta: Tensor, weights: Tensor,
                  rank_fn: Callable[[Tensor], Tensor] | None = None) -> None:
         d = r.shape[-1]
-        self.count_ranks = count_ranks
+        self.count_ranks = rank_fn is not None
         self.theta = theta  # [*B, J, d]
         along = theta @ r.transpose(-1, -2)  # [*B, J, N]
         shape = (*along.shape, d)
         if rank_fn is None:
             order = torch.argsort(along, dim=-1)  # [*B, J, N]: rank -> index
             self.sorted_ref = torch.gather(r.unsqueeze(-3).expand(shape), -2, order.unsqueeze(-1).expand(shape))
-        else:  # the same from the rank permutation (rank_fn as in max_sliced_directions)
+        else:  # the same from the rank permutation
             rank = rank_fn(along).unsqueeze(-1).expand(shape)
             self.sorted_ref = torch.empty(shape, dtype=r.dtype, device=r.device).scatter_(
                 -2, rank, r.unsqueeze(-3).expand(shape))  # [*B, J, N, d]
@@ -270,10 +272,10 @@ class TemporalReference:
 
 
 def temporal_force(x: Tensor, r: Tensor, theta: Tensor, weights: Tensor, strength: float,
-                   clip: float = 10.0, count_ranks: bool = False) -> Tensor:
+                   clip: float = 10.0, rank_fn: Callable[[Tensor], Tensor] | None = None) -> Tensor:
     """``F_temp(x_i) = λ Σ_j w_j (r_{σ_j(i)} − x_i)``, clipped elementwise to ``±clip``, where ``σ_j``
     is the sorted 1-D OT matching along ``θ_j`` (:func:`sorted_matching`).
 
     ``x``, ``r`` ``[*B, N, d]``; ``theta`` ``[*B, J, d]``; ``weights`` ``[*B, J]``. Returns ``[*B, N, d]``.
     """
-    return TemporalReference(r, theta, weights, count_ranks).force(x, strength, clip)
+    return TemporalReference(r, theta, weights, rank_fn).force(x, strength, clip)
