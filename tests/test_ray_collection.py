@@ -71,3 +71,14 @@ def test_ray_missing_is_one_line_naming_the_key(monkeypatch):
         compose(tiny_overrides("collector.backend=ray"))
     with pytest.raises(ConfigError, match="collector.backend"):
         compose(tiny_overrides("collector.backend=spark"))
+
+
+@pytest.mark.slow
+def test_bench_throughput_times_ray_collectors(local_ray):
+    """``escort-rl bench throughput collector.backend=ray`` times the same RayCollector training uses."""
+    from escort_rl.bench.throughput import collection_throughput
+
+    cfg = compose(tiny_overrides("filter=sir", "collector.backend=ray"))
+    row = collection_throughput(cfg, workers=2, num_envs=4, steps_per_batch=3, batches=2)
+    assert row["backend"] == "ray" and row["workers"] == 2
+    assert row["frames"] == 2 * 4 * 3 and row["frames_per_second"] > 0

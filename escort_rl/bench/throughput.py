@@ -1,36 +1,33 @@
-"""Collection throughput: environment frames per second through a TorchRL collector, with the
-belief transform in the loop."""
+"""Collection throughput: environment frames per second through the training's TorchRL collector,
+with the belief transform in the loop."""
 
 from __future__ import annotations
 
 import time
 
 import torch
-from omegaconf import DictConfig
-from torchrl.collectors import Collector, MultiSyncCollector
+from omegaconf import DictConfig, OmegaConf
 
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import build_actor, build_model, env_factory
+from escort_rl.trainers.scaffold import make_collector
 
 
 def collection_throughput(cfg: DictConfig, workers: int, num_envs: int, steps_per_batch: int,
                           batches: int, warmup: int = 1) -> dict:
-    """Frames per second of a (Multi)SyncCollector with ``num_envs`` envs split over ``workers``
-    processes, each batch ``num_envs × steps_per_batch`` frames, timed over ``batches`` batches
-    after ``warmup`` batches. The policy is an untrained DeepSets actor sampling actions."""
+    """Frames per second of the collector training builds (:func:`make_collector`: a ``Collector``
+    for one worker, a ``MultiSyncCollector`` for K, TorchRL's ``RayCollector`` with K remote
+    collectors under ``collector.backend=ray``) with ``num_envs`` envs split over ``workers``, each
+    batch ``num_envs × steps_per_batch`` frames, timed over ``batches`` batches after ``warmup``
+    batches. The policy is an untrained DeepSets actor sampling actions."""
     if num_envs % workers:
         raise ValueError(f"workers: num_envs ({num_envs}) must be divisible by workers ({workers})")
+    cfg = OmegaConf.merge(cfg, {"collector": {"workers": workers}, "trainer": {"num_envs": num_envs}})
     model = build_model(cfg.env, cfg.device)
     policy = make_deepsets_policy(build_actor(cfg, model.state_dim, model.n_actions))
     frames = num_envs * steps_per_batch
-    total = frames * (batches + warmup)
-    if workers == 1:
-        collector = Collector(env_factory(cfg, num_envs, seed=0), policy, frames_per_batch=frames,
-                              total_frames=total, auto_register_policy_transforms=False)
-    else:
-        collector = MultiSyncCollector([env_factory(cfg, num_envs // workers, seed=k) for k in range(workers)],
-                                       policy, frames_per_batch=frames, total_frames=total,
-                                       cat_results="stack", auto_register_policy_transforms=False)
+    collector = make_collector(cfg, lambda n, seed: env_factory(cfg, n, seed=seed), policy, frames,
+                               reset_at_each_iter=False)
     try:
         it = iter(collector)
         for _ in range(warmup):
@@ -42,7 +39,8 @@ def collection_throughput(cfg: DictConfig, workers: int, num_envs: int, steps_pe
         elapsed = time.perf_counter() - t0
     finally:
         collector.shutdown()
-    return {"workers": workers, "num_envs": num_envs, "num_particles": int(cfg.num_particles),
+    return {"backend": str(cfg.collector.get("backend", "local")), "workers": workers, "num_envs": num_envs,
+            "num_particles": int(cfg.num_particles),
             "filter": cfg.filter.name, "frames": n, "seconds": elapsed, "frames_per_second": n / elapsed,
             "torch_threads": torch.get_num_threads()}
 
@@ -50,8 +48,10 @@ def collection_throughput(cfg: DictConfig, workers: int, num_envs: int, steps_pe
 def register(subparsers) -> None:
     """Add ``bench throughput`` to the ``bench`` subparsers."""
     thr = subparsers.add_parser("throughput", help="collector frames/s with the belief transform",
-                                description="Env frames per second through Collector (1 worker) or "
-                                "MultiSyncCollector (K workers), belief transform and DeepSets policy in the loop.")
+                                description="Env frames per second through the training's collector: Collector "
+                                "(1 worker), MultiSyncCollector (K workers), or RayCollector with K remote collectors "
+                                "(overrides collector.backend=ray [collector.ray_address=auto]); belief transform and "
+                                "DeepSets policy in the loop.")
     thr.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to time")
     thr.add_argument("--num-envs", type=int, default=32, help="environments in all (B)")
     thr.add_argument("--steps", type=int, default=100, help="steps per env per batch")
@@ -76,7 +76,7 @@ def main(args) -> None:
     for k in args.workers:
         row = collection_throughput(cfg, k, args.num_envs, args.steps, args.batches)
         rows.append(row)
-        print(f"workers={k} B={row['num_envs']} N={row['num_particles']} filter={row['filter']}: "
+        print(f"backend={row['backend']} workers={k} B={row['num_envs']} N={row['num_particles']} filter={row['filter']}: "
               f"{row['frames_per_second']:.0f} frames/s ({row['frames']} frames in {row['seconds']:.2f} s)")
     if args.output:
         Path(args.output).parent.mkdir(parents=True, exist_ok=True)
