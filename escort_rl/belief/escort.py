@@ -400,9 +400,9 @@ class ESCORTFilter(BeliefFilter):
             if use_temp:
                 with timer("temporal"):
                     theta0 = random_directions(x, self.n_proj, generator)
-                    # once per update: eager (compiling it cost about 10 s per shape and saved nothing)
-                    # Compiled, ranking by counting beats torch.sort for short rows (projections.ranks):
-                    # the once-per-update ascent calls a compiled permutation_ranks, the iterations count.
+                    # Once per update, eager apart from its ranks: compiling the whole ascent cost about
+                    # 10 s per shape and saved nothing, but a compiled filter ranks by counting, which
+                    # beats torch.sort for short rows (projections.ranks), here and in the iterations.
                     counting = fused and x.shape[-2] <= RANK_COUNT_MAX
                     rank_fn = self._compiled(permutation_ranks) if counting else None
                     theta, theta_w = max_sliced_directions(
