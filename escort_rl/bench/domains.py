@@ -26,6 +26,7 @@ base ``N``; a method whose ``N'`` equals ``N`` reuses its equal-N row.
 from __future__ import annotations
 
 import math
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,12 +36,14 @@ import torch
 from escort_rl.bench import methods as registry
 from escort_rl.bench.methods import (applied_filter_set, build_domain, check_at_least_one, check_names,
                                      parse_filter_set)
+from escort_rl.bench.reference import (METRIC_LABELS, METRICS, SAMPLE, Reference, ReferenceCell, state_parts,
+                                      summarize_series)
 from escort_rl.bench.runner import Cell, CellStore, add_runner_arguments, backend_from_args, run_groups, seed_blocks
 from escort_rl.bench.trajectories import (BEHAVIOUR_POLICY, NonFiniteBeliefError, filter_trajectories,
                                           generate_trajectories, learned_trajectories, position_error_label,
                                           time_per_step)
 from escort_rl.reporting.paths import display_path, write_results
-from escort_rl.reporting.plots import plot_curves
+from escort_rl.reporting.plots import plot_curve_panels, plot_curves
 from escort_rl.reporting.stats import format_mean_se, mean_se
 from escort_rl.reporting.tables import method_table
 
@@ -51,8 +54,12 @@ PARTICLE_GRID = (50, 100, 200, 500, 1000, 2000)
 def _part(out: dict) -> dict:
     """A filtering output (:func:`filter_trajectories`) as a cell result: plain lists, and the
     wall-clock figures under ``timing`` (the only entries that differ between runs)."""
-    part = {k: v for k, v in out.items() if k not in ("seconds", "first_seconds", "errors")}
+    part = {k: v for k, v in out.items() if k not in ("seconds", "first_seconds", "errors", "accuracy")}
     part["errors"] = out["errors"].tolist()
+    accuracy = out.get("accuracy") or []
+    if accuracy:  # the first reference's whole series; the doubled reference's per-seed summaries
+        part["accuracy"] = {"series": {k: v.tolist() for k, v in accuracy[0].items()},
+                            "checks": [summarize_series(a, out["steps"]) for a in accuracy[1:]]}
     part["timing"] = {"seconds": out["seconds"], "first_seconds": out["first_seconds"]}
     return part
 
@@ -76,17 +83,34 @@ class FilterCell(Cell):
     seeds: tuple
     base_seed: int = 0
     filter_set: tuple = ()
+    references: tuple = ()
+    """``((particles, file, hash), ...)``: the reference posteriors of these seeds
+    (:class:`~escort_rl.bench.reference.ReferenceCell` results) to compare the belief with."""
+    reference_folder: str = ""
+    """Where the reference files are; left out of :meth:`spec` (it is where, not what)."""
 
     def key(self) -> str:
         return (f"domains/{self.domain}/{self.method}/N{self.particles}-T{self.steps}-"
                 f"seeds{self.seeds[0]}-{self.seeds[-1]}")
 
+    def spec(self) -> dict:
+        spec = super().spec()
+        spec.pop("reference_folder")
+        return spec
+
     def run(self) -> dict:
         model, _ = build_domain(self.domain)
         seeds = list(self.seeds)
         traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
-        return _part(filter_trajectories(self.domain, self.method, traj, seeds, self.particles, self.base_seed,
-                                         self.filter_set))
+        refs = tuple(Reference.load(Path(self.reference_folder) / file, digest) for _, file, digest in self.references)
+        for ref in refs:
+            if ref.data["input_hashes"] != list(traj["hashes"]):
+                raise RuntimeError(f"{self.key()}: its reference posterior was computed on other trajectories")
+        part = _part(filter_trajectories(self.domain, self.method, traj, seeds, self.particles, self.base_seed,
+                                         self.filter_set, refs))
+        if "accuracy" in part:
+            part["accuracy"]["references"] = [int(n) for n, _, _ in self.references]
+        return part
 
 
 @dataclass(frozen=True)
@@ -131,6 +155,32 @@ def train_learned_beliefs(domains, methods, runs_dir: Path, progress: bool = Fal
 
 
 # ---------------------------------------------------------------------------------------- rows
+def _accuracy(parts: list[dict], steps: int) -> dict | None:
+    """The distances to the reference posterior of a row (its cells' ``accuracy``, in seed order):
+    per key ``<part>/<metric>`` the per-seed final and time-averaged values, their mean ± s.e., the
+    mean ± s.e. over seeds at every step, and ``checks``: the same summaries against the doubled
+    reference."""
+    acc = [p.get("accuracy") for p in parts]
+    if not acc or any(a is None for a in acc):
+        return None
+    series = {k: torch.tensor([row for a in acc for row in a["series"][k]], dtype=torch.float64)
+              for k in acc[0]["series"]}
+    if not all(bool(torch.isfinite(v).all()) for v in series.values()):
+        raise NonFiniteBeliefError("a distance to the reference posterior is NaN or Inf")
+    per_seed = summarize_series(series, steps)
+    b = next(iter(series.values())).shape[0]
+    checks = []
+    for i in range(len(acc[0]["checks"])):
+        checks.append({k: {w: mean_se([x for a in acc for x in a["checks"][i][k][w]]) for w in ("final", "mean")}
+                       for k in series})
+    return {"references": acc[0]["references"], "per_seed": per_seed,
+            "summary": {k: {w: mean_se(v[w]) for w in ("final", "mean")} for k, v in per_seed.items()},
+            "over_time": {k: {"mean": v.mean(0).tolist(),
+                              "se": (v.std(0, unbiased=True) / math.sqrt(b) if b > 1 else torch.zeros(v.shape[1])).tolist()}
+                          for k, v in series.items()},
+            "checks": checks}
+
+
 def _row(domain: str, method: str, n: int, parts: list[dict], seeds: list[int]) -> dict:
     """A table row from the results of the row's cells (in seed order)."""
     failed = [p["failed"] for p in parts if p.get("failed")]
@@ -165,6 +215,7 @@ def _row(domain: str, method: str, n: int, parts: list[dict], seeds: list[int]) 
         "seconds_per_step_per_env": seconds / timed / b,
         "input_hashes": [h for p in parts for h in p["input_hashes"]],
         "initial_belief_hashes": [h for p in parts for h in p["belief_hashes"]],
+        "accuracy": _accuracy(parts, steps),
     }
 
 
@@ -177,12 +228,54 @@ class _Grid:
         self.blocks = seed_blocks(seeds, per_cell)
         self.horizon, self.filter_set, self.threads, self.learned = horizon, filter_set, threads, learned
         self.progress = progress
+        self.references, self.reference_folder = {}, ""  # (domain, seed block) -> ((N, file, hash), ...)
 
     def cells(self, d: str, m: str, n: int) -> list[Cell]:
         common = dict(domain=d, method=m, steps=self.horizon[d], base_seed=self.base_seed, threads=self.threads)
         if (d, m) in self.learned:
             return [LearnedCell(seeds=b, checkpoint=str(self.learned[(d, m)]), **common) for b in self.blocks]
-        return [FilterCell(particles=n, seeds=b, filter_set=self.filter_set, **common) for b in self.blocks]
+        return [FilterCell(particles=n, seeds=b, filter_set=self.filter_set, references=self.references.get((d, b), ()),
+                           reference_folder=self.reference_folder, **common) for b in self.blocks]
+
+    def run_references(self, domains: list[str], particles: int, sample: int, folder: Path,
+                       trajectory_hashes: dict) -> dict:
+        """Compute (or load) the reference posteriors at ``particles`` and ``2 × particles`` of every
+        domain and seed block, point the method cells at them, and return per domain: the sizes,
+        ESS, seconds, and the distance between the two references (the floor under the figures)."""
+        sizes = (particles, 2 * particles)
+        cells = {(d, b, n): ReferenceCell(domain=d, particles=n, steps=self.horizon[d], seeds=b, base_seed=self.base_seed,
+                                          sample=sample, folder=str(folder), threads=self.threads)
+                 for d in domains for b in self.blocks for n in sizes}
+        if self.store is not None:  # a saved result whose file is gone or damaged is computed again
+            for cell in cells.values():
+                saved = self.store.load(cell)
+                if saved is not None and not cell.valid(saved):
+                    self.store.path(cell).unlink()
+        results = {k: v[0] for k, v in run_groups({k: [c] for k, c in cells.items()}, self.backend, self.store,
+                                                  desc="reference cells").items()}
+        self.reference_folder = str(folder)
+        self.references = {(d, b): tuple((n, results[(d, b, n)]["file"], results[(d, b, n)]["hash"]) for n in sizes)
+                           for d in domains for b in self.blocks}
+        out = {}
+        for d in domains:
+            hashes = [h for b in self.blocks for h in results[(d, b, particles)]["input_hashes"]]
+            if hashes != trajectory_hashes[d]:
+                raise RuntimeError(f"the reference posterior of '{d}' saw a different trajectory")
+            floor = []
+            for b in self.blocks:
+                ref, ref2 = (Reference.load(folder / results[(d, b, n)]["file"], results[(d, b, n)]["hash"])
+                             for n in sizes)
+                steps = [ref.compare_reference(ref2, t) for t in range(self.horizon[d] + 1)]
+                floor.append({k: torch.stack([s[k] for s in steps], 1) for k in steps[0]})
+            series = {k: torch.cat([f[k] for f in floor]) for k in floor[0]}
+            per_seed = summarize_series(series, self.horizon[d])
+            out[d] = {"particles": list(sizes), "sample": sample,
+                      "min_ess": {str(n): min(results[(d, b, n)]["min_ess"] for b in self.blocks) for n in sizes},
+                      "median_ess": {str(n): [results[(d, b, n)]["median_ess"] for b in self.blocks] for n in sizes},
+                      "seconds": {str(n): sum(results[(d, b, n)]["timing"]["seconds"] for b in self.blocks)
+                                  for n in sizes},
+                      "floor": {k: {w: mean_se(v[w]) for w in ("final", "mean")} for k, v in per_seed.items()}}
+        return out
 
     def run(self, jobs: list[tuple[str, str, int]], desc: str) -> list[dict]:
         """``jobs``: (domain, method, N). Rows in job order; each is reported to ``progress`` as
@@ -203,7 +296,8 @@ def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, s
                 steps: int | None = None, backend=None, equal_time: bool = True, max_particles: int = 2000,
                 particle_grid=PARTICLE_GRID, reference: str = "escort", calibration_steps: int = 3,
                 base_seed: int = 0, filter_set=(), threads: int | None = None, seeds_per_cell: int | None = None,
-                progress=None, plot_dir=None, runs_dir=None, cells_dir=None) -> dict:
+                progress=None, plot_dir=None, runs_dir=None, cells_dir=None, reference_particles: int = 0,
+                reference_sample: int = SAMPLE) -> dict:
     """Protocol (a) for every method on every domain; per-seed values and mean ± s.e.
 
     ``steps``: the horizon (default: each domain's ``env.max_steps``). ``backend``: a runner backend
@@ -218,6 +312,12 @@ def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, s
     first in ``runs_dir/<domain>/<method>`` (required for them; see :func:`train_learned_beliefs`);
     they have no particle count, so they sit out the equal-time table.
 
+    ``reference_particles`` (0: none): the size N of the reference posterior
+    (:mod:`escort_rl.bench.reference`), computed at N and 2N on the same trajectories; every filter
+    row then gets ``accuracy``, its distances to it at every step (``reference_sample`` reference
+    particles per step for the sample-based ones). The reference files live under ``cells_dir``
+    (a temporary folder without it).
+
     Examples:
         >>> r = run_domains(["lightdark10d"], ["sir"], seeds=2, n=10, steps=2, equal_time=False)
         >>> r["rows"][0]["per_seed"]["final_error"]  # doctest: +SKIP
@@ -229,6 +329,13 @@ def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, s
     filter_set = tuple(tuple(kv) for kv in filter_set)
     check_names(domains, methods, filter_set)
     check_at_least_one(seeds=seeds, particles=n, steps=steps, threads=threads, seeds_per_cell=seeds_per_cell)
+    if isinstance(reference_particles, bool) or not isinstance(reference_particles, int) or reference_particles < 0:
+        raise ValueError(f"--reference-particles: must be a whole number >= 0 (0: no reference), got "
+                         f"{reference_particles!r}")
+    if reference_particles and (isinstance(reference_sample, bool) or not isinstance(reference_sample, int)
+                                or not 2 <= reference_sample <= reference_particles):
+        raise ValueError(f"--reference-sample: must be a whole number from 2 to --reference-particles "
+                         f"({reference_particles}), got {reference_sample!r}")
     learned = [m for m in methods if m in registry.learned_methods()]
     if learned and runs_dir is None:
         raise ValueError(f"--output: the learned beliefs {', '.join(learned)} need a folder to train in")
@@ -238,16 +345,19 @@ def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, s
     torch.set_num_threads(threads)
     try:
         checkpoints = train_learned_beliefs(domains, learned, Path(runs_dir)) if learned else {}
-        return _run_domains(domains, methods, seeds, n, steps, backend, equal_time, max_particles, particle_grid,
-                            reference, calibration_steps, base_seed, filter_set, threads, seeds_per_cell, progress,
-                            plot_dir, checkpoints, CellStore(cells_dir) if cells_dir is not None else None)
+        with tempfile.TemporaryDirectory(prefix="escort-rl-reference-") as scratch:
+            folder = Path(cells_dir) / "reference-data" if cells_dir is not None else Path(scratch)
+            return _run_domains(domains, methods, seeds, n, steps, backend, equal_time, max_particles, particle_grid,
+                                reference, calibration_steps, base_seed, filter_set, threads, seeds_per_cell, progress,
+                                plot_dir, checkpoints, CellStore(cells_dir) if cells_dir is not None else None,
+                                (reference_particles, reference_sample, folder))
     finally:
         torch.set_num_threads(previous_threads)
 
 
 def _run_domains(domains, methods, seeds, n, steps, backend, equal_time, max_particles, particle_grid, reference,
                  calibration_steps, base_seed, filter_set, threads, seeds_per_cell, progress, plot_dir, checkpoints,
-                 store) -> dict:
+                 store, posterior) -> dict:
     seed_list = list(range(seeds))
     horizon = {d: (steps if steps is not None else build_domain(d)[1]) for d in domains}
     t_start = time.perf_counter()
@@ -269,6 +379,12 @@ def _run_domains(domains, methods, seeds, n, steps, backend, equal_time, max_par
                  progress)
     filters = [m for m in methods if not any((d, m) in checkpoints for d in domains)]
     try:
+        reference_info = None
+        if posterior[0]:
+            reference_info = grid.run_references(domains, posterior[0], posterior[1], posterior[2],
+                                                 {d: domain_info[d]["trajectory_hashes"] for d in domains})
+            if progress is not None:
+                progress("reference", reference_info)
         rows = grid.run([(d, m, n) for d in domains for m in methods], desc="protocol (a) cells")
         equal = None
         if equal_time and filters:
@@ -290,11 +406,13 @@ def _run_domains(domains, methods, seeds, n, steps, backend, equal_time, max_par
         "filter_set": {m: applied_filter_set(m, filter_set) for m in filters},
         "learned": {f"{d}/{m}": display_path(Path(c)) for (d, m), c in checkpoints.items()},
         "seconds": time.perf_counter() - t_start,
-        "rows": rows, "equal_time": equal,
+        "rows": rows, "equal_time": equal, "reference": reference_info,
     }
     if plot_dir is not None:
         for d in domains:
             plot_error_over_time(result, d, Path(plot_dir) / f"error_over_time_{d}.png")
+            if reference_info:
+                plot_accuracy_over_time(result, d, Path(plot_dir) / f"accuracy_over_time_{d}.png")
     return result
 
 
@@ -364,6 +482,21 @@ def plot_error_over_time(result: dict, domain: str, path: Path) -> Path:
                        f"{domain}: protocol (a), N = {result['particles']}, {result['seeds']} seeds (mean ± s.e.)")
 
 
+def plot_accuracy_over_time(result: dict, domain: str, path: Path) -> Path:
+    """The distances to the reference posterior against the step: one panel per (part, metric), one
+    line per method, shaded ± s.e. over seeds (log scale)."""
+    rows = [r for r in result["rows"] if r["domain"] == domain and not r["failed"] and r.get("accuracy")]
+    keys = sorted(rows[0]["accuracy"]["over_time"], key=lambda k: (k.split("/")[0] != "position",
+                                                                  METRICS.index(k.split("/")[1]))) if rows else []
+    panels = {f"{k.split('/')[0]}: {METRIC_LABELS[k.split('/')[1]]}":
+              {r["method"]: (r["accuracy"]["over_time"][k]["mean"], r["accuracy"]["over_time"][k]["se"]) for r in rows}
+              for k in keys}
+    ref = result["reference"][domain]
+    return plot_curve_panels(panels, path, "step (0: prior)", ncols=len(METRICS), log_y=True,
+                             title=f"{domain}: distance to the reference posterior (SIR, N_ref = {ref['particles'][0]}), "
+                                   f"N = {result['particles']}, {result['seeds']} seeds (mean ± s.e.)")
+
+
 def _table(result: dict, rows: list[dict], cell) -> list[str]:
     """One row per method, one column per domain; a failed run's cell says at which step it failed."""
     learned = {key.split("/", 1)[1] for key in result.get("learned", {})}
@@ -371,6 +504,76 @@ def _table(result: dict, rows: list[dict], cell) -> list[str]:
              for r in rows}
     return method_table(result["domains"], result["methods"], cells,
                         label=lambda m: f"{m.upper()} (learned belief, readout)" if m in learned else m)
+
+
+def _parts_cell(row: dict, metric: str, which: str = "mean") -> str:
+    """``position / velocity`` of one metric's time-averaged (``mean``) or final distance, mean ± s.e."""
+    acc = row.get("accuracy")
+    if not acc:
+        return "—"
+    return " / ".join(format_mean_se(v[which]) for k, v in acc["summary"].items() if k.endswith(f"/{metric}"))
+
+
+def _accuracy_sections(result: dict) -> list[str]:
+    """The distances to the reference posterior, the reference itself, and its convergence check."""
+    ref = result.get("reference")
+    if not ref:
+        return []
+    domains = result["domains"]
+    n_ref = ref[domains[0]]["particles"]
+    lines = [
+        "## Distance to the reference posterior",
+        "",
+        f"The reference is a bootstrap particle filter with N_ref = {n_ref[0]} particles on the same trajectories, "
+        "from its own draw of the same prior (resampling when ESS/N < 0.5); it converges to the exact posterior as "
+        "N_ref grows. Each belief is compared with it at every step, on the position and the velocity separately "
+        "(" + "; ".join(f"{d}: {_parts_label(d)}" for d in domains) + "): sliced W1 (50 fixed directions), MMD² "
+        "(RBF kernel at the median-heuristic bandwidth of the reference), the distance between the means and the "
+        "Frobenius distance between the covariances. The sample-based distances use "
+        f"{ref[domains[0]]['sample']} particles drawn from the reference at each step. Cells: position / velocity, "
+        "time-averaged over steps 1..T, mean ± s.e. over seeds; lower is closer. Learned beliefs have no particles "
+        "and no figures here. `accuracy_over_time_<domain>.png` plots every step.",
+        "",
+    ]
+    for metric in METRICS:
+        lines += [f"### {METRIC_LABELS[metric]}", "", *_table(result, result["rows"], lambda r: _parts_cell(r, metric)),
+                  ""]
+    lines += [
+        "### The reference and its convergence",
+        "",
+        f"Each reference ran at N_ref and at 2 N_ref = {n_ref[1]}. *Floor*: the distance of the 2 N_ref reference "
+        "to the N_ref one (position / velocity, time-averaged), the part of every figure above that is the "
+        "reference's own error. *Change*: per method, the largest relative change of its time-averaged figures "
+        "(all parts and metrics) when the 2 N_ref reference replaces the N_ref one.",
+        "",
+        "| domain | min ESS (N_ref / 2 N_ref) | seconds (N_ref / 2 N_ref) | " + " | ".join(
+            f"floor: {METRIC_LABELS[m]}" for m in METRICS) + " |",
+        "| --- | --- | --- | " + " | ".join("---" for _ in METRICS) + " |",
+    ]
+    for d in domains:
+        info = ref[d]
+        ess = " / ".join(f"{info['min_ess'][str(n)]:.0f}" for n in info["particles"])
+        secs = " / ".join(f"{info['seconds'][str(n)]:.0f}" for n in info["particles"])
+        floors = [" / ".join(format_mean_se(v["mean"]) for k, v in info["floor"].items() if k.endswith(f"/{m}"))
+                  for m in METRICS]
+        lines.append(f"| {d} | {ess} | {secs} | " + " | ".join(floors) + " |")
+    lines += ["", "Change of each method's figures when N_ref doubles (the largest over parts and metrics):", "",
+              *_table(result, result["rows"], _reference_change), ""]
+    return lines
+
+
+def _parts_label(domain: str) -> str:
+    model, _ = build_domain(domain)
+    return ", ".join(f"{k} = dims {list(v)}" for k, v in state_parts(model).items())
+
+
+def _reference_change(row: dict) -> str:
+    acc = row.get("accuracy")
+    if not acc or not acc["checks"]:
+        return "—"
+    change = max(abs(acc["checks"][0][k]["mean"][0] - v["mean"][0]) / max(abs(v["mean"][0]), 1e-300)
+                 for k, v in acc["summary"].items())
+    return f"{100 * change:.1f}%"
 
 
 def domains_markdown(result: dict) -> str:
@@ -401,6 +604,7 @@ def domains_markdown(result: dict) -> str:
         "",
         *_table(result, result["rows"], lambda r: format_mean_se(r["summary"]["mean_error"])),
         "",
+        *_accuracy_sections(result),
         "## Wall-clock per filter update",
         "",
         f"Milliseconds per step for the whole batch of {result['seeds']} beliefs / per belief (the sum over "
@@ -431,6 +635,10 @@ def domains_markdown(result: dict) -> str:
                                                   f"(N'={r['particles']}, {1e3 * r['calibrated_seconds_per_step']:.1f}"
                                                   f" / {1e3 * r['seconds_per_step']:.1f} ms)"),
             "",
+            *(["Distance to the reference posterior at equal wall-clock: sliced W1 of the position / velocity, "
+               "time-averaged over steps 1..T.", "",
+               *_table(result, eq["rows"], lambda r: _parts_cell(r, "w1")), ""]
+              if result.get("reference") else []),
             "Budgets (ms per step of the reference): " + ", ".join(
                 f"{d} {1e3 * v['budget_seconds_per_step']:.1f}" for d, v in eq["domains"].items()) + ".",
         ]
@@ -468,7 +676,7 @@ def domains_markdown(result: dict) -> str:
 
 # ---------------------------------------------------------------------------------------- command line
 QUICK = dict(domains=list(registry.DOMAINS), methods=list(registry.QUICK_METHODS), seeds=2, particles=30, steps=20,
-             max_particles=60, filter_set=[], threads=1)
+             max_particles=60, filter_set=[], threads=1, reference_particles=2000, reference_sample=200)
 """``bench domains --quick`` (flags given explicitly win)."""
 
 
@@ -492,12 +700,17 @@ def register(subparsers) -> None:
     dom.add_argument("--max-particles", type=int, default=None,
                      help="largest N' for the equal wall-clock table (default 2000)")
     dom.add_argument("--no-equal-time", action="store_true", help="skip the equal wall-clock table")
+    dom.add_argument("--reference-particles", type=int, default=None, metavar="N",
+                     help="particles of the reference posterior (an SIR filter, run at N and 2N to check it has "
+                     "converged) that every belief is compared with at every step (default 100000; 0: none)")
+    dom.add_argument("--reference-sample", type=int, default=None, metavar="M",
+                     help=f"reference particles kept per step for sliced W1 and MMD² (default {SAMPLE})")
     dom.add_argument("--filter-set", nargs="+", default=None, metavar="KEY=VALUE",
                      help="set a filter key on every method that has it, e.g. num_steps=10 or compile=true")
     dom.add_argument("--quick", action="store_true",
                      help="smoke run (flags given explicitly win): all three domains, "
                      f"{' '.join(registry.QUICK_METHODS)}, 2 seeds, 20 steps, N=30, 1 torch thread, equal-time grid "
-                     "up to N'=60 with 1 timed step; protocol b: 10 steps, N=20, 1 training iteration of 2 envs")
+                     "up to N'=60 with 1 timed step, a reference of 2000 particles (200 kept per step); protocol b: 10 steps, N=20, 1 training iteration of 2 envs")
     dom.add_argument("--protocol", choices=("a", "b"), default="a",
                      help="a: shared trajectories (default); b: closed loop, each method trains its own DeepSets "
                      "policy (budget per domain in configs/bench/closed_loop.yaml) and drives it on --seeds "
@@ -520,7 +733,8 @@ def main(args) -> None:
     if args.train_iterations is not None or args.train_envs is not None:
         raise ValueError("--train-iterations/--train-envs: only for --protocol b")
     full = dict(domains=list(registry.DOMAINS), methods=list(registry.PROTOCOL_A_METHODS), seeds=30, particles=100,
-                steps=None, max_particles=2000, filter_set=[], threads=None)
+                steps=None, max_particles=2000, filter_set=[], threads=None, reference_particles=100_000,
+                reference_sample=SAMPLE)
     kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
     backend = backend_from_args(args)
 
@@ -531,9 +745,16 @@ def main(args) -> None:
                   f"{f['step']}: {f['message']}", flush=True)
         elif kind == "row":
             s = payload["summary"]
+            w1 = (f"  W1 to ref (pos/vel) {_parts_cell(payload, 'w1')}" if payload.get("accuracy") else "")
             print(f"{payload['domain']:>13} {payload['method']:>14} N={payload['particles']:<5} final error "
                   f"{format_mean_se(s['final_error'])}  mean error {format_mean_se(s['mean_error'])}  "
-                  f"{1e3 * payload['seconds_per_step']:.1f} ms/step", flush=True)
+                  f"{1e3 * payload['seconds_per_step']:.1f} ms/step{w1}", flush=True)
+        elif kind == "reference":
+            for d, info in payload.items():
+                floor = ", ".join(f"{k} {v['mean'][0]:.4g}" for k, v in info["floor"].items() if k.endswith("/w1"))
+                print(f"{d:>13} reference N_ref={info['particles'][0]}/{info['particles'][1]}: min ESS "
+                      f"{info['min_ess'][str(info['particles'][0])]:.0f}, {info['seconds'][str(info['particles'][0])]:.0f}"
+                      f" + {info['seconds'][str(info['particles'][1])]:.0f} s; floor (sliced W1) {floor}", flush=True)
         else:
             times = ", ".join(f"N'={k}: {1e3 * v:.1f} ms" for k, v in payload["times"].items())
             print(f"{payload['domain']:>13} {payload['method']:>14} equal-time: budget "
@@ -546,5 +767,6 @@ def main(args) -> None:
                          backend=backend, equal_time=not args.no_equal_time, max_particles=kw["max_particles"],
                          calibration_steps=1 if args.quick else 3, filter_set=parse_filter_set(kw["filter_set"]),
                          threads=kw["threads"], seeds_per_cell=args.seeds_per_cell, progress=show, plot_dir=out,
-                         runs_dir=out / "runs", cells_dir=out / "cells")
+                         runs_dir=out / "runs", cells_dir=out / "cells", reference_particles=kw["reference_particles"],
+                         reference_sample=kw["reference_sample"])
     write_results(out, "domains", result, domains_markdown(result), time.perf_counter() - t0)

@@ -98,14 +98,15 @@ def generate_trajectories(model, steps: int, seeds: list[int], base_seed: int = 
     return out
 
 
-def initial_beliefs(filt, model, seeds: list[int], n: int, base_seed: int = 0):
-    """The prior of each seed, drawn by ``filt.init`` with the seed's own generator, stacked into one
-    ``ParticleBelief`` with particles ``[B, n, d]``; and the per-seed hashes of the particles."""
+def initial_beliefs(filt, model, seeds: list[int], n: int, base_seed: int = 0, kind: str = "belief"):
+    """The prior of each seed, drawn by ``filt.init`` with the seed's own generator (the stream
+    ``kind``), stacked into one ``ParticleBelief`` with particles ``[B, n, d]``; and the per-seed
+    hashes of the particles."""
     from escort_rl.belief import ParticleBelief
 
     parts = []
     for s in seeds:
-        g = torch.Generator().manual_seed(derived_seed("belief", base_seed, s))
+        g = torch.Generator().manual_seed(derived_seed(kind, base_seed, s))
         b = filt.init(model, (), n, g)
         parts.append((b.particles, b.log_weights))
     particles = torch.stack([p for p, _ in parts])
@@ -123,10 +124,14 @@ def check_finite(belief, method: str, domain: str, step: int, seeds: list[int]) 
 
 
 def filter_trajectories(domain: str, method: str, traj: dict, seeds: list[int], n: int, base_seed: int = 0,
-                        filter_set: tuple = ()) -> dict:
+                        filter_set: tuple = (), references: tuple = ()) -> dict:
     """Run ``method`` on the shared trajectories ``traj`` of ``seeds`` (one batch), from the seeds'
     priors. Returns per-seed errors ``errors`` ``[B, T+1]`` (index 0: the prior), the filter seconds,
-    and the per-seed hashes of the inputs it was fed and of its priors."""
+    and the per-seed hashes of the inputs it was fed and of its priors.
+
+    ``references``: :class:`~escort_rl.bench.reference.Reference` posteriors of the same seeds; the
+    belief is compared with each at every step (untimed), and ``accuracy`` holds, per reference, the
+    series ``{"<part>/<metric>": [B, T+1]}`` of :meth:`Reference.compare`."""
     model, _ = build_domain(domain)
     filt = build_method(domain, method, filter_set)
     states, actions, obs = traj["states"], traj["actions"], traj["observations"]
@@ -134,6 +139,7 @@ def filter_trajectories(domain: str, method: str, traj: dict, seeds: list[int], 
     belief, belief_hashes = initial_beliefs(filt, model, seeds, n, base_seed)
     g = torch.Generator().manual_seed(derived_seed("filter", base_seed, seeds[0]))
     errors = [position_error(model, belief.mean(), states[:, 0])]
+    accuracy = [[ref.compare(belief.particles, belief.log_weights, 0)] for ref in references]
     input_hashes = [tensor_hash(states[i], actions[i], obs[i]) for i in range(len(seeds))]
     out = {"seconds": 0.0, "first_seconds": 0.0, "timed_steps": max(steps - 1, 1), "steps": steps,
            "input_hashes": input_hashes, "belief_hashes": belief_hashes, "filter": repr(filt), "failed": None}
@@ -151,7 +157,10 @@ def filter_trajectories(domain: str, method: str, traj: dict, seeds: list[int], 
         else:
             out["seconds"] += time.perf_counter() - t0
         errors.append(position_error(model, belief.mean().detach(), states[:, t + 1]))
+        for series, ref in zip(accuracy, references):
+            series.append(ref.compare(belief.particles.detach(), belief.log_weights.detach(), t + 1))
     out["errors"] = torch.stack(errors, dim=1).detach()
+    out["accuracy"] = [{k: torch.stack([s[k] for s in series], 1) for k in series[0]} for series in accuracy]
     # particle-evolution iterations per update (K, or fewer with the adaptive stop); NaN for SIR
     out["iterations"] = filt.mean_iterations() if hasattr(filt, "mean_iterations") else float("nan")
     return out

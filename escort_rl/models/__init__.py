@@ -6,10 +6,10 @@ from escort_rl.models.light_dark import LightDark10D
 from escort_rl.models.light_dark_1d import LightDark1D
 from escort_rl.models.linear_gaussian import LinearGaussian
 from escort_rl.models.multi_target import MultiTargetTracking20D
-from escort_rl.models.protocol import POMDPModel, check_model, position_dims, position_error
+from escort_rl.models.protocol import POMDPModel, check_model, position_dims, position_error, velocity_dims
 
 # The paper's domains by their config name (``configs/env/<name>.yaml``).
 DOMAINS = {"lightdark10d": LightDark10D, "kidnapped20d": KidnappedRobot20D, "mtt20d": MultiTargetTracking20D}
 
 __all__ = ["DOMAINS", "KidnappedRobot20D", "LightDark10D", "LightDark1D", "LinearGaussian", "MultiTargetTracking20D", "POMDPModel",
-           "check_model", "position_dims", "position_error"]
+           "check_model", "position_dims", "position_error", "velocity_dims"]

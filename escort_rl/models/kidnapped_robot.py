@@ -206,6 +206,7 @@ class KidnappedRobot20D(AdditiveGaussianTransition):
     n_actions = 4
     n_pos = 2
     position_dims: tuple[int, ...] = (0, 1)
+    velocity_dims: tuple[int, ...] = (3,)  # the speed v
     state_names = STATE_NAMES
 
     def __init__(

@@ -94,6 +94,7 @@ class LightDark10D(AdditiveGaussianTransition):
 
     n_pos = 5
     position_dims = (0, 1, 2, 3, 4)
+    velocity_dims = (5, 6, 7, 8, 9)
     state_dim = 10
     obs_dim = 5
     n_actions = 10

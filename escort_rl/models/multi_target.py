@@ -198,6 +198,7 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
     n_targets = N_TARGETS
     agent_position_dims = (0, 1)
     position_dims = tuple(d for i in range(1, N_TARGETS + 1) for d in (4 * i, 4 * i + 1))
+    velocity_dims = tuple(d for i in range(1, N_TARGETS + 1) for d in (4 * i + 2, 4 * i + 3))  # the targets'
     obs_mask_dims = tuple(2 + 3 * i for i in range(N_TARGETS))
 
     def __init__(

@@ -43,7 +43,8 @@ class POMDPModel(Protocol):
     including its zeros where the log-density is flat (clamps, branches).
 
     Optional, used by evaluation and benchmarks (see :func:`position_error`): ``position_dims``
-    (the state indices of the position), ``position_error(estimate, truth)`` (a domain's own error,
+    (the state indices of the position), ``velocity_dims`` (of the velocity, see
+    :func:`velocity_dims`), ``position_error(estimate, truth)`` (a domain's own error,
     e.g. the mean over several targets), ``distance_to_goal(s)``.
     """
 
@@ -108,6 +109,11 @@ def position_dims(model) -> tuple[int, ...]:
     if dims is None:
         dims = range(getattr(model, "n_pos", model.state_dim))
     return tuple(int(i) for i in dims)
+
+
+def velocity_dims(model) -> tuple[int, ...]:
+    """The state indices of the velocity: ``model.velocity_dims``, else none (``()``)."""
+    return tuple(int(i) for i in getattr(model, "velocity_dims", ()))
 
 
 def position_error(model, estimate: Tensor, truth: Tensor) -> Tensor:

@@ -125,14 +125,8 @@ def plot_metric_against_dimension(rows: list[dict], metric: str, path: Path, gro
     return path
 
 
-def plot_curves(curves: dict, path: Path, xlabel: str, ylabel: str, title: str = "", start: int = 0) -> Path:
-    """One line per name against the step, shaded ± s.e. where given.
-
-    ``curves``: name -> ``(mean, se)``, each a list of length ``T`` (``se`` may be ``None``); the
-    x axis runs ``start .. start + T - 1``. A curve that is all NaN (a method without the metric) is
-    left out.
-    """
-    fig, ax = plt.subplots(figsize=(6.5, 4))
+def _draw_curves(ax, curves: dict, start: int = 0) -> None:
+    """``curves`` (name -> ``(mean, se)``) on ``ax``: one line each, shaded ± s.e.; all-NaN left out."""
     for name, (mean, se) in curves.items():
         m = torch.tensor(mean, dtype=torch.float64)
         if torch.isnan(m).all():
@@ -142,11 +136,44 @@ def plot_curves(curves: dict, path: Path, xlabel: str, ylabel: str, title: str =
         if se is not None:
             s = torch.tensor(se, dtype=torch.float64)
             ax.fill_between(t.numpy(), (m - s).numpy(), (m + s).numpy(), alpha=0.2)
+
+
+def plot_curves(curves: dict, path: Path, xlabel: str, ylabel: str, title: str = "", start: int = 0) -> Path:
+    """One line per name against the step, shaded ± s.e. where given.
+
+    ``curves``: name -> ``(mean, se)``, each a list of length ``T`` (``se`` may be ``None``); the
+    x axis runs ``start .. start + T - 1``. A curve that is all NaN (a method without the metric) is
+    left out.
+    """
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    _draw_curves(ax, curves, start)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if title:
         ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_curve_panels(panels: dict, path: Path, xlabel: str, ncols: int, title: str = "", log_y: bool = False) -> Path:
+    """A grid of :func:`plot_curves` panels: ``panels`` maps a panel's y label to its curves
+    (name -> ``(mean, se)``), filled row by row, ``ncols`` per row; one legend, on the first panel."""
+    nrows = max(1, -(-len(panels) // ncols))
+    fig, axes = plt.subplots(nrows, ncols, figsize=(3.6 * ncols, 2.9 * nrows), squeeze=False)
+    for ax, (ylabel, curves) in zip(axes.flat, panels.items()):
+        _draw_curves(ax, curves)
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.set_ylabel(ylabel, fontsize=8)
+        if log_y:
+            ax.set_yscale("log")
+    for ax in list(axes.flat)[len(panels):]:
+        ax.set_visible(False)
+    axes.flat[0].legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -1,0 +1,314 @@
+"""Protocol (a)'s reference posterior, and each belief's distance to it (SPEC §6).
+
+**The reference** is a bootstrap particle filter with many particles (``--reference-particles``,
+default 10⁵): propagate through the model's transition, weight by its observation likelihood,
+resample systematically when ESS/N < 0.5, no roughening. It filters the same shared trajectories as
+the methods, from its own draw of the same prior, and converges to the exact filtering posterior as
+N grows. The benchmark checks that: it runs the reference again at 2N and reports (i) the distance
+between the two references (the floor under every figure) and (ii) how much each method's figures
+move when the 2N reference replaces the N one.
+
+A :class:`ReferenceCell` filters a block of seeds in chunks of at most :data:`CHUNK_ROWS` particle
+rows (seeds × N), so memory stays bounded whatever N. For every seed, step ``t = 0..T`` and part of
+the state (``position``: the model's ``position_dims``; ``velocity``: its ``velocity_dims``) it keeps
+
+- the weighted mean and covariance of all N particles;
+- ``sample`` particles drawn from them by systematic resampling (uniform weights), for the
+  sample-based distances;
+- the MMD bandwidth ``γ = 1 / (2 med²)``, ``med`` the median pairwise distance of that subsample
+  (the median heuristic), and the subsample's kernel mean ``(1/M²) Σ_ij k(y_i, y_j)``;
+- :data:`PROJECTIONS` unit directions per part, seeded by the domain and the part alone, so every
+  reference of a domain slices along the same directions.
+
+It writes them to a tensor file named by the cell's key under ``folder``, and returns the file's
+name and a hash of its tensors; a method cell recomputes that hash when it loads the file, so a
+damaged or replaced file is detected, not read.
+
+**The distances** (:meth:`Reference.compare`) of a belief (particles ``x``, weights ``w``) at step
+``t``, per part:
+
+- ``w1``: sliced W1 along the reference's directions (:func:`~escort_rl.bench.metrics.weighted_sliced_wasserstein`);
+- ``mmd2``: MMD² with the reference's γ (the biased V-statistic, weighted);
+- ``mean``: ``‖E_b[s_part] − E_ref[s_part]‖₂``;
+- ``cov``: ``‖Cov_b[s_part] − Cov_ref[s_part]‖_F`` (weighted, normalised by Σw = 1, as the reference's).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from escort_rl.bench.metrics import kernel_mean, random_projections, weighted_sliced_wasserstein
+from escort_rl.bench.runner import Cell
+
+CHUNK_ROWS = 2_000_000
+"""Particle rows (seeds × N) a reference filters at once: 10⁵ particles go 20 seeds at a time."""
+SAMPLE = 500
+"""Reference particles kept per step for the sample-based distances (W1, MMD²)."""
+PROJECTIONS = 50
+"""Directions of the sliced W1, per part."""
+METRICS = ("w1", "mmd2", "mean", "cov")
+METRIC_LABELS = {"w1": "sliced W1", "mmd2": "MMD²", "mean": "‖mean − mean_ref‖₂", "cov": "‖cov − cov_ref‖_F"}
+COMPARE_ROWS = 40_000_000
+"""Kernel entries (seeds × N × max(N, M)) one chunk of :meth:`Reference.compare` may hold."""
+
+
+def state_parts(model) -> dict[str, tuple[int, ...]]:
+    """``{"position": dims, "velocity": dims}`` of ``model`` (a part with no dims is left out)."""
+    from escort_rl.models import position_dims, velocity_dims
+
+    parts = {"position": position_dims(model), "velocity": velocity_dims(model)}
+    return {k: v for k, v in parts.items() if v}
+
+
+def content_hash(data: dict) -> str:
+    """SHA-256 (16 hex digits) of every tensor in ``data`` (nested dicts), in key order, with shapes
+    and dtypes: the same tensors give the same hash whatever the file's bytes."""
+    from escort_rl.bench.trajectories import tensor_hash
+
+    h = hashlib.sha256()
+
+    def walk(d, prefix=""):
+        for k in sorted(d):
+            v = d[k]
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}/")
+            elif isinstance(v, Tensor):
+                h.update(f"{prefix}{k}:{tensor_hash(v)}".encode())
+            else:
+                h.update(f"{prefix}{k}={v!r}".encode())
+
+    walk(data)
+    return h.hexdigest()[:16]
+
+
+def weighted_moments(x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """Mean ``Σ w_i x_i`` ``[..., d]`` and covariance ``Σ w_i (x_i − m)(x_i − m)ᵀ`` ``[..., d, d]`` of
+    particles ``x`` ``[..., N, d]`` with normalised weights ``w`` ``[..., N]`` (accumulated in float64)."""
+    x64, w64 = x.double(), w.double()
+    m = (w64[..., None] * x64).sum(-2)
+    xc = x64 - m[..., None, :]
+    return m, (w64[..., None] * xc).transpose(-1, -2) @ xc
+
+
+def median_gamma(y: Tensor) -> Tensor:
+    """``γ = 1 / (2 med²)`` for ``k(a, b) = exp(−γ‖a − b‖²)``, with ``med`` the median of the
+    pairwise distances ``‖y_i − y_j‖``, ``i < j``, of ``y`` ``[..., M, d]`` (floored at 1e-12)."""
+    m = y.shape[-2]
+    i, j = torch.triu_indices(m, m, 1)
+    sq = ((y[..., i, :] - y[..., j, :]) ** 2).sum(-1)
+    med2 = sq.median(-1).values.clamp_min(1e-12)
+    return 0.5 / med2
+
+
+def systematic_indices(log_w: Tensor, m: int, generator: torch.Generator | None) -> Tensor:
+    """``m`` systematic draws ``[..., m]`` from the normalised weights ``softmax(log_w)`` ``[..., N]``."""
+    w = torch.softmax(log_w.double(), -1)
+    cdf = torch.cumsum(w, -1)
+    cdf = cdf / cdf[..., -1:]
+    u = torch.rand((*log_w.shape[:-1], 1), generator=generator, dtype=torch.float64)
+    positions = ((u + torch.arange(m, dtype=torch.float64)) / m).clamp_max(1.0 - 1e-15)
+    return torch.searchsorted(cdf.contiguous(), positions.contiguous(), right=True).clamp_max(log_w.shape[-1] - 1)
+
+
+def step_summary(particles: Tensor, log_w: Tensor, parts: dict, sample: int, generator) -> dict:
+    """One step of the reference: per part ``mean`` ``[B, dp]``, ``cov`` ``[B, dp, dp]``, ``sample``
+    ``[B, M, dp]``, ``gamma`` ``[B]`` and ``kyy`` ``[B]``; and ``ess`` ``[B]``."""
+    w = torch.softmax(log_w.double(), -1)
+    idx = systematic_indices(log_w, sample, generator)
+    out = {"ess": 1.0 / (w ** 2).sum(-1)}
+    for name, dims in parts.items():
+        x = particles[..., list(dims)]
+        mean, cov = weighted_moments(x, w)
+        y = x.gather(-2, idx[..., None].expand(*idx.shape, len(dims))).float()
+        gamma = median_gamma(y)
+        out[name] = {"mean": mean.float(), "cov": cov.float(), "sample": y, "gamma": gamma.float(),
+                     "kyy": kernel_mean(y, y, gamma).float()}
+    return out
+
+
+def _stack(steps: list[dict]) -> dict:
+    """Per-step summaries (:func:`step_summary`) -> the same keys with a time dim after the seeds."""
+    first = steps[0]
+    return {k: (_stack([s[k] for s in steps]) if isinstance(v, dict) else torch.stack([s[k] for s in steps], 1))
+            for k, v in first.items()}
+
+
+def reference_posterior(model, traj: dict, seeds: list[int], particles: int, base_seed: int = 0,
+                        sample: int = SAMPLE, chunk_rows: int = CHUNK_ROWS, name: str = "") -> dict:
+    """The reference of ``seeds`` on the shared trajectories ``traj`` (see the module docstring).
+
+    Returns per part ``mean`` ``[S, T+1, dp]``, ``cov`` ``[S, T+1, dp, dp]``, ``sample``
+    ``[S, T+1, M, dp]``, ``gamma``/``kyy`` ``[S, T+1]``, ``dims`` and ``projections`` ``[L, dp]``;
+    and ``ess`` ``[S, T+1]``. Chunks of seeds (at most ``chunk_rows // particles`` each) filter one
+    after another, each with its own generators seeded by its first seed. ``name`` (the domain's)
+    seeds the directions of the sliced W1.
+    """
+    from escort_rl.belief import SIRFilter
+    from escort_rl.bench.trajectories import derived_seed, initial_beliefs
+
+    parts = state_parts(model)
+    filt = SIRFilter(resample_threshold=0.5)
+    per_chunk = max(1, int(chunk_rows) // int(particles))
+    chunks = []
+    for lo in range(0, len(seeds), per_chunk):
+        block = list(seeds[lo:lo + per_chunk])
+        rows = slice(lo, lo + len(block))
+        belief, _ = initial_beliefs(filt, model, block, particles, base_seed, kind="reference-belief")
+        g = torch.Generator().manual_seed(derived_seed("reference-filter", base_seed, block[0]))
+        gs = torch.Generator().manual_seed(derived_seed("reference-sample", base_seed, block[0]))
+        steps = [step_summary(belief.particles, belief.log_weights, parts, sample, gs)]
+        for t in range(traj["actions"].shape[1]):
+            belief = filt.update(model, belief, traj["actions"][rows, t], traj["observations"][rows, t], g)
+            if not bool(torch.isfinite(belief.particles).all()) or bool(torch.isnan(belief.log_weights).any()):
+                raise ValueError(f"the reference posterior of '{name}' became non-finite at step {t + 1} "
+                                 f"(seeds {block}); its particles are not usable")
+            steps.append(step_summary(belief.particles, belief.log_weights, parts, sample, gs))
+        chunks.append(_stack(steps))
+    out = {k: (torch.cat([c[k] for c in chunks]) if not isinstance(v, dict)
+               else {kk: torch.cat([c[k][kk] for c in chunks]) for kk in v}) for k, v in chunks[0].items()}
+    for part, dims in parts.items():
+        g = torch.Generator().manual_seed(derived_seed(f"reference-projections/{name}/{part}", 0, 0))
+        out[part]["projections"] = random_projections(PROJECTIONS, len(dims), g, dtype=torch.float32)
+        out[part]["dims"] = torch.tensor(dims, dtype=torch.int64)
+    return out
+
+
+@dataclass(frozen=True)
+class ReferenceCell(Cell):
+    """The reference posterior of one domain's shared trajectories of ``seeds`` at ``particles``.
+
+    Its tensors go to ``<folder>/<key>.pt``; the result names the file (relative to ``folder``) and
+    the hash of its tensors. ``folder`` is where the file lives, not what it holds, so it is left
+    out of :meth:`spec`: two runs in different folders have the same cells.
+    """
+
+    domain: str
+    particles: int
+    steps: int
+    seeds: tuple
+    base_seed: int = 0
+    sample: int = SAMPLE
+    folder: str = ""
+
+    def key(self) -> str:
+        return (f"reference/{self.domain}/N{self.particles}-M{self.sample}-T{self.steps}-"
+                f"seeds{self.seeds[0]}-{self.seeds[-1]}")
+
+    def spec(self) -> dict:
+        spec = super().spec()
+        spec.pop("folder")
+        return spec
+
+    def run(self) -> dict:
+        from escort_rl.bench.methods import build_domain
+        from escort_rl.bench.trajectories import generate_trajectories
+
+        model, _ = build_domain(self.domain)
+        seeds = list(self.seeds)
+        traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
+        t0 = time.perf_counter()
+        data = reference_posterior(model, traj, seeds, self.particles, self.base_seed, self.sample, name=self.domain)
+        seconds = time.perf_counter() - t0
+        data["input_hashes"] = list(traj["hashes"])
+        name = f"{self.key()}.pt"
+        path = Path(self.folder) / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".pt.tmp")
+        torch.save(data, tmp)
+        tmp.replace(path)
+        ess = data["ess"]
+        return {"file": name, "hash": content_hash(data), "input_hashes": data["input_hashes"],
+                "min_ess": float(ess.min()), "median_ess": float(ess.median()),
+                "timing": {"seconds": seconds}}
+
+    def valid(self, result: dict) -> bool:
+        """Whether the file of a saved ``result`` is there and holds what the result says."""
+        try:
+            Reference.load(Path(self.folder) / result["file"], result["hash"])
+        except (OSError, ValueError, KeyError, RuntimeError):
+            return False
+        return True
+
+
+class DamagedReferenceError(ValueError):
+    """A reference file is missing, unreadable or not the one its cell wrote."""
+
+
+class Reference:
+    """A reference posterior loaded from a :class:`ReferenceCell`'s file, for :meth:`compare`."""
+
+    def __init__(self, data: dict) -> None:
+        self.data = data
+        self.parts = {k: v for k, v in data.items() if isinstance(v, dict)}
+
+    @classmethod
+    def load(cls, path: Path, expected_hash: str) -> "Reference":
+        """Load ``path`` and check its tensors against ``expected_hash``; raises
+        :class:`DamagedReferenceError` naming the file and the fix otherwise."""
+        fix = "delete it and the cell's .json beside it under cells/reference/, and rerun the command"
+        try:
+            data = torch.load(path, weights_only=True)
+        except Exception as err:  # a truncated or foreign file: torch raises several types
+            raise DamagedReferenceError(f"reference file {path}: unreadable ({type(err).__name__}); {fix}") from None
+        if not isinstance(data, dict) or content_hash(data) != expected_hash:
+            raise DamagedReferenceError(f"reference file {path}: its contents do not match the hash its cell "
+                                        f"recorded ({expected_hash}); {fix}")
+        return cls(data)
+
+    def compare(self, particles: Tensor, log_weights: Tensor, t: int, rows: slice | None = None) -> dict:
+        """The distances of the belief ``particles`` ``[S, N, d]`` / ``log_weights`` ``[S, N]`` to the
+        reference at step ``t`` (of the seeds ``rows`` of the file; default all). Returns
+        ``{"<part>/<metric>": [S]}`` for the parts and :data:`METRICS`."""
+        rows = rows if rows is not None else slice(None)
+        w = torch.softmax(log_weights.double(), -1)
+        out = {}
+        s, n = particles.shape[0], particles.shape[-2]
+        for name, ref in self.parts.items():
+            x = particles[..., ref["dims"].tolist()]
+            y = ref["sample"][rows, t].to(x.dtype)
+            gamma = ref["gamma"][rows, t].to(x.dtype)
+            mean, cov = weighted_moments(x, w)
+            out[f"{name}/mean"] = (mean - ref["mean"][rows, t].double()).norm(dim=-1)
+            out[f"{name}/cov"] = torch.linalg.matrix_norm(cov - ref["cov"][rows, t].double())
+            step = max(1, COMPARE_ROWS // max(n * max(n, y.shape[-2]), 1))
+            w1, mmd = [], []
+            for lo in range(0, s, step):  # chunks of seeds bound the N × N kernel's memory
+                c = slice(lo, lo + step)
+                wx = w[c].to(x.dtype)
+                w1.append(weighted_sliced_wasserstein(x[c], y[c], ref["projections"], wx))
+                mmd.append(kernel_mean(x[c], x[c], gamma[c], wx, wx) + ref["kyy"][rows, t][c].to(x.dtype)
+                           - 2.0 * kernel_mean(x[c], y[c], gamma[c], wx))
+            out[f"{name}/w1"] = torch.cat(w1).double()
+            out[f"{name}/mmd2"] = torch.cat(mmd).double().clamp_min(0.0)
+        return out
+
+    def compare_reference(self, other: "Reference", t: int) -> dict:
+        """The distances of ``other``'s subsample (uniform weights) to this reference at step ``t``,
+        with the moments of both full references: the floor under a method's figures."""
+        out = {}
+        for name, ref in self.parts.items():
+            o = other.parts[name]
+            y = o["sample"][:, t]
+            gamma = ref["gamma"][:, t]
+            out[f"{name}/mean"] = (o["mean"][:, t].double() - ref["mean"][:, t].double()).norm(dim=-1)
+            out[f"{name}/cov"] = torch.linalg.matrix_norm(o["cov"][:, t].double() - ref["cov"][:, t].double())
+            out[f"{name}/w1"] = weighted_sliced_wasserstein(y, ref["sample"][:, t], ref["projections"]).double()
+            out[f"{name}/mmd2"] = (kernel_mean(y, y, gamma) + ref["kyy"][:, t]
+                                   - 2.0 * kernel_mean(y, ref["sample"][:, t], gamma)).double().clamp_min(0.0)
+        return out
+
+
+def summarize_series(series: dict, steps: int) -> dict:
+    """Per key ``[S, T+1]`` series -> ``{"final": [S], "mean": [S]}`` (the last step; the average over
+    steps 1..T, or step 0 when T = 0)."""
+    out = {}
+    for k, v in series.items():
+        v = torch.as_tensor(v, dtype=torch.float64)
+        out[k] = {"final": v[:, -1].tolist(), "mean": (v[:, 1:].mean(1) if steps > 0 else v[:, 0]).tolist()}
+    return out
