@@ -40,6 +40,37 @@ def test_quick_cli_writes_tables_and_plots(tmp_path, capsys):
         assert heading in md
     assert "| escort | " in md and "| lightdark10d | kidnapped20d | mtt20d |" in md
     assert "final error" in capsys.readouterr().out
+    # the distances to the reference posterior (quick: 2000 particles, checked at 4000)
+    for d in result["domains"]:
+        info = result["reference"][d]
+        assert info["particles"] == [2000, 4000] and info["min_ess"]["2000"] > 0
+        assert (tmp_path / f"accuracy_over_time_{d}.png").stat().st_size > 0
+    for r in result["rows"] + result["equal_time"]["rows"]:
+        acc = r["accuracy"]
+        assert acc["references"] == [2000, 4000] and len(acc["checks"]) == 1
+        assert set(acc["summary"]) == {f"{p}/{m}" for p in ("position", "velocity")
+                                       for m in ("w1", "mmd2", "mean", "cov")}
+        assert all(len(v["mean"]) == 4 and all(math.isfinite(x) and x >= 0 for x in v["mean"])
+                   for v in acc["over_time"].values())
+    for heading in ("## Distance to the reference posterior", "### sliced W1", "### MMD²",
+                    "### The reference and its convergence"):
+        assert heading in md
+
+
+def test_a_damaged_reference_file_is_computed_again(tmp_path):
+    """A reference file that no longer matches its saved cell is recomputed on the next run, and
+    the rows come out the same."""
+    from escort_rl.bench.domains import run_domains
+
+    kw = dict(domains=["lightdark10d"], methods=["sir"], seeds=2, n=20, steps=2, equal_time=False,
+              reference_particles=200, reference_sample=20, cells_dir=tmp_path / "cells")
+    first = run_domains(**kw)
+    files = sorted((tmp_path / "cells" / "reference-data").rglob("*.pt"))
+    assert len(files) == 2  # N_ref and 2 N_ref
+    files[0].write_bytes(files[0].read_bytes()[:64])
+    second = run_domains(**kw)
+    assert second["rows"][0]["accuracy"]["summary"] == first["rows"][0]["accuracy"]["summary"]
+    assert files[0].stat().st_size > 64
 
 
 def test_trajectories_are_seeded_per_seed():

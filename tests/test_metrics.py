@@ -25,6 +25,9 @@ from escort_rl.bench.metrics import (
     rmse_of_mean,
     sliced_wasserstein,
     wasserstein_1d,
+    weighted_mmd_squared,
+    weighted_sliced_wasserstein,
+    weighted_wasserstein_1d,
 )
 from escort_rl.bench.targets import load_target
 
@@ -407,3 +410,64 @@ def test_rmse_input_errors_name_the_argument():
         rmse_of_mean(randn(10, 3), torch.zeros(2))
     with pytest.raises(ValueError, match="^x:"):
         rmse_of_mean(torch.zeros(2, 3, dtype=F64) * float("inf"), torch.zeros(3))
+
+
+# ----------------------------------------------------------------------------- weighted, batched
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_weighted_wasserstein_1d_equals_scipy(seed):
+    g = torch.Generator().manual_seed(seed)
+    u, v = torch.randn(4, 9, generator=g, dtype=torch.float64), torch.randn(4, 6, generator=g, dtype=torch.float64)
+    wu, wv = torch.rand(4, 9, generator=g, dtype=torch.float64), torch.rand(4, 6, generator=g, dtype=torch.float64)
+    wu[0, :3] = 0.0  # zero weights are allowed
+    got = weighted_wasserstein_1d(u, v, wu, wv)
+    want = [scipy.stats.wasserstein_distance(u[i], v[i], wu[i], wv[i]) for i in range(4)]
+    assert torch.allclose(got, torch.tensor(want, dtype=torch.float64), atol=1e-12)
+
+
+def test_weighted_wasserstein_1d_uniform_is_the_unweighted_one():
+    g = torch.Generator().manual_seed(3)
+    u, v = torch.randn(11, generator=g, dtype=torch.float64), torch.randn(5, generator=g, dtype=torch.float64)
+    assert math.isclose(float(weighted_wasserstein_1d(u, v)), float(wasserstein_1d(u, v)), rel_tol=1e-12)
+
+
+def test_weighted_sliced_wasserstein_uniform_is_sliced_wasserstein_per_batch():
+    g = torch.Generator().manual_seed(4)
+    x, y = torch.randn(3, 20, 4, generator=g, dtype=torch.float64), torch.randn(3, 30, 4, generator=g, dtype=torch.float64)
+    theta = random_projections(10, 4)
+    got = weighted_sliced_wasserstein(x, y, theta)
+    want = torch.stack([sliced_wasserstein(x[i], y[i], projections=theta) for i in range(3)])
+    assert torch.allclose(got, want, atol=1e-12)
+
+
+def test_integer_weights_are_repeated_samples():
+    """Weights (2, 1, 3) on x equal x's rows repeated 2, 1 and 3 times, for W1 and MMD²."""
+    g = torch.Generator().manual_seed(5)
+    x, y = torch.randn(3, 2, generator=g, dtype=torch.float64), torch.randn(4, 2, generator=g, dtype=torch.float64)
+    w = torch.tensor([2.0, 1.0, 3.0], dtype=torch.float64)
+    repeated = x.repeat_interleave(torch.tensor([2, 1, 3]), dim=0)
+    theta = random_projections(7, 2)
+    assert math.isclose(float(weighted_sliced_wasserstein(x, y, theta, w)),
+                        float(sliced_wasserstein(repeated, y, projections=theta)), rel_tol=1e-12)
+    assert math.isclose(float(weighted_mmd_squared(x, y, 0.5, w)), float(mmd_squared(repeated, y)), rel_tol=1e-12)
+
+
+def test_weighted_mmd_takes_one_bandwidth_per_batch_element():
+    g = torch.Generator().manual_seed(6)
+    x, y = torch.randn(2, 8, 3, generator=g, dtype=torch.float64), torch.randn(2, 5, 3, generator=g, dtype=torch.float64)
+    gamma = torch.tensor([0.5, 2.0], dtype=torch.float64)
+    got = weighted_mmd_squared(x, y, gamma)
+    want = torch.stack([mmd_squared(x[i], y[i], gamma=float(gamma[i])) for i in range(2)])
+    assert torch.allclose(got, want, atol=1e-12)
+
+
+def test_weighted_metrics_errors_name_the_argument():
+    x, y = torch.randn(2, 5), torch.randn(2, 4)
+    with pytest.raises(ValueError, match="u_weights: weights must be non-negative"):
+        weighted_wasserstein_1d(x, y, -torch.ones(2, 5))
+    with pytest.raises(ValueError, match="v_weights: expected shape"):
+        weighted_wasserstein_1d(x, y, None, torch.ones(3))
+    with pytest.raises(ValueError, match="projections: expected"):
+        weighted_sliced_wasserstein(x[..., None], y[..., None], torch.ones(3, 2))
+    with pytest.raises(ValueError, match="gamma"):
+        weighted_mmd_squared(x[..., None], y[..., None], 0.0)
