@@ -335,6 +335,9 @@ class SVGDConfig:
     compile: bool = False
     stop_tolerance: float = _f(0.0, ge=0)
     stop_window: int = _f(5, ge=1)
+    anneal_cycles: int = _f(0, ge=0)
+    anneal_fraction: float = _f(0.5, gt=0, le=1)
+    bandwidth_start: float = _f(1.0, gt=0)
 
 
 @dataclass

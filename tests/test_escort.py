@@ -431,3 +431,50 @@ def test_a_non_number_argument_is_named():
         ESCORTFilter(step_size="0.1")
     with pytest.raises(ValueError, match="^SVGDFilter.jitter: must be a number"):
         SVGDFilter(jitter="x")
+
+
+# ---------------------------------------------------------------------------------------- annealing
+def test_schedule_closed_form():
+    """γ_k = (k mod P)/P with P = ceil(fraction·K / cycles) over the first fraction·K iterations,
+    then 1; the bandwidth multiplier start^(1 − k/(fraction·K)), then 1."""
+    filt = ESCORTFilter(anneal_cycles=2, anneal_fraction=0.5, bandwidth_start=4.0)
+    got = [filt.schedule(k, 20) for k in range(12)]
+    gammas = [0.0, 0.2, 0.4, 0.6, 0.8, 0.0, 0.2, 0.4, 0.6, 0.8, 1.0, 1.0]
+    assert [g for g, _ in got] == pytest.approx(gammas)
+    assert [b for _, b in got] == pytest.approx([4.0 ** (1 - k / 10) for k in range(10)] + [1.0, 1.0])
+    assert ESCORTFilter().schedule(0, 20) == (1.0, 1.0)
+    assert ESCORTFilter(anneal_cycles=1, anneal_fraction=1.0).schedule(5, 10) == (0.5, 1.0)
+
+
+@pytest.mark.parametrize("kwargs, field", [({"anneal_cycles": -1}, "anneal_cycles"), ({"anneal_cycles": 1.5}, "anneal_cycles"),
+                                           ({"anneal_fraction": 0.0}, "anneal_fraction"),
+                                           ({"bandwidth_start": 0.0}, "bandwidth_start")])
+def test_schedule_arguments_are_checked(kwargs, field):
+    with pytest.raises(ValueError, match=f"ESCORTFilter.{field}: must be"):
+        ESCORTFilter(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs", [{"anneal_cycles": 1}, {"anneal_cycles": 4}, {"bandwidth_start": 4.0},
+                                    {"anneal_cycles": 4, "bandwidth_start": 4.0}])
+def test_annealed_fit_still_reaches_the_target(kwargs):
+    """The schedules act on the first half of the iterations; the fit then converges as without them."""
+    g = torch.Generator().manual_seed(7)
+    target = torch.distributions.MultivariateNormal(torch.tensor([1.0, -2.0]),
+                                                    covariance_matrix=torch.tensor([[1.0, 0.8], [0.8, 1.0]]))
+    x0 = 3.0 * torch.randn(1, 200, 2, generator=g)
+    x = ESCORTFilter(**kwargs).fit(target.log_prob, x0, num_steps=300, generator=g)
+    torch.testing.assert_close(x.mean(-2)[0], target.mean, atol=0.15, rtol=0)
+    assert abs(float(torch.corrcoef(x[0].T)[0, 1]) - 0.8) < 0.1
+
+
+def test_pure_repulsion_spreads_the_particles():
+    """At γ = 0 (the first iteration of an annealing cycle) the score is off: the particles only
+    repel each other, so their spread grows whatever the target."""
+    g = torch.Generator().manual_seed(3)
+    x0 = 0.1 * torch.randn(1, 100, 2, generator=g)
+    target = torch.distributions.MultivariateNormal(torch.zeros(2), covariance_matrix=0.01 * torch.eye(2))
+    # fraction 1, one cycle of P = K = 2 iterations: γ = 0 then 0.5; compare with γ = 1 throughout
+    annealed = ESCORTFilter(anneal_cycles=1, anneal_fraction=1.0, lambda_corr=0.0).fit(target.log_prob, x0, num_steps=1)
+    plain = ESCORTFilter(lambda_corr=0.0).fit(target.log_prob, x0, num_steps=1)
+    assert float(annealed.std()) > float(x0.std())
+    assert float(annealed.std()) > float(plain.std())

@@ -209,6 +209,17 @@ class ESCORTFilter(BeliefFilter):
             stops moving; the loop ends when every belief of the batch has stopped, or at ``K``.
             One host synchronisation per window. :meth:`mean_iterations` reports the iterations used.
         stop_window: iterations between two convergence checks (default 5).
+        anneal_cycles: annealed SVGD (D'Angelo & Fortuin, 2021): the score in the SVGD direction is
+            multiplied by ``γ_k = (k mod P) / P``, ``P = ceil(anneal_fraction K / anneal_cycles)``,
+            for ``k < anneal_fraction K`` and by 1 afterwards, so each cycle starts from pure
+            repulsion (the particles spread) and tempers the target back in. 0 (default) is off,
+            1 a linear ramp, more a cyclical schedule.
+        anneal_fraction: the share of the ``K`` iterations the annealing (and the bandwidth
+            schedule) takes (default 0.5).
+        bandwidth_start: the bandwidth schedule: the kernel's bandwidth starts at ``bandwidth_start``
+            times the median heuristic and shrinks geometrically to it over the first
+            ``anneal_fraction K`` iterations (a wider kernel early moves particles between modes).
+            1 (default) is off.
 
     Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
     naming the culprit when the input belief, what the model's methods return (``transition``,
@@ -248,9 +259,12 @@ class ESCORTFilter(BeliefFilter):
         compile: bool = False,
         stop_tolerance: float = 0.0,
         stop_window: int = 5,
+        anneal_cycles: int = 0,
+        anneal_fraction: float = 0.5,
+        bandwidth_start: float = 1.0,
     ) -> None:
         for name in ("step_size", "step_decay", "adagrad_alpha", "bandwidth_scale", "lambda_corr", "lambda_temp",
-                     "temp_clip", "likelihood_pull", "jitter", "stop_tolerance"):
+                     "temp_clip", "likelihood_pull", "jitter", "stop_tolerance", "anneal_fraction", "bandwidth_start"):
             value = locals()[name]
             if not (value is None and name == "jitter") and (isinstance(value, bool)
                                                              or not isinstance(value, (int, float))):
@@ -280,9 +294,13 @@ class ESCORTFilter(BeliefFilter):
              and temporal_ascent_steps >= 0, "an int >= 0"),
             ("stop_tolerance", stop_tolerance >= 0, ">= 0 (0 turns the adaptive stop off)"),
             ("stop_window", isinstance(stop_window, int) and stop_window >= 1, "an int >= 1"),
+            ("anneal_cycles", isinstance(anneal_cycles, int) and not isinstance(anneal_cycles, bool)
+             and anneal_cycles >= 0, "an int >= 0 (0 turns the annealing off)"),
+            ("anneal_fraction", 0 < anneal_fraction <= 1, "in (0, 1]"),
+            ("bandwidth_start", bandwidth_start > 0, "> 0 (1 turns the bandwidth schedule off)"),
         ]
         for name in ("step_size", "step_decay", "bandwidth_scale", "lambda_corr", "lambda_temp", "likelihood_pull",
-                     "jitter", "stop_tolerance"):
+                     "jitter", "stop_tolerance", "bandwidth_start"):
             value = locals()[name]
             if value is not None and not math.isfinite(value):
                 raise ValueError(f"{type(self).__name__}.{name}: must be a finite number, got {value!r}")
@@ -300,6 +318,7 @@ class ESCORTFilter(BeliefFilter):
         self.likelihood_pull, self.prior, self.jitter = likelihood_pull, prior, jitter
         self.compile = compile
         self.stop_tolerance, self.stop_window = stop_tolerance, stop_window
+        self.anneal_cycles, self.anneal_fraction, self.bandwidth_start = anneal_cycles, anneal_fraction, bandwidth_start
         self._compiled_fns: dict[str, Callable] = {}
         self._iterations_used = [0.0, 0]  # Σ over updated beliefs of the iterations they ran, and their count
 
@@ -326,6 +345,26 @@ class ESCORTFilter(BeliefFilter):
     # ------------------------------------------------------------------ pieces
     def repulsion_scale(self, d: int) -> float:
         return 1.0 + 0.1 * d if self.repulsion == "enhanced" else 1.0
+
+    def schedule(self, k: int, k_total: int) -> tuple[float, float]:
+        """``(γ_k, b_k)`` of iteration ``k`` of ``k_total``: the annealing factor of the score and the
+        bandwidth's multiplier (see ``anneal_cycles`` and ``bandwidth_start``); ``(1, 1)`` when both
+        are off or after the first ``anneal_fraction`` of the iterations.
+
+        Examples:
+            >>> ESCORTFilter(anneal_cycles=2, anneal_fraction=0.5).schedule(3, 20)  # P = ceil(10 / 2) = 5
+            (0.6, 1.0)
+            >>> ESCORTFilter(bandwidth_start=4.0, anneal_fraction=0.5).schedule(5, 20)
+            (1.0, 2.0)
+        """
+        span = self.anneal_fraction * k_total
+        if k >= span:
+            return 1.0, 1.0
+        gamma = 1.0
+        if self.anneal_cycles > 0:
+            period = math.ceil(span / self.anneal_cycles)
+            gamma = (k % period) / period
+        return gamma, self.bandwidth_start ** (1.0 - k / span)
 
     def jitter_std(self, d: int) -> float:
         return math.sqrt(0.01 * (1.0 + 0.1 * d)) if self.jitter is None else float(self.jitter)
@@ -439,9 +478,12 @@ class ESCORTFilter(BeliefFilter):
                         proj = projector(projections, proj_weights)
                 lam_temp = (self.lambda_temp * (1.0 - k / k_total) if self.temp_schedule == "anneal"
                             else self.lambda_temp)
-                # Per-iteration scalars travel as tensors, so a compiled step is not re-specialised.
+                # Per-iteration scalars travel as tensors, so a compiled step is not re-specialised;
+                # the annealing factor and the bandwidth's multiplier only when a schedule is on.
+                scheduled = self.anneal_cycles > 0 or self.bandwidth_start != 1.0
                 scalars = torch.tensor([self.step_size / (1.0 + self.step_decay * k),
-                                        0.0 if k == 0 else self.adagrad_alpha, lam_temp], **full)
+                                        0.0 if k == 0 else self.adagrad_alpha, lam_temp,
+                                        *(self.schedule(k, k_total) if scheduled else ())], **full)
                 with timer("iteration" if fused else None):
                     x, hist, bad = step(x, hist, score_fn, bandwidth, scalars, repulsion=repulsion, proj=proj,
                                         lambda_corr=self.lambda_corr, corr_form=self.corr_form, temporal=temporal,
@@ -543,8 +585,9 @@ def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[T
     """One ESCORT iteration: ``x ← x + ε v / (sqrt(G) + 1e-6)``, ``G ← α G + (1 − α) v²``, with the
     velocity ``v = φ_SVGD + F_corr + F_temp``.
 
-    ``x``, ``hist`` (``G``) ``[*B, N, d]``; ``bandwidth`` ``[*B]``; ``scalars`` ``[3]`` holds
-    ``(ε, α, λ_temp)`` of this iteration; ``proj`` ``[*B, d, d]`` is ``Σ_k w_k A_k A_kᵀ`` (``None``
+    ``x``, ``hist`` (``G``) ``[*B, N, d]``; ``bandwidth`` ``[*B]``; ``scalars`` ``[3]`` or ``[5]`` holds
+    ``(ε, α, λ_temp)`` of this iteration and, when given, the annealing factor ``γ`` that multiplies
+    the score in ``φ_SVGD`` and the bandwidth's multiplier (:meth:`ESCORTFilter.schedule`); ``proj`` ``[*B, d, d]`` is ``Σ_k w_k A_k A_kᵀ`` (``None``
     turns ``F_corr`` off); ``temporal`` is the sorted reference of ``F_temp`` (``None`` turns it off).
     ``score_fn(x)`` gives the score ``[*B, N, d]`` and the counts ``[*B, C]`` of particles at which
     its sources gave NaN or inf (or ``None``): they are passed on, never read here (no host sync).
@@ -561,7 +604,10 @@ def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[T
     with timer("score"):
         score, bad = score_fn(x)
     with timer("kernel"):
-        phi = svgd_direction(x, score, bandwidth, repulsion)
+        if scalars.shape[0] > 3:  # annealing and the bandwidth schedule (1 and 1 when off)
+            phi = svgd_direction(x, scalars[3] * score, bandwidth * scalars[4], repulsion)
+        else:
+            phi = svgd_direction(x, score, bandwidth, repulsion)
     velocity = phi
     if proj is not None:
         with timer("correlation"):

@@ -25,7 +25,7 @@ import torch
 from escort_rl.belief import ESCORTFilter, SVGDFilter
 from escort_rl.belief.sir import systematic_resample_indices
 from escort_rl.bench import metrics
-from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices
+from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices, parse_filter_set
 from escort_rl.bench.runner import Cell, CellStore, InProcessBackend, run_groups, seed_blocks
 from escort_rl.reporting.stats import format_mean_se, mean_se
 from escort_rl.bench.targets import (
@@ -312,7 +312,28 @@ def register(subparsers) -> None:
         p.add_argument("--bandwidth-scale", type=float, default=1.0,
                        help="multiply ESCORT's and SVGD's median-heuristic bandwidth (default 1)")
         p.add_argument("--compile", action="store_true", help="ESCORT and SVGD with compile=True")
+        p.add_argument("--filter-set", nargs="+", default=None, metavar="KEY=VALUE",
+                       help="other ESCORT/SVGD arguments, e.g. anneal_cycles=4 bandwidth_start=4")
         add_runner_arguments(p)
+
+
+def filter_arguments(items) -> dict:
+    """``--filter-set KEY=VALUE ...`` as ESCORT/SVGD constructor arguments, each value read as OmegaConf reads a dotlist value
+    (``4`` an int, ``0.5`` a float, ``true`` a bool); a key the constructor does not take is an error
+    naming it and the keys it does take, and a bad value is the constructor's error naming the key."""
+    import inspect
+
+    from omegaconf import OmegaConf
+
+    known = [k for k in inspect.signature(ESCORTFilter.__init__).parameters if k != "self"]
+    out = {}
+    for key, value in parse_filter_set(items):
+        if key not in known:
+            raise ValueError(f"--filter-set: ESCORT has no argument '{key}'; choose from {', '.join(known)}")
+        out[key] = OmegaConf.from_dotlist([f"value={value}"])["value"]
+    if out:
+        ESCORTFilter(**{k: v for k, v in out.items()})  # a bad value fails here, naming its key
+    return out
 
 
 def main(args) -> None:
@@ -331,6 +352,7 @@ def main(args) -> None:
         filter_kwargs["bandwidth_scale"] = args.bandwidth_scale
     if args.compile:
         filter_kwargs["compile"] = True
+    filter_kwargs.update(filter_arguments(args.filter_set))
 
     def show(row):
         where = row.get("target") or f"d={row['dim']} {row['structure']}"
