@@ -170,3 +170,16 @@ def test_bench_decisions_cell_changes_with_the_composed_config():
     assert cell("filter=escort").spec() == cell("filter=escort").spec()
     assert cell("filter=escort").spec() != cell("filter=escort", "filter.prior=shrunk").spec()
     assert cell("filter=escort").spec()["config"]["filter"]["prior"] == "smoothed"
+
+
+def test_synthetic_filter_set_types_and_checks_the_arguments():
+    from escort_rl.bench.synthetic import filter_arguments
+
+    assert filter_arguments(["anneal_cycles=2", "bandwidth_start=4", "filter.compile=true"]) == {
+        "anneal_cycles": 2, "bandwidth_start": 4, "compile": True}
+    with pytest.raises(ValueError, match="--filter-set: ESCORT has no argument 'bandwith_start'"):
+        filter_arguments(["bandwith_start=4"])
+    with pytest.raises(ValueError, match="ESCORTFilter.anneal_fraction: must be in"):
+        filter_arguments(["anneal_fraction=2"])
+    with pytest.raises(ValueError, match="is not of the form KEY=VALUE"):
+        filter_arguments(["anneal_cycles"])

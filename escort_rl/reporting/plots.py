@@ -91,12 +91,7 @@ def plot_particles_on_target(log_prob, particles: dict, path: Path, dims: tuple[
             ax.set_title(name, fontsize=9)
             ax.set_xlabel(f"x{i + 1}")
             ax.set_ylabel(f"x{j + 1}")
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return _finish(fig, path, title, title_size=10, dpi=100)
 
 
 def plot_metric_against_dimension(rows: list[dict], metric: str, path: Path, group_key: str = "method",
@@ -121,6 +116,16 @@ def plot_metric_against_dimension(rows: list[dict], metric: str, path: Path, gro
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _finish(fig, path: Path, title: str = "", title_size: int = 9, dpi: int = 110) -> Path:
+    """Give ``fig`` its overall ``title`` (if any), lay it out, write it to ``path`` and close it."""
+    if title:
+        fig.suptitle(title, fontsize=title_size)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
 
@@ -172,9 +177,4 @@ def plot_curve_panels(panels: dict, path: Path, xlabel: str, ncols: int, title: 
     for ax in list(axes.flat)[len(panels):]:
         ax.set_visible(False)
     axes.flat[0].legend(fontsize=7)
-    if title:
-        fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _finish(fig, path, title)
