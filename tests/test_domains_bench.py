@@ -43,7 +43,7 @@ def test_quick_cli_writes_tables_and_plots(tmp_path, capsys):
     # the distances to the reference posterior (quick: 2000 particles, checked at 4000)
     for d in result["domains"]:
         info = result["reference"][d]
-        assert info["particles"] == [2000, 4000] and info["min_ess"]["2000"] > 0
+        assert info["particles"] == [2000, 4000] and info["seconds"]["2000"] > 0
         assert (tmp_path / f"accuracy_over_time_{d}.png").stat().st_size > 0
     for r in result["rows"] + result["equal_time"]["rows"]:
         acc = r["accuracy"]

@@ -241,7 +241,7 @@ class _Grid:
                        trajectory_hashes: dict) -> dict:
         """Compute (or load) the reference posteriors at ``particles`` and ``2 × particles`` of every
         domain and seed block, point the method cells at them, and return per domain: the sizes,
-        ESS, seconds, and the distance between the two references (the floor under the figures)."""
+        seconds, and the distance between the two references (the floor under the figures)."""
         sizes = (particles, 2 * particles)
         cells = {(d, b, n): ReferenceCell(domain=d, particles=n, steps=self.horizon[d], seeds=b, base_seed=self.base_seed,
                                           sample=sample, folder=str(folder), threads=self.threads)
@@ -270,8 +270,6 @@ class _Grid:
             series = {k: torch.cat([f[k] for f in floor]) for k in floor[0]}
             per_seed = summarize_series(series, self.horizon[d])
             out[d] = {"particles": list(sizes), "sample": sample,
-                      "min_ess": {str(n): min(results[(d, b, n)]["min_ess"] for b in self.blocks) for n in sizes},
-                      "median_ess": {str(n): [results[(d, b, n)]["median_ess"] for b in self.blocks] for n in sizes},
                       "seconds": {str(n): sum(results[(d, b, n)]["timing"]["seconds"] for b in self.blocks)
                                   for n in sizes},
                       "floor": {k: {w: mean_se(v[w]) for w in ("final", "mean")} for k, v in per_seed.items()}}
@@ -546,17 +544,15 @@ def _accuracy_sections(result: dict) -> list[str]:
         "reference's own error. *Change*: per method, the largest relative change of its time-averaged figures "
         "(all parts and metrics) when the 2 N_ref reference replaces the N_ref one.",
         "",
-        "| domain | min ESS (N_ref / 2 N_ref) | seconds (N_ref / 2 N_ref) | " + " | ".join(
-            f"floor: {METRIC_LABELS[m]}" for m in METRICS) + " |",
-        "| --- | --- | --- | " + " | ".join("---" for _ in METRICS) + " |",
+        "| domain | seconds (N_ref / 2 N_ref) | " + " | ".join(f"floor: {METRIC_LABELS[m]}" for m in METRICS) + " |",
+        "| --- | --- | " + " | ".join("---" for _ in METRICS) + " |",
     ]
     for d in domains:
         info = ref[d]
-        ess = " / ".join(f"{info['min_ess'][str(n)]:.0f}" for n in info["particles"])
         secs = " / ".join(f"{info['seconds'][str(n)]:.0f}" for n in info["particles"])
         floors = [" / ".join(format_mean_se(v["mean"]) for k, v in info["floor"].items() if k.endswith(f"/{m}"))
                   for m in METRICS]
-        lines.append(f"| {d} | {ess} | {secs} | " + " | ".join(floors) + " |")
+        lines.append(f"| {d} | {secs} | " + " | ".join(floors) + " |")
     lines += ["", "Change of each method's figures when N_ref doubles (the largest over parts and metrics):", "",
               *_table(result, result["rows"], _reference_change), ""]
     return lines
@@ -752,9 +748,9 @@ def main(args) -> None:
         elif kind == "reference":
             for d, info in payload.items():
                 floor = ", ".join(f"{k} {v['mean'][0]:.4g}" for k, v in info["floor"].items() if k.endswith("/w1"))
-                print(f"{d:>13} reference N_ref={info['particles'][0]}/{info['particles'][1]}: min ESS "
-                      f"{info['min_ess'][str(info['particles'][0])]:.0f}, {info['seconds'][str(info['particles'][0])]:.0f}"
-                      f" + {info['seconds'][str(info['particles'][1])]:.0f} s; floor (sliced W1) {floor}", flush=True)
+                print(f"{d:>13} reference N_ref={info['particles'][0]}/{info['particles'][1]}: "
+                      f"{info['seconds'][str(info['particles'][0])]:.0f} + {info['seconds'][str(info['particles'][1])]:.0f}"
+                      f" s; floor (sliced W1) {floor}", flush=True)
         else:
             times = ", ".join(f"N'={k}: {1e3 * v:.1f} ms" for k, v in payload["times"].items())
             print(f"{payload['domain']:>13} {payload['method']:>14} equal-time: budget "

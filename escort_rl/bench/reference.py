@@ -118,7 +118,8 @@ def systematic_indices(log_w: Tensor, m: int, generator: torch.Generator | None)
 
 def step_summary(particles: Tensor, log_w: Tensor, parts: dict, sample: int, generator) -> dict:
     """One step of the reference: per part ``mean`` ``[B, dp]``, ``cov`` ``[B, dp, dp]``, ``sample``
-    ``[B, M, dp]``, ``gamma`` ``[B]`` and ``kyy`` ``[B]``; and ``ess`` ``[B]``."""
+    ``[B, M, dp]``, ``gamma`` ``[B]`` and ``kyy`` ``[B]``; and ``ess`` ``[B]``, the effective sample size of
+    the weights after the update (and its resampling, when ESS/N fell below 0.5)."""
     w = torch.softmax(log_w.double(), -1)
     idx = systematic_indices(log_w, sample, generator)
     out = {"ess": 1.0 / (w ** 2).sum(-1)}
@@ -243,9 +244,7 @@ class ReferenceCell(Cell):
         tmp = path.with_suffix(".pt.tmp")
         torch.save(data, tmp)
         tmp.replace(path)
-        ess = data["ess"]
         return {"file": name, "hash": content_hash(data), "input_hashes": data["input_hashes"],
-                "min_ess": float(ess.min()), "median_ess": float(ess.median()),
                 "timing": {"seconds": seconds}}
 
     def valid(self, result: dict) -> bool:
