@@ -13,7 +13,9 @@ Metrics, each mean ± standard error over seeds: the position error ``‖E_b[pos
 weighted belief mean at every step (Light-Dark: the 5 position coordinates; Kidnapped Robot: dims
 (0, 1); Multi-Target Tracking: ``model.position_error``, the mean over the four targets), its value
 at the final step and its average over steps 1..T, and the wall-clock seconds per filter update
-(summed over a row's cells).
+(summed over a row's cells). With ``reference_particles`` (the command's default 10⁵) every filter row
+also gets its distances to a reference posterior at every step, for the position and the velocity
+(:mod:`escort_rl.bench.reference`): the reference cells run first, as their own grid phase.
 
 Equal wall-clock table: each method's time per step is measured here, one method at a time with the
 cells' thread count, on a few steps of the same batch at each ``N'`` of a grid (capped by
