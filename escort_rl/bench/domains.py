@@ -346,7 +346,8 @@ def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, s
     try:
         checkpoints = train_learned_beliefs(domains, learned, Path(runs_dir)) if learned else {}
         with tempfile.TemporaryDirectory(prefix="escort-rl-reference-") as scratch:
-            folder = Path(cells_dir) / "reference-data" if cells_dir is not None else Path(scratch)
+            # absolute, so a Ray worker that starts in another directory finds the files
+            folder = (Path(cells_dir) / "reference-data" if cells_dir is not None else Path(scratch)).resolve()
             return _run_domains(domains, methods, seeds, n, steps, backend, equal_time, max_particles, particle_grid,
                                 reference, calibration_steps, base_seed, filter_set, threads, seeds_per_cell, progress,
                                 plot_dir, checkpoints, CellStore(cells_dir) if cells_dir is not None else None,
