@@ -79,3 +79,18 @@ def tiny_config():
         return compose(tiny_overrides(*overrides))
 
     return make
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """A fresh local Ray of 2 CPUs for one test module, whatever the machine's ``RAY_ADDRESS`` or
+    last-started cluster says (``address="local"``, with ``RAY_ADDRESS`` unset meanwhile)."""
+    import ray  # the ray extra: make test installs it
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.delenv("RAY_ADDRESS", raising=False)
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+        try:
+            yield ray
+        finally:
+            ray.shutdown()

@@ -12,15 +12,6 @@ from escort_rl.config import ConfigError, compose
 from conftest import tiny_overrides
 
 
-@pytest.fixture(scope="module")
-def local_ray():
-    import ray  # the ray extra: make test installs it
-
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
-
-
 @pytest.mark.slow
 def test_remote_collectors_get_the_policy_weights_and_stack_their_batches(local_ray):
     from escort_rl.modules import make_deepsets_policy
@@ -82,3 +73,15 @@ def test_bench_throughput_times_ray_collectors(local_ray):
     row = collection_throughput(cfg, workers=2, num_envs=4, steps_per_batch=3, batches=2)
     assert row["backend"] == "ray" and row["workers"] == 2
     assert row["frames"] == 2 * 4 * 3 and row["frames_per_second"] > 0
+
+
+def test_ray_init_joins_only_a_named_cluster(monkeypatch):
+    from escort_rl.trainers.ray_collection import ray_init_kwargs
+
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    assert ray_init_kwargs()["address"] == "local"  # not Ray's last-started cluster
+    assert ray_init_kwargs()["include_dashboard"] is False
+    assert ray_init_kwargs("auto")["address"] == "auto"
+    monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
+    assert ray_init_kwargs()["address"] == "10.0.0.1:6379"
+    assert "include_dashboard" not in ray_init_kwargs()

@@ -78,15 +78,9 @@ def test_process_backend_gives_the_inprocess_numbers(tmp_path):
 
 
 @pytest.mark.slow
-def test_ray_backend_gives_the_inprocess_numbers(tmp_path):
-    import ray  # the ray extra: make test installs it
-
+def test_ray_backend_gives_the_inprocess_numbers(tmp_path, local_ray):
     here = dom.run_domains(**GRID, cells_dir=tmp_path / "a")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        there = dom.run_domains(**GRID, backend=make_backend("ray"), cells_dir=tmp_path / "b")
-    finally:
-        ray.shutdown()
+    there = dom.run_domains(**GRID, backend=make_backend("ray"), cells_dir=tmp_path / "b")
     assert there["backend"] == "ray"
     assert _per_seed(there) == _per_seed(here)
     assert compare_runs(tmp_path / "a", tmp_path / "b") == (8, [])

@@ -25,9 +25,18 @@ from escort_rl.schema import check_ray_installed
 
 def ray_init_kwargs(address: str | None = None) -> dict:
     """The arguments of ``ray.init`` for ``address`` (``None``: ``RAY_ADDRESS`` if set, else a new
-    local Ray): quiet (the workers' output is not forwarded), no dashboard for a local Ray."""
+    local Ray): quiet (the workers' output is not forwarded), no dashboard for a local Ray.
+
+    A new local Ray is asked for as ``address="local"``: Ray's own default would join whatever
+    cluster ``/tmp/ray/ray_current_cluster`` last named, which may be gone or another user's.
+
+    Example::
+
+        >>> ray_init_kwargs("auto")["address"]
+        'auto'
+    """
     address = address or os.environ.get("RAY_ADDRESS") or None
-    kwargs = {"address": address, "log_to_driver": False, "logging_level": "warning"}
+    kwargs = {"address": address or "local", "log_to_driver": False, "logging_level": "warning"}
     return kwargs if address else {**kwargs, "include_dashboard": False}
 
 
