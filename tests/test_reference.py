@@ -121,6 +121,25 @@ def test_a_far_belief_is_farther(reference_cell, tmp_path):
     assert torch.allclose(d_far["position/mean"], want, atol=1e-4)
 
 
+def test_a_belief_larger_than_the_sample_enters_mmd_thinned(reference_cell, tmp_path):
+    result = reference_cell.run()
+    ref = Reference.load(tmp_path / result["file"], result["hash"])
+    near = torch.cat([ref.parts["position"]["sample"][:, 1], ref.parts["velocity"]["sample"][:, 1]], -1)
+    x = near + 0.3 * torch.randn(near.shape, generator=torch.Generator().manual_seed(1))
+    # four copies of each particle: N = 200 > M = 50, and M systematic draws take one copy of each
+    big = x.repeat_interleave(4, dim=1)
+    small, thinned = ref.compare(x, torch.zeros(2, 50), 1), ref.compare(big, torch.zeros(2, 200), 1)
+    for key in small:
+        assert torch.allclose(thinned[key], small[key], atol=1e-5), key
+    assert (thinned["position/mmd2"] > 1e-3).all()  # not trivially 0: the belief was moved
+    # with unequal weights the draws follow them: all weight on the first copy block
+    log_w = torch.full((2, 200), -1e9)
+    log_w[:, :4] = 0.0
+    one = ref.compare(big, log_w, 1)
+    point = ref.compare(x[:, :1].expand(2, 50, 10), torch.zeros(2, 50), 1)
+    assert torch.allclose(one["position/mmd2"], point["position/mmd2"], atol=1e-5)
+
+
 def test_damaged_reference_is_detected(reference_cell, tmp_path):
     result = reference_cell.run()
     path = tmp_path / result["file"]

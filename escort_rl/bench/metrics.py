@@ -354,8 +354,12 @@ def kernel_mean(x, y, gamma, x_weights=None, y_weights=None) -> Tensor:
     if not bool(((gamma > 0) & torch.isfinite(gamma)).all()):
         raise ValueError("gamma: expected positive finite bandwidths")
     wx, wy = _normalised("x_weights", x_weights, x[..., 0]), _normalised("y_weights", y_weights, y[..., 0])
-    k = torch.exp(-gamma[..., None, None] * _sq_dists(x, y))
-    return ((wx[..., :, None] * k).sum(-2) * wy).sum(-1)
+    g = gamma[..., None, None]
+    # −γ‖x_i − y_j‖² = 2γ x_i·y_j − γ‖x_i‖² − γ‖y_j‖², built in place in one [..., N, M] buffer
+    k = (x @ y.transpose(-1, -2)).mul_(2.0 * g)
+    k.sub_(g * (x * x).sum(-1)[..., :, None]).sub_(g * (y * y).sum(-1)[..., None, :])
+    k.clamp_max_(0.0).exp_()
+    return (wx[..., None, :] @ k @ wy[..., :, None])[..., 0, 0]
 
 
 def weighted_mmd_squared(x, y, gamma, x_weights=None, y_weights=None, yy: Tensor | None = None) -> Tensor:

@@ -54,6 +54,8 @@ PROJECTIONS = 50
 """Directions of the sliced W1, per part."""
 METRICS = ("w1", "mmd2", "mean", "cov")
 METRIC_LABELS = {"w1": "sliced W1", "mmd2": "MMD²", "mean": "‖mean − mean_ref‖₂", "cov": "‖cov − cov_ref‖_F"}
+THIN_SEED = 7_777
+"""Seed (plus the step) of the systematic draws that thin a belief larger than M for MMD²."""
 COMPARE_ROWS = 40_000_000
 """Kernel entries (seeds × N × max(N, M)) one chunk of :meth:`Reference.compare` may hold."""
 
@@ -284,11 +286,21 @@ class Reference:
     def compare(self, particles: Tensor, log_weights: Tensor, t: int, rows: slice | None = None) -> dict:
         """The distances of the belief ``particles`` ``[S, N, d]`` / ``log_weights`` ``[S, N]`` to the
         reference at step ``t`` (of the seeds ``rows`` of the file; default all). Returns
-        ``{"<part>/<metric>": [S]}`` for the parts and :data:`METRICS`."""
+        ``{"<part>/<metric>": [S]}`` for the parts and :data:`METRICS`.
+
+        The mean, covariance and sliced W1 use the whole weighted belief. MMD² does too up to the
+        reference's sample size M; a larger belief enters it as M systematic draws from its weights
+        (seeded by ``t``, so every backend draws the same), which bounds the cost at M² kernel
+        entries per seed and part, as for the reference itself, and adds the same O(1/M) bias as
+        the reference's own subsample (the floor of :meth:`compare_reference` has it too)."""
         rows = rows if rows is not None else slice(None)
         w = torch.softmax(log_weights.double(), -1)
         out = {}
         s, n = particles.shape[0], particles.shape[-2]
+        m = next(iter(self.parts.values()))["sample"].shape[-2]
+        thin = None
+        if n > m:  # MMD² of a large belief on m systematic draws (same draws for every part)
+            thin = systematic_indices(log_weights, m, torch.Generator().manual_seed(THIN_SEED + t))
         for name, ref in self.parts.items():
             x = particles[..., ref["dims"].tolist()]
             y = ref["sample"][rows, t].to(x.dtype)
@@ -296,14 +308,18 @@ class Reference:
             mean, cov = weighted_moments(x, w)
             out[f"{name}/mean"] = (mean - ref["mean"][rows, t].double()).norm(dim=-1)
             out[f"{name}/cov"] = torch.linalg.matrix_norm(cov - ref["cov"][rows, t].double())
+            xk, wk = x, w
+            if thin is not None:
+                xk, wk = x.gather(-2, thin[..., None].expand(*thin.shape, x.shape[-1])), None
             step = max(1, COMPARE_ROWS // max(n * max(n, y.shape[-2]), 1))
             w1, mmd = [], []
             for lo in range(0, s, step):  # chunks of seeds bound the N × N kernel's memory
                 c = slice(lo, lo + step)
                 wx = w[c].to(x.dtype)
+                wm = None if wk is None else wk[c].to(x.dtype)
                 w1.append(weighted_sliced_wasserstein(x[c], y[c], ref["projections"], wx))
-                mmd.append(kernel_mean(x[c], x[c], gamma[c], wx, wx) + ref["kyy"][rows, t][c].to(x.dtype)
-                           - 2.0 * kernel_mean(x[c], y[c], gamma[c], wx))
+                mmd.append(kernel_mean(xk[c], xk[c], gamma[c], wm, wm) + ref["kyy"][rows, t][c].to(x.dtype)
+                           - 2.0 * kernel_mean(xk[c], y[c], gamma[c], wm))
             out[f"{name}/w1"] = torch.cat(w1).double()
             out[f"{name}/mmd2"] = torch.cat(mmd).double().clamp_min(0.0)
         return out
