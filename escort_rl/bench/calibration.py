@@ -66,6 +66,9 @@ def main(args) -> None:
                 ("escort prior=shrunk", ESCORTFilter(prior="shrunk")),
                 ("escort num_steps=15 step_size=0.15 prior=shrunk", ESCORTFilter(num_steps=15, step_size=0.15,
                                                                                  prior="shrunk")),
+                ("escort anneal_cycles=4", ESCORTFilter(anneal_cycles=4)),
+                ("svgd anneal_cycles=4", SVGDFilter(anneal_cycles=4)),
+                ("escort bandwidth_start=4", ESCORTFilter(bandwidth_start=4.0)),
                 ("filter=escort_train", train_filter)]
     print("| filter | mean Mahalanobis error | variance ratio |")
     print("| --- | --- | --- |")

@@ -37,6 +37,9 @@ from escort_rl.bench.targets import (
 )
 
 SYNTHETIC_TARGETS = ("gmm1d", "gmm2d", "gmm3d", "gmm5d", "gmm20d")
+INITS = ("cloud", "resampled")
+"""How ESCORT and SVGD start: the initial cloud itself, or the cloud importance-resampled to the target
+(:func:`initial_particles`)."""
 SCALING_DIMS = (1, 5, 20, 50, 100, 200)
 
 
@@ -46,10 +49,49 @@ def _sample_batch(dist: GaussianMixture, seeds: list[int], n: int, offset: int) 
     return torch.stack(out).to(torch.float32)
 
 
+def scaled(initial: GaussianMixture, scale: float) -> GaussianMixture:
+    """``initial`` with every component's spread multiplied by ``scale`` (covariances by ``scale²``)."""
+    if not (isinstance(scale, (int, float)) and not isinstance(scale, bool) and 0 < scale < float("inf")):
+        raise ValueError(f"init_scale: expected a positive finite number, got {scale!r}")
+    if scale == 1.0:
+        return initial
+    return GaussianMixture(initial.weights, initial.means, initial.covariances * float(scale) ** 2,
+                           name=f"{initial.name}*{scale}")
+
+
+def initial_particles(x0: torch.Tensor, target: GaussianMixture, initial: GaussianMixture, init: str,
+                      generator: torch.Generator) -> torch.Tensor:
+    r"""Where ESCORT and SVGD start, from the initial cloud ``x0`` ``[S, n, d]`` drawn from ``initial`` (q).
+
+    * ``cloud``: ``x0`` itself.
+    * ``resampled``: ``x0`` resampled systematically by the importance weights ``p/q`` (so the modes
+      start with about their target mass, which SVGD cannot move between modes later), then each copy
+      moved by ``N(0, h² diag(σ̂²))``, the regularised particle filter's kernel: σ̂² the per-dimension
+      variance of the resampled set and ``h = (4 / (n (d + 2)))^{1/(d+4)}`` (Silverman). The kernel
+      separates the copies, which SVGD's repulsion could not (the kernel's gradient vanishes between
+      equal points). Where the weights degenerate (high ``d``), most copies share a few ancestors.
+    """
+    if init not in INITS:
+        raise ValueError(f"init: expected one of {', '.join(INITS)}, got {init!r}")
+    if init == "cloud":
+        return x0
+    log_w = (target.log_prob(x0) - initial.log_prob(x0)).to(torch.float64)
+    idx = systematic_resample_indices(log_w, generator)
+    x = torch.gather(x0, -2, idx.unsqueeze(-1).expand_as(x0))
+    n, d = x.shape[-2], x.shape[-1]
+    h = (4.0 / (n * (d + 2))) ** (1.0 / (d + 4))
+    std = x.std(-2, keepdim=True).clamp_min(1e-6)
+    return x + h * std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
+
+
 def fit_particles(method: str, target: GaussianMixture, initial: GaussianMixture, seeds: list[int], n: int,
-                  num_steps: int, filter_kwargs: dict | None = None) -> tuple[torch.Tensor, float]:
+                  num_steps: int, filter_kwargs: dict | None = None, init: str = "cloud",
+                  init_scale: float = 1.0) -> tuple[torch.Tensor, float]:
     """Particles ``[S, n, d]`` of ``method`` for each seed, and the wall-clock seconds it took.
-    ``filter_kwargs`` (e.g. ``bandwidth_scale``) go to the ESCORT and SVGD constructors."""
+    ``filter_kwargs`` (e.g. ``bandwidth_scale``) go to the ESCORT and SVGD constructors; ``init`` and
+    ``init_scale`` set ESCORT's and SVGD's start (:func:`initial_particles`, of the initial cloud with
+    its spread times ``init_scale``; SIR and the DVRL fit use that cloud as well)."""
+    initial = scaled(initial, init_scale)
     x0 = _sample_batch(initial, seeds, n, offset=0)
     t0 = time.perf_counter()
     if method == "oracle":
@@ -69,6 +111,7 @@ def fit_particles(method: str, target: GaussianMixture, initial: GaussianMixture
         filt = {"escort": lambda: ESCORTFilter(**kw), "escort_nocorr": lambda: ESCORTFilter(lambda_corr=0.0, **kw),
                 "svgd": lambda: SVGDFilter(**kw)}[method]()
         g = torch.Generator().manual_seed(seeds[0])
+        x0 = initial_particles(x0, target, initial, init, g)
         x = filt.fit(lambda z: target.log_prob(z), x0, num_steps=num_steps, generator=g)
     return x, time.perf_counter() - t0
 
@@ -111,6 +154,8 @@ class SyntheticCell(Cell):
     particles: int
     num_steps: int
     filter_kwargs: tuple = ()
+    init: str = "cloud"
+    init_scale: float = 1.0
     dim: int | None = None
     structure: str | None = None
     keep_particles: bool = False
@@ -129,7 +174,7 @@ class SyntheticCell(Cell):
         target, initial = self.distributions()
         seeds = list(self.seeds)
         x, seconds = fit_particles(self.method, target, initial, seeds, self.particles, self.num_steps,
-                                   dict(self.filter_kwargs))
+                                   dict(self.filter_kwargs), self.init, self.init_scale)
         out = {"per_seed": score_particles(x, target, seeds), "timing": {"seconds": seconds}}
         if self.keep_particles and 0 in seeds:
             out["seed0_particles"] = x[seeds.index(0)].tolist()
@@ -162,11 +207,12 @@ def _run_grid(rows: list[dict], cells: dict, backend, cells_dir, progress) -> li
 def run_synthetic(targets=SYNTHETIC_TARGETS, methods=SYNTHETIC_METHODS, seeds: int = 30, n: int = 1000,
                   num_steps: int = 500, progress=None, plot_dir=None, filter_kwargs: dict | None = None,
                   backend=None, threads: int | None = None, seeds_per_cell: int | None = None,
-                  cells_dir=None) -> dict:
+                  cells_dir=None, init: str = "cloud", init_scale: float = 1.0) -> dict:
     """Fit and score every method on every target; per-seed values and mean ± s.e.
 
     ``backend``, ``threads`` (per cell, default 1), ``seeds_per_cell`` (default all) and
-    ``cells_dir`` (saved cells, skipped on a rerun): see :mod:`escort_rl.bench.runner`. With
+    ``cells_dir`` (saved cells, skipped on a rerun): see :mod:`escort_rl.bench.runner`. ``init`` and
+    ``init_scale``: the start of ESCORT and SVGD (:func:`fit_particles`). With
     ``plot_dir``, writes ``<target>_particles.png``: seed 0's particles of every method on the
     target's contours (first two coordinates), and ``<metric>_vs_dimension.png``.
     """
@@ -180,7 +226,7 @@ def run_synthetic(targets=SYNTHETIC_TARGETS, methods=SYNTHETIC_METHODS, seeds: i
         for method in methods:
             cells[len(rows)] = [SyntheticCell(target=name, method=method, seeds=b, particles=n, num_steps=num_steps,
                                               filter_kwargs=tuple(sorted((filter_kwargs or {}).items())),
-                                              keep_particles=plot_dir is not None, threads=threads or 1)
+                                              init=init, init_scale=float(init_scale), keep_particles=plot_dir is not None, threads=threads or 1)
                                 for b in blocks]
             rows.append({"target": name, "dim": dim, "method": method})
     _run_grid(rows, cells, backend, cells_dir, progress)
@@ -196,13 +242,14 @@ def run_synthetic(targets=SYNTHETIC_TARGETS, methods=SYNTHETIC_METHODS, seeds: i
         for metric in ("sliced_w1", "corr_error", "mmd2"):
             plot_metric_against_dimension(rows, metric, Path(plot_dir) / f"{metric}_vs_dimension.png")
     return {"n": n, "seeds": seeds, "num_steps": num_steps, "filter_kwargs": dict(filter_kwargs or {}),
-            "rows": rows}
+            "init": init, "init_scale": float(init_scale), "rows": rows}
 
 
 def run_scaling(dims=SCALING_DIMS, structures=("block", "banded", "long_range", "sparse"),
                 methods=SCALING_METHODS, seeds: int = 5, n: int = 1000, num_steps: int = 500, progress=None,
                 plot_dir=None, filter_kwargs: dict | None = None, backend=None, threads: int | None = None,
-                seeds_per_cell: int | None = None, cells_dir=None) -> dict:
+                seeds_per_cell: int | None = None, cells_dir=None, init: str = "cloud",
+                init_scale: float = 1.0) -> dict:
     """RMSE (and the other metrics) of the 5-mode scalability GMMs against the dimension; with
     ``plot_dir``, ``rmse_vs_dimension.png`` (averaged over the correlation structures). The runner
     arguments are those of :func:`run_synthetic`."""
@@ -216,6 +263,7 @@ def run_scaling(dims=SCALING_DIMS, structures=("block", "banded", "long_range", 
                 cells[len(rows)] = [SyntheticCell(target=f"scaling-{structure}-{d}d", method=method, seeds=b,
                                                   particles=n, num_steps=num_steps, dim=d, structure=structure,
                                                   filter_kwargs=tuple(sorted((filter_kwargs or {}).items())),
+                                                  init=init, init_scale=float(init_scale),
                                                   threads=threads or 1) for b in blocks]
                 rows.append({"dim": d, "structure": structure, "method": method})
     _run_grid(rows, cells, backend, cells_dir, progress)
@@ -224,11 +272,15 @@ def run_scaling(dims=SCALING_DIMS, structures=("block", "banded", "long_range", 
                                       ylabel="RMSE of the mean")
         plot_metric_against_dimension(rows, "mode_coverage", Path(plot_dir) / "coverage_vs_dimension.png")
     return {"n": n, "seeds": seeds, "num_steps": num_steps, "filter_kwargs": dict(filter_kwargs or {}),
-            "rows": rows}
+            "init": init, "init_scale": float(init_scale), "rows": rows}
 
 
 def _filter_kwargs_note(result: dict) -> str:
-    kw = result.get("filter_kwargs") or {}
+    kw = dict(result.get("filter_kwargs") or {})
+    if result.get("init", "cloud") != "cloud":
+        kw["init"] = result["init"]
+    if result.get("init_scale", 1.0) != 1.0:
+        kw["init_scale"] = result["init_scale"]
     return (" ESCORT and SVGD settings changed from their defaults: "
             + ", ".join(f"`{k}={v}`" for k, v in kw.items()) + ".") if kw else ""
 
@@ -314,6 +366,11 @@ def register(subparsers) -> None:
         p.add_argument("--compile", action="store_true", help="ESCORT and SVGD with compile=True")
         p.add_argument("--filter-set", nargs="+", default=None, metavar="KEY=VALUE",
                        help="other ESCORT/SVGD arguments, e.g. anneal_cycles=4 bandwidth_start=4")
+        p.add_argument("--init", choices=INITS, default="cloud",
+                       help="ESCORT's and SVGD's start: the initial cloud (default) or the cloud importance-"
+                       "resampled to the target and spread by a Silverman kernel")
+        p.add_argument("--init-scale", type=float, default=1.0,
+                       help="multiply the initial cloud's spread, for every method but the oracle (default 1)")
         add_runner_arguments(p)
 
 
@@ -364,7 +421,8 @@ def main(args) -> None:
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     runner = dict(backend=backend_from_args(args), threads=args.threads, seeds_per_cell=args.seeds_per_cell,
-                  cells_dir=out / "cells", filter_kwargs=filter_kwargs, progress=show, plot_dir=out)
+                  cells_dir=out / "cells", filter_kwargs=filter_kwargs, progress=show, plot_dir=out,
+                  init=args.init, init_scale=args.init_scale)
     if args.bench == "synthetic":
         kw = dict(targets=args.targets, methods=args.methods, seeds=args.seeds, n=args.particles,
                   num_steps=args.num_steps)
