@@ -53,7 +53,8 @@ def test_quick_cli_writes_tables_and_plots(tmp_path, capsys):
         assert all(len(v["mean"]) == 4 and all(math.isfinite(x) and x >= 0 for x in v["mean"])
                    for v in acc["over_time"].values())
     for heading in ("## Distance to the reference posterior", "### sliced W1", "### MMD²",
-                    "### The reference and its convergence"):
+                    "### The reference and its convergence", "at equal wall-clock: sliced W1",
+                    "at equal wall-clock: MMD²", "at equal wall-clock: ‖cov − cov_ref‖_F"):
         assert heading in md
 
 

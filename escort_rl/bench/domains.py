@@ -634,9 +634,10 @@ def domains_markdown(result: dict) -> str:
                                                   f"(N'={r['particles']}, {1e3 * r['calibrated_seconds_per_step']:.1f}"
                                                   f" / {1e3 * r['seconds_per_step']:.1f} ms)"),
             "",
-            *(["Distance to the reference posterior at equal wall-clock: sliced W1 of the position / velocity, "
-               "time-averaged over steps 1..T.", "",
-               *_table(result, eq["rows"], lambda r: _parts_cell(r, "w1")), ""]
+            *([line for metric in METRICS for line in (
+                f"Distance to the reference posterior at equal wall-clock: {METRIC_LABELS[metric]} of the position "
+                "/ velocity, time-averaged over steps 1..T.", "",
+                *_table(result, eq["rows"], lambda r, metric=metric: _parts_cell(r, metric)), "")]
               if result.get("reference") else []),
             "Budgets (ms per step of the reference): " + ", ".join(
                 f"{d} {1e3 * v['budget_seconds_per_step']:.1f}" for d, v in eq["domains"].items()) + ".",
