@@ -332,6 +332,7 @@ class SVGDConfig:
     bandwidth_scale: float = _f(1.0, gt=0)
     prior: str = _prior()
     jitter: Optional[float] = _jitter()
+    jitter_at: str = _f("end", choices=["end", "start"])
     compile: bool = False
     stop_tolerance: float = _f(0.0, ge=0)
     stop_window: int = _f(5, ge=1)

@@ -478,3 +478,17 @@ def test_pure_repulsion_spreads_the_particles():
     plain = ESCORTFilter(lambda_corr=0.0).fit(target.log_prob, x0, num_steps=1)
     assert float(annealed.std()) > float(x0.std())
     assert float(annealed.std()) > float(plain.std())
+
+
+def test_jitter_at_start_is_evolved_away_and_at_end_stays_in_the_belief():
+    # a large jitter (std 0.5 against a posterior std of about 0.5) on the calibration model: added at
+    # the end it widens the belief by its variance; added to the start, the K iterations take the
+    # particles back to the target, so calibration holds
+    from escort_rl.bench.calibration import kalman_calibration
+
+    end = kalman_calibration(ESCORTFilter(jitter=0.5))
+    start = kalman_calibration(ESCORTFilter(jitter=0.5, jitter_at="start"))
+    assert end[1] > 2.0
+    assert start[0] < 0.6 and 0.6 < start[1] < 1.6
+    with pytest.raises(ValueError, match="jitter_at: must be 'end' or 'start'"):
+        ESCORTFilter(jitter_at="middle")

@@ -198,8 +198,11 @@ class ESCORTFilter(BeliefFilter):
             toward their mean so that it keeps the predicted covariance instead of widening it by
             ``1 + h²``; :class:`~escort_rl.belief.prior.SmoothedPrior`) or ``"exact"`` (the transition
             mixture, for models that give only ``transition_log_prob``).
-        jitter: std of the Gaussian jitter added at the end; ``None`` gives
-            ``sqrt(0.01 (1 + 0.1 d))``, 0 turns it off.
+        jitter: std of the Gaussian jitter; ``None`` gives ``sqrt(0.01 (1 + 0.1 d))``, 0 turns it off.
+        jitter_at: ``"end"`` (default, SPEC §4 step 4): added to the evolved particles, so the belief
+            carries it as spread. ``"start"``: added to the predicted particles the evolution starts
+            from, where it still spreads the start but the K iterations then move the particles
+            toward the target, so the belief the consumer reads is the evolution's.
         compile: run each iteration (:func:`evolution_step`) through ``torch.compile``, which fuses
             it into a few kernels. The first update of each shape compiles (tens of seconds on a CPU,
             cached on disk afterwards); later updates are several times faster. Default False.
@@ -256,6 +259,7 @@ class ESCORTFilter(BeliefFilter):
         likelihood_pull: float = 0.0,
         prior: str = "smoothed",
         jitter: float | None = None,
+        jitter_at: str = "end",
         compile: bool = False,
         stop_tolerance: float = 0.0,
         stop_window: int = 5,
@@ -288,6 +292,7 @@ class ESCORTFilter(BeliefFilter):
             ("likelihood_pull", likelihood_pull >= 0, ">= 0"),
             ("prior", prior in ("smoothed", "shrunk", "exact"), "'smoothed', 'shrunk' or 'exact'"),
             ("jitter", jitter is None or jitter >= 0, "None or >= 0"),
+            ("jitter_at", jitter_at in ("end", "start"), "'end' or 'start'"),
             ("compile", isinstance(compile, bool), "True or False"),
             ("temp_clip", math.isfinite(temp_clip) and temp_clip > 0, "a finite number > 0"),
             ("temporal_ascent_steps", isinstance(temporal_ascent_steps, int) and not isinstance(temporal_ascent_steps, bool)
@@ -315,7 +320,7 @@ class ESCORTFilter(BeliefFilter):
         self.projection_every, self.corr_form = projection_every, corr_form
         self.temp_schedule, self.temp_clip = temp_schedule, temp_clip
         self.temporal_ascent_steps = temporal_ascent_steps
-        self.likelihood_pull, self.prior, self.jitter = likelihood_pull, prior, jitter
+        self.likelihood_pull, self.prior, self.jitter, self.jitter_at = likelihood_pull, prior, jitter, jitter_at
         self.compile = compile
         self.stop_tolerance, self.stop_window = stop_tolerance, stop_window
         self.anneal_cycles, self.anneal_fraction, self.bandwidth_start = anneal_cycles, anneal_fraction, bandwidth_start
@@ -509,9 +514,13 @@ class ESCORTFilter(BeliefFilter):
         n, d = x_t.shape[-2], x_t.shape[-1]
         a = action.unsqueeze(-1).expand(x_t.shape[:-1])  # [*B, N]
         timer = _Timer(breakdown)
+        std = self.jitter_std(d)
         with timer("score"):
             x_pred = model.transition(x_t, a, generator)
             guard.model_values("model.transition", x_pred)
+            if std > 0 and self.jitter_at == "start":
+                x_pred = x_pred + std * torch.randn(x_pred.shape, generator=generator, device=x_pred.device,
+                                                    dtype=x_pred.dtype)
             means = model.transition_mean(x_t, a)
             guard.model_values("model.transition_mean", means)
             if self.prior in ("smoothed", "shrunk"):
@@ -537,8 +546,7 @@ class ESCORTFilter(BeliefFilter):
                                 reference=means if self.lambda_temp > 0 else None, generator=generator,
                                 breakdown=breakdown)
         guard.counts(channels, counts, "during the particle evolution")
-        std = self.jitter_std(d)
-        if std > 0:
+        if std > 0 and self.jitter_at == "end":
             x = x + std * torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
         return ParticleBelief.uniform(x.detach())
 

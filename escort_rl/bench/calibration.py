@@ -69,6 +69,8 @@ def main(args) -> None:
                 ("escort anneal_cycles=4", ESCORTFilter(anneal_cycles=4)),
                 ("svgd anneal_cycles=4", SVGDFilter(anneal_cycles=4)),
                 ("escort bandwidth_start=4", ESCORTFilter(bandwidth_start=4.0)),
+                ("escort jitter_at=start", ESCORTFilter(jitter_at="start")),
+                ("escort prior=shrunk jitter_at=start", ESCORTFilter(prior="shrunk", jitter_at="start")),
                 ("filter=escort_train", train_filter)]
     print("| filter | mean Mahalanobis error | variance ratio |")
     print("| --- | --- | --- |")
