@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from escort_rl.belief import ESCORTFilter, SVGDFilter
+from escort_rl.belief.prior import silverman_factor
 from escort_rl.belief.sir import systematic_resample_indices
 from escort_rl.bench import metrics
 from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices, parse_filter_set
@@ -78,8 +79,7 @@ def initial_particles(x0: torch.Tensor, target: GaussianMixture, initial: Gaussi
     log_w = (target.log_prob(x0) - initial.log_prob(x0)).to(torch.float64)
     idx = systematic_resample_indices(log_w, generator)
     x = torch.gather(x0, -2, idx.unsqueeze(-1).expand_as(x0))
-    n, d = x.shape[-2], x.shape[-1]
-    h = (4.0 / (n * (d + 2))) ** (1.0 / (d + 4))
+    h = silverman_factor(x.shape[-2], x.shape[-1])
     std = x.std(-2, keepdim=True).clamp_min(1e-6)
     return x + h * std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
 
