@@ -519,8 +519,7 @@ class ESCORTFilter(BeliefFilter):
             x_pred = model.transition(x_t, a, generator)
             guard.model_values("model.transition", x_pred)
             if std > 0 and self.jitter_at == "start":
-                x_pred = x_pred + std * torch.randn(x_pred.shape, generator=generator, device=x_pred.device,
-                                                    dtype=x_pred.dtype)
+                x_pred = _jittered(x_pred, std, generator)
             means = model.transition_mean(x_t, a)
             guard.model_values("model.transition_mean", means)
             if self.prior in ("smoothed", "shrunk"):
@@ -547,7 +546,7 @@ class ESCORTFilter(BeliefFilter):
                                 breakdown=breakdown)
         guard.counts(channels, counts, "during the particle evolution")
         if std > 0 and self.jitter_at == "end":
-            x = x + std * torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+            x = _jittered(x, std, generator)
         return ParticleBelief.uniform(x.detach())
 
     def fit(self, log_prob: Callable[[Tensor], Tensor], particles: Tensor, num_steps: int | None = None,
@@ -658,6 +657,11 @@ class SVGDFilter(ESCORTFilter):
         kwargs["lambda_corr"] = 0.0
         kwargs["lambda_temp"] = 0.0
         super().__init__(**kwargs)
+
+
+def _jittered(x: Tensor, std: float, generator: torch.Generator | None) -> Tensor:
+    """``x + std · ε``, ``ε ~ N(0, I)`` of ``x``'s shape, device and dtype."""
+    return x + std * torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
 class _Timer:
