@@ -313,7 +313,8 @@ class Reference:
             xk, wk = x, w
             if thin is not None:
                 xk, wk = x.gather(-2, thin[..., None].expand(*thin.shape, x.shape[-1])), None
-            step = max(1, COMPARE_ROWS // max(n * max(n, y.shape[-2]), 1))
+            k = xk.shape[-2]  # the MMD kernel's belief side: n, or m when thinned
+            step = max(1, COMPARE_ROWS // max(k * max(k, y.shape[-2]), 1))
             w1, mmd = [], []
             for lo in range(0, s, step):  # chunks of seeds bound the N × N kernel's memory
                 c = slice(lo, lo + step)
