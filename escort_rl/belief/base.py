@@ -41,6 +41,31 @@ class BeliefFilter(ABC):
     def check_finite(self, value: bool) -> None:
         self._check_finite = validate_check_finite(type(self).__name__, value)
 
+    def _record_importance(self, ess_fraction: Tensor, beta: Tensor) -> None:
+        """Accumulate the ESS fractions and tempering exponents ``[*B]`` of one update (no host sync)."""
+        e, b = ess_fraction.detach().reshape(-1), beta.detach().reshape(-1)
+        stats = (e.sum(), e.min() if e.numel() else e.new_tensor(1.0), (b < 1).sum().to(e.dtype), b.sum(),
+                 e.new_tensor(float(e.numel())))
+        if self.__dict__.get("_importance") is None:
+            self._importance = stats
+        else:
+            old = self._importance
+            self._importance = (old[0] + stats[0], torch.minimum(old[1], stats[1]), old[2] + stats[2],
+                                old[3] + stats[3], old[4] + stats[4])
+
+    def importance_diagnostics(self) -> dict:
+        """The importance weights the filter formed, over every belief it updated since it was built
+        (SIR: its weights before resampling; ESCORT: the target samples of its correlation
+        projections): ``mean_ess_fraction`` and ``min_ess_fraction`` (ESS / N, before any
+        tempering), ``tempered_fraction`` (the share of beliefs whose weights were tempered),
+        ``mean_beta`` (the tempering exponent, 1 when untempered) and ``count`` (beliefs). Empty for a
+        filter that formed none."""
+        if self.__dict__.get("_importance") is None:
+            return {}
+        total, low, tempered, beta, count = (float(t) for t in self._importance)
+        return {"mean_ess_fraction": total / count, "min_ess_fraction": low, "tempered_fraction": tempered / count,
+                "mean_beta": beta / count, "count": int(count)}
+
     def init(
         self,
         model,

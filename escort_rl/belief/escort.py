@@ -41,10 +41,12 @@ from escort_rl.belief.projections import (
     correlation_projections,
     max_sliced_directions,
     permutation_ranks,
+    projection_shape,
     projector,
+    random_deflated_projections,
     random_directions,
-    random_projections,
 )
+from escort_rl.belief.importance import tempered_log_weights
 
 COMPILE_CACHE_ENTRIES = 64  # compiled variants kept per function (see ESCORTFilter._compiled)
 MAX_SCORE = 1e6  # finite scores are clamped to ±MAX_SCORE; AdaGrad normalises the step anyway
@@ -223,6 +225,13 @@ class ESCORTFilter(BeliefFilter):
             times the median heuristic and shrinks geometrically to it over the first
             ``anneal_fraction K`` iterations (a wider kernel early moves particles between modes).
             1 (default) is off.
+        ess_floor: the correlation projections learn the target from importance samples (the
+            predicted particles weighted by the likelihood in a filter update; the starting particles
+            weighted by ``p/q`` in :meth:`fit`). When their effective sample size is below
+            ``ess_floor · N``, the log-weights are tempered to ``β log w`` with the largest ``β`` that
+            reaches it (:func:`~escort_rl.belief.importance.tempered_log_weights`), so the target's
+            correlation is never read off one or two particles. Default 0.2; 0 never tempers.
+            :meth:`importance_diagnostics` reports the ESS and ``β`` met.
 
     Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
     naming the culprit when the input belief, what the model's methods return (``transition``,
@@ -266,9 +275,11 @@ class ESCORTFilter(BeliefFilter):
         anneal_cycles: int = 0,
         anneal_fraction: float = 0.5,
         bandwidth_start: float = 1.0,
+        ess_floor: float = 0.2,
     ) -> None:
         for name in ("step_size", "step_decay", "adagrad_alpha", "bandwidth_scale", "lambda_corr", "lambda_temp",
-                     "temp_clip", "likelihood_pull", "jitter", "stop_tolerance", "anneal_fraction", "bandwidth_start"):
+                     "temp_clip", "likelihood_pull", "jitter", "stop_tolerance", "anneal_fraction", "bandwidth_start",
+                     "ess_floor"):
             value = locals()[name]
             if not (value is None and name == "jitter") and (isinstance(value, bool)
                                                              or not isinstance(value, (int, float))):
@@ -303,6 +314,7 @@ class ESCORTFilter(BeliefFilter):
              and anneal_cycles >= 0, "an int >= 0 (0 turns the annealing off)"),
             ("anneal_fraction", 0 < anneal_fraction <= 1, "in (0, 1]"),
             ("bandwidth_start", bandwidth_start > 0, "> 0 (1 turns the bandwidth schedule off)"),
+            ("ess_floor", 0 <= ess_floor <= 1, "in [0, 1] (0 never tempers the importance weights)"),
         ]
         for name in ("step_size", "step_decay", "bandwidth_scale", "lambda_corr", "lambda_temp", "likelihood_pull",
                      "jitter", "stop_tolerance", "bandwidth_start"):
@@ -325,6 +337,7 @@ class ESCORTFilter(BeliefFilter):
         self.stop_tolerance, self.stop_window = stop_tolerance, stop_window
         self.anneal_cycles, self.anneal_fraction, self.bandwidth_start = anneal_cycles, anneal_fraction, bandwidth_start
         self._compiled_fns: dict[str, Callable] = {}
+        self.ess_floor = float(ess_floor)
         self._iterations_used = [0.0, 0]  # Σ over updated beliefs of the iterations they ran, and their count
 
     def mean_iterations(self) -> float:
@@ -439,6 +452,10 @@ class ESCORTFilter(BeliefFilter):
             target_samples = x.clone()  # a compiled function is specialised on argument aliasing
         fused = self.compile
         proj = temporal = None
+        if use_corr and self.projection == "learned":
+            # the target samples' self-normalised weights, tempered where their ESS is below the floor
+            target_log_weights, beta, ess = tempered_log_weights(target_log_weights.detach(), self.ess_floor)
+            self._record_importance(ess / target_log_weights.shape[-1], beta)
         full = dict(dtype=x.dtype, device=x.device)
         with torch.no_grad():
             if use_temp:
@@ -465,21 +482,18 @@ class ESCORTFilter(BeliefFilter):
                 if use_corr and (proj is None or (self.projection == "learned" and k % self.projection_every == 0)):
                     with timer("correlation"):
                         if self.projection == "learned":
-                            p = min(self.proj_dim, d)
-                            # random starts for projections beyond the eigenvectors, drawn outside
-                            # the (possibly compiled) function
-                            fill = (random_projections(x.shape[:-2], d, self.n_proj, p, generator, x.device, x.dtype)
-                                    if self.n_proj * p > d else None)
                             # compiled only where it runs more than once per update: a compile
                             # costs about 10 s per shape, and once per update eager is as fast
                             refine = (self._compiled(correlation_projections) if self.projection_every < k_total
                                       else correlation_projections)
-                            projections, proj_weights = refine(
-                                x, target_samples, target_log_weights, self.n_proj, self.proj_dim, fill=fill)
+                            projections, proj_weights = refine(x, target_samples, target_log_weights, self.n_proj,
+                                                               self.proj_dim)
                         else:
-                            projections = random_projections(x.shape[:-2], d, self.n_proj, min(self.proj_dim, d),
-                                                             generator, x.device, x.dtype)
-                            proj_weights = torch.full(projections.shape[:-2], 1.0 / self.n_proj, **full)
+                            projections = random_deflated_projections(x.shape[:-2], d, self.n_proj, self.proj_dim,
+                                                                      generator, x.device, x.dtype)
+                            m = projection_shape(d, self.n_proj, self.proj_dim)[0]
+                            proj_weights = torch.full(projections.shape[:-3], 1.0 / m, **full).unsqueeze(-1).expand(
+                                *projections.shape[:-3], m)
                         proj = projector(projections, proj_weights)
                 lam_temp = (self.lambda_temp * (1.0 - k / k_total) if self.temp_schedule == "anneal"
                             else self.lambda_temp)
@@ -550,11 +564,16 @@ class ESCORTFilter(BeliefFilter):
         return ParticleBelief.uniform(x.detach())
 
     def fit(self, log_prob: Callable[[Tensor], Tensor], particles: Tensor, num_steps: int | None = None,
-            generator: torch.Generator | None = None) -> Tensor:
+            generator: torch.Generator | None = None,
+            proposal_log_prob: Callable[[Tensor], Tensor] | None = None) -> Tensor:
         """Fit particles ``[*B, N, d]`` to a fixed target ``log_prob: [*B, N, d] -> [*B, N]``.
 
-        There is no time axis, so ``F_temp`` is off. The correlation projections use the initial
-        particles weighted by the normalised target density as weighted samples of the target.
+        There is no time axis, so ``F_temp`` is off. The correlation projections take the starting
+        particles as importance samples of the target, with self-normalised weights
+        ``p/q`` (tempered below ``ess_floor``): ``q`` is ``proposal_log_prob``, the log-density the
+        particles were drawn from, when given; otherwise the Gaussian with the particles' own mean and
+        covariance (exact for a Gaussian start). Pass ``proposal_log_prob=log_prob`` for particles that
+        already sample the target (equal weights).
         Returns ``[*B, N, d]``; no jitter is added. With ``check_finite``, non-finite ``particles``, a
         NaN or +inf ``log_prob`` (``-inf`` is a zero density) or a non-finite gradient of it raise a
         ``ValueError`` naming them, after one host synchronisation.
@@ -571,8 +590,13 @@ class ESCORTFilter(BeliefFilter):
             return grad.clamp(-MAX_SCORE, MAX_SCORE), flags.sum(-2)
 
         with torch.no_grad():
-            log_w = log_prob(particles).detach()
-        guard.log_density("log_prob returned", log_w, fix)
+            log_p = log_prob(particles).detach()
+            log_q = (gaussian_fit_log_prob(particles) if proposal_log_prob is None
+                     else proposal_log_prob(particles).detach())
+        guard.log_density("log_prob returned", log_p, fix)
+        guard.log_density("proposal_log_prob returned", log_q, "the proposal's log-density must be finite where "
+                          "the starting particles lie")
+        log_w = log_p - log_q
         log_w = torch.where(torch.isfinite(log_w), log_w, torch.full_like(log_w, -1e30))
         with guard.diagnosing():
             x, counts = self.evolve(particles.detach(), score, target_samples=particles.detach(),
@@ -582,6 +606,24 @@ class ESCORTFilter(BeliefFilter):
                      "the inputs and the target were finite, so the arithmetic overflowed")
         guard.verify()
         return x.detach()
+
+
+def gaussian_fit_log_prob(x: Tensor) -> Tensor:
+    """``log N(x_i; x̄, Σ̂)`` of each particle under the Gaussian with the particles' own mean and
+    covariance (a ridge of ``1e-6 · tr(Σ̂)/d`` keeps it factorable; with ``N ≤ d`` particles, where
+    ``Σ̂`` is singular, its diagonal): ``[*B, N, d] -> [*B, N]``."""
+    d = x.shape[-1]
+    mean = x.mean(-2, keepdim=True)
+    c = x - mean
+    cov = c.transpose(-1, -2) @ c / max(x.shape[-2] - 1, 1)
+    if x.shape[-2] <= d:
+        cov = torch.diag_embed(torch.diagonal(cov, dim1=-2, dim2=-1))
+    ridge = 1e-6 * torch.diagonal(cov, dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)
+    cov = cov + ridge[..., None, None] * torch.eye(d, dtype=x.dtype, device=x.device)
+    tril = torch.linalg.cholesky(cov)
+    z = torch.linalg.solve_triangular(tril, c.transpose(-1, -2), upper=False)  # [*B, d, N]
+    half_log_det = torch.log(torch.diagonal(tril, dim1=-2, dim2=-1)).sum(-1, keepdim=True)
+    return -0.5 * (z * z).sum(-2) - half_log_det - 0.5 * d * math.log(2 * math.pi)
 
 
 def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]],

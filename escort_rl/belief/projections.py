@@ -8,6 +8,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from escort_rl.belief.importance import weighted_quantile_points
 from escort_rl.belief.prior import weighted_covariance
 
 
@@ -25,65 +26,74 @@ def orthonormalise(a: Tensor) -> Tensor:
     return q * sign.unsqueeze(-2)
 
 
-def random_projections(batch_shape, d: int, n_proj: int, proj_dim: int, generator=None,
-                       device=None, dtype=torch.float32) -> Tensor:
-    """``n_proj`` random orthonormal ``d × proj_dim`` matrices per belief: ``[*B, n_proj, d, proj_dim]``."""
-    g = torch.randn(*batch_shape, n_proj, d, proj_dim, generator=generator, device=device, dtype=dtype)
-    return orthonormalise(g)
+def projection_shape(d: int, n_proj: int, proj_dim: int) -> tuple[int, int]:
+    """The ``(m, p)`` of the correlation projections in ``d`` dimensions: ``p = min(proj_dim, d)``
+    columns each and ``m = min(n_proj, ⌊d / p⌋)`` projections, so that all ``m · p`` directions can be
+    orthonormal (the deflation). More projections would repeat directions already held.
+
+    Examples:
+        >>> projection_shape(20, 5, 2), projection_shape(5, 5, 2), projection_shape(1, 5, 2)
+        ((5, 2), (2, 2), (1, 1))
+    """
+    p = max(1, min(proj_dim, d))
+    return max(1, min(n_proj, d // p)), p
 
 
-def pair_second_moment(x: Tensor, y: Tensor, y_log_weights: Tensor) -> Tensor:
-    """``M = E[(x − y)(x − y)ᵀ]`` for independent ``x`` uniform over ``x_i`` and ``y`` drawn from ``y_j``
-    with weights ``w_j``: ``M = Cov(x) + Cov_w(y) + (x̄ − ȳ)(x̄ − ȳ)ᵀ``. Returns ``[*B, d, d]``."""
-    w = torch.softmax(y_log_weights, dim=-1).unsqueeze(-1)
-    delta = x.mean(-2) - (w * y).sum(-2)
-    return weighted_covariance(x) + weighted_covariance(y, y_log_weights) + delta.unsqueeze(-1) * delta.unsqueeze(-2)
+def split_directions(theta: Tensor, m: int, p: int) -> Tensor:
+    """Rows ``θ_1 … θ_{m·p}`` ``[*B, m·p, d]`` as ``m`` projection matrices ``A_k = [θ_{kp+1} … θ_{kp+p}]``:
+    ``[*B, m, d, p]``."""
+    return theta.reshape(*theta.shape[:-2], m, p, theta.shape[-1]).transpose(-1, -2)
+
+
+def random_deflated_projections(batch_shape, d: int, n_proj: int, proj_dim: int, generator=None,
+                                device=None, dtype=torch.float32) -> Tensor:
+    """ESCORT-NoProj's projections: ``m`` random ``d × p`` matrices (:func:`projection_shape`) whose
+    ``m · p`` columns are jointly orthonormal (a uniformly random orthonormal frame, by QR):
+    ``[*B, m, d, p]``."""
+    m, p = projection_shape(d, n_proj, proj_dim)
+    g = torch.randn(*batch_shape, d, m * p, generator=generator, device=device, dtype=dtype)
+    return split_directions(orthonormalise(g).transpose(-1, -2), m, p)
 
 
 def correlation_projections(x: Tensor, y: Tensor, y_log_weights: Tensor, n_proj: int, proj_dim: int,
-                            ascent_steps: int = 5, ascent_lr: float = 0.1,
-                            generator: torch.Generator | None = None,
-                            fill: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """ESCORT's correlation projections ``A_k`` and their weights ``w_k``.
+                            ascent_steps: int = 10, ascent_lr: float = 0.5,
+                            rank_fn: Callable[[Tensor], Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """ESCORT's correlation projections ``A_k`` and their weights ``w_k`` (paper Eq. 4 and its
+    appendix: ascent on the projected Wasserstein distance between the particles and the target).
 
-    1. Start from the eigenvectors of ``ΔC = corr(x) − corr_w(y)``, in order of ``|eigenvalue|``:
-       ``A_k`` takes eigenvectors ``k·p … k·p + p − 1`` (``p = proj_dim``); when ``n_proj · p > d``
-       the projections that do not fit start from seeded random orthonormal matrices (drawn with
-       ``generator``, or taken from ``fill`` ``[*B, n_proj, d, p]`` if given).
-    2. Refine each ``A_k`` by ``ascent_steps`` steps of gradient ascent on
-       ``D_k = E‖A_kᵀ(x − y)‖² = tr(A_kᵀ M A_k)`` (``M`` from :func:`pair_second_moment`; exact for
-       independent draws), with the exact gradient ``∇_A D = 2 M A`` (what autograd computes; a test
-       checks it) and a step ``ascent_lr / ‖M‖_F``, re-orthonormalising by QR after each step.
-    3. ``w_k = sqrt(D_k) / Σ_l sqrt(D_l)``.
+    ``x`` ``[*B, N, d]`` are the particles (``q``); ``y`` ``[*B, M, d]`` with ``y_log_weights``
+    ``[*B, M]`` are self-normalised importance samples of the target ``p`` (log of ``p/q_y`` up to a
+    constant, where ``q_y`` is what ``y`` was drawn from; :mod:`escort_rl.belief.importance`).
 
-    ``x`` ``[*B, N, d]`` (current particles), ``y`` ``[*B, N, d]`` with ``y_log_weights`` ``[*B, N]``
-    (weighted samples of the target). Returns ``A`` ``[*B, n_proj, d, proj_dim]`` and ``w``
-    ``[*B, n_proj]``. Everything is computed without gradient tracking of ``x`` and ``y``.
+    1. ``ΔC = corr(x) − corr_w(y)``; its eigenvectors in order of ``|eigenvalue|`` give the
+       starting directions ``θ_1 … θ_J``, ``J = m · p`` (:func:`projection_shape`), orthonormal.
+    2. The weighted set is turned into ``N`` equally weighted quantile points ``ỹ``
+       (:func:`~escort_rl.belief.importance.weighted_quantile_points`), and each ``θ_j`` takes
+       ``ascent_steps`` steps of gradient ascent on the max-sliced distance
+       ``W1_θ = (1/N) Σ_k |θ·x_(k) − θ·ỹ_(k)|`` (:func:`max_sliced_directions` with ``deflate``):
+       after each step the directions are re-orthonormalised in order (QR), so ``θ_j`` ascends in
+       the orthogonal complement of ``θ_1 … θ_{j−1}`` and the projections do not collapse onto
+       one direction.
+    3. ``A_k = [θ_{kp+1} … θ_{kp+p}]`` and ``w_k = Σ_{j ∈ A_k} W1_θj / Σ_j W1_θj``.
+
+    Returns ``A`` ``[*B, m, d, p]`` (all ``m · p`` columns orthonormal) and ``w`` ``[*B, m]``,
+    computed without gradient tracking of the inputs. ``rank_fn``: as in :func:`max_sliced_directions`.
     """
     d = x.shape[-1]
-    p = max(1, min(proj_dim, d))
+    m, p = projection_shape(d, n_proj, proj_dim)
     x, y, y_log_weights = x.detach(), y.detach(), y_log_weights.detach()
     delta_c = correlation_from_covariance(weighted_covariance(x)) - correlation_from_covariance(
         weighted_covariance(y, y_log_weights))
     evals, evecs = torch.linalg.eigh(delta_c)  # ascending
     order = torch.argsort(evals.abs(), dim=-1, descending=True)
     evecs = torch.gather(evecs, -1, order.unsqueeze(-2).expand_as(evecs))
-    n_eig = min(n_proj, d // p)  # blocks of eigenvectors that fit; the rest start at random
-    a = evecs[..., : n_eig * p].reshape(*evecs.shape[:-1], n_eig, p).movedim(-2, -3)  # [*B, n_eig, d, p]
-    if n_eig < n_proj:
-        extra = (random_projections(x.shape[:-2], d, n_proj - n_eig, p, generator, x.device, x.dtype)
-                 if fill is None else fill[..., n_eig:, :, :p])
-        a = torch.cat([a, extra], dim=-3)
-    a = orthonormalise(a)
-    m = pair_second_moment(x, y, y_log_weights).unsqueeze(-3)  # [*B, 1, d, d]
-    scale = torch.linalg.matrix_norm(m).clamp_min(1e-12)[..., None, None]
-    for _ in range(ascent_steps):
-        # ∇_A tr(Aᵀ M A) = 2 M A (M symmetric): the gradient autograd gives, without a graph
-        a = orthonormalise(a + ascent_lr * 2.0 * (m @ a) / scale)
-    a = a.detach()
-    dist = torch.diagonal(a.transpose(-1, -2) @ m @ a, dim1=-2, dim2=-1).sum(-1).clamp_min(0.0).sqrt()
-    w = dist / dist.sum(-1, keepdim=True).clamp_min(1e-12)
-    return a, w
+    theta0 = evecs[..., : m * p].transpose(-1, -2)  # [*B, J, d], orthonormal rows
+    y_points = weighted_quantile_points(y, y_log_weights)
+    if y_points.shape[-2] != x.shape[-2]:
+        raise ValueError(f"y: expected as many target samples as particles ({x.shape[-2]}), got {y.shape[-2]}")
+    theta, weights = max_sliced_directions(x, y_points, theta0, ascent_steps=ascent_steps, ascent_lr=ascent_lr,
+                                           rank_fn=rank_fn, deflate=True)
+    return split_directions(theta, m, p), weights.reshape(*weights.shape[:-1], m, p).sum(-1)
 
 
 def projector(projections: Tensor, weights: Tensor) -> Tensor:
@@ -93,8 +103,13 @@ def projector(projections: Tensor, weights: Tensor) -> Tensor:
 
 def correlation_force(phi: Tensor, projections: Tensor, weights: Tensor, strength: float,
                       form: str = "velocity", x: Tensor | None = None, proj: Tensor | None = None) -> Tensor:
-    """``F_corr = −λ Σ_k w_k A_k A_kᵀ (φ(x_i) − φ̄)`` (``form="velocity"``, the gradient of R_corr in φ),
-    or the paper's appendix form with ``(x_i − x̄)`` in place of ``(φ(x_i) − φ̄)`` (``form="position"``).
+    """``F_corr = −2λ Σ_k w_k A_k A_kᵀ (φ(x_i) − φ̄)`` (``form="velocity"``): ``−λ`` times the gradient
+    of ``R_corr(φ) = E_x Σ_k w_k |A_kᵀ(φ(x) − φ̄)|²`` (paper Eq. 3) with respect to ``φ(x_i)``, per
+    particle (the ``1/N`` of the expectation is the functional gradient's measure). It sums to zero over
+    the particles and vanishes with ``φ``, so it cannot move a fixed point of SVGD (``docs/DESIGN.md``).
+    ``form="position"`` is the appendix's practical form, ``(x_i − x̄)`` in place of ``(φ(x_i) − φ̄)``
+    (with the same factor 2: the gradient of ``E_x Σ_k w_k |A_kᵀ(x − x̄)|²``); it does not vanish at
+    SVGD's fixed point and contracts the belief along the projections.
 
     ``phi`` ``[*B, N, d]``, ``projections`` ``[*B, K, d, p]``, ``weights`` ``[*B, K]``; ``proj`` may
     pass a precomputed :func:`projector`. Returns ``[*B, N, d]``.
@@ -109,7 +124,7 @@ def correlation_force(phi: Tensor, projections: Tensor, weights: Tensor, strengt
         raise ValueError(f"corr_form: must be 'velocity' or 'position', got '{form}'")
     if proj is None:
         proj = projector(projections, weights)
-    return (-strength) * (v @ proj)  # proj is symmetric
+    return (-2.0 * strength) * (v @ proj)  # proj is symmetric
 
 
 def random_directions(x: Tensor, n_dirs: int, generator=None) -> Tensor:
@@ -119,13 +134,15 @@ def random_directions(x: Tensor, n_dirs: int, generator=None) -> Tensor:
 
 
 def max_sliced_directions(x: Tensor, r: Tensor, theta: Tensor, ascent_steps: int = 10,
-                          ascent_lr: float = 0.5, rank_fn: Callable[[Tensor], Tensor] | None = None
-                          ) -> tuple[Tensor, Tensor]:
+                          ascent_lr: float = 0.5, rank_fn: Callable[[Tensor], Tensor] | None = None,
+                          deflate: bool = False) -> tuple[Tensor, Tensor]:
     """Directions ``θ_j`` that maximise the projected W1 between ``x`` and ``r`` (equal weights).
 
     Starts from the unit vectors ``theta`` ``[*B, J, d]`` (e.g. :func:`random_directions`) and takes
     ``ascent_steps`` gradient ascent steps on ``W1_θ = (1/N) Σ_k |sort(x θ)_k − sort(r θ)_k|``
-    (:func:`projected_w1_grad`), renormalising θ after each step.
+    (:func:`projected_w1_grad`), renormalising θ after each step; with ``deflate`` (``J ≤ d``), the
+    directions are instead re-orthonormalised in order after each step (QR), so ``θ_j`` ascends in
+    the orthogonal complement of ``θ_1 … θ_{j−1}`` and the result is an orthonormal frame.
     ``x``, ``r`` ``[*B, N, d]``. Returns ``θ`` ``[*B, J, d]`` and weights ``w_j ∝ W1_θj`` ``[*B, J]``.
     ``rank_fn`` (e.g. a compiled :func:`permutation_ranks`) orders the projections instead of
     ``torch.sort``: the same result, faster where it is compiled (see :func:`ranks`).
@@ -140,9 +157,16 @@ def max_sliced_directions(x: Tensor, r: Tensor, theta: Tensor, ascent_steps: int
         px, pr = t @ x.transpose(-1, -2), t @ r.transpose(-1, -2)  # [*B, J, N]
         return (sort_by_ranks(px, rank_fn(px)) - sort_by_ranks(pr, rank_fn(pr))).abs().mean(-1)
 
+    if deflate and theta.shape[-2] > theta.shape[-1]:
+        raise ValueError(f"theta: deflation needs at most d = {theta.shape[-1]} directions, got {theta.shape[-2]}")
+
+    def normalise(t: Tensor) -> Tensor:
+        if deflate:
+            return orthonormalise(t.transpose(-1, -2)).transpose(-1, -2)
+        return t / torch.linalg.vector_norm(t, dim=-1, keepdim=True).clamp_min(1e-12)
+
     for _ in range(ascent_steps):
-        theta = theta + ascent_lr * projected_w1_grad(x, r, theta, rank_fn)
-        theta = theta / torch.linalg.vector_norm(theta, dim=-1, keepdim=True).clamp_min(1e-12)
+        theta = normalise(theta + ascent_lr * projected_w1_grad(x, r, theta, rank_fn))
     theta = theta.detach()
     w1 = projected_w1(theta)
     weights = w1 / w1.sum(-1, keepdim=True).clamp_min(1e-12)

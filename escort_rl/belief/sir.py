@@ -84,6 +84,7 @@ class SIRFilter(BeliefFilter):
         log_w = log_w - torch.logsumexp(log_w, dim=-1, keepdim=True)
 
         ess_ratio = 1.0 / (torch.exp(2 * log_w).sum(-1) * n)  # [*B]
+        self._record_importance(ess_ratio, torch.ones_like(ess_ratio))
         resample = ess_ratio < self.resample_threshold
         if self.resample_threshold >= 1.0:
             resample = torch.ones_like(resample)
