@@ -360,6 +360,7 @@ class ESCORTConfig(SVGDConfig):
     temp_clip: float = _f(10.0, gt=0)
     temporal_ascent_steps: int = _f(10, ge=0)
     likelihood_pull: float = _f(0.0, ge=0)
+    ess_floor: float = _f(0.2, ge=0, le=1)
 
 
 FILTER_SCHEMAS = {"sir": SIRConfig, "svgd": SVGDConfig, "escort": ESCORTConfig}

@@ -202,7 +202,7 @@ def test_resampled_start_puts_the_target_mass_on_each_mode():
     assert ((right - 0.8).abs() < 0.035).all(), right
     assert x.unique().numel() > 0.9 * x.numel()  # the kernel separated the copies
     assert torch.equal(initial_particles(x0, target, initial, "cloud", g), x0)
-    with pytest.raises(ValueError, match="init: expected one of cloud, resampled"):
+    with pytest.raises(ValueError, match="init: expected one of cloud, overlap, resampled"):
         initial_particles(x0, target, initial, "prior", g)
 
 
@@ -221,4 +221,52 @@ def test_init_scale_widens_the_initial_cloud(tmp_path):
     b = json.loads((tmp_path / "b" / "synthetic.json").read_text())
     assert b["init"] == "resampled" and b["init_scale"] == 2.0
     assert a["rows"][0]["per_seed"]["sliced_w1"] != b["rows"][0]["per_seed"]["sliced_w1"]
-    assert "`init=resampled`, `init_scale=2.0`" in (tmp_path / "b" / "synthetic.md").read_text()
+    md = (tmp_path / "b" / "synthetic.md").read_text()
+    assert "`init_scale=2.0`" in md and "importance-resampled to the target" in md
+
+
+def test_bench_scaling_takes_methods_and_the_tracking_protocol(tmp_path, capsys):
+    args = ["bench", "scaling", "--quick", "--output"]  # --quick: d = 1 and 5
+    assert main([*args, str(tmp_path / "s"), "--methods", "escort", "sir", "--init", "overlap"]) == 0
+    s = json.loads((tmp_path / "s" / "scaling.json").read_text())
+    assert [r["method"] for r in s["rows"]] == ["escort", "sir"] * 2 and s["init"] == "overlap"
+    assert "mean_ess_fraction" in s["rows"][2]["importance"] and "ess_fraction" in s["rows"][3]["importance"]
+    assert (tmp_path / "s" / "rmse_paper.md").read_text().count("| 5 |") == 1
+    assert main([*args, str(tmp_path / "t"), "--protocol", "tracking", "--methods", "escort_nocorr", "sir"]) == 0
+    t = json.loads((tmp_path / "t" / "scaling.json").read_text())
+    assert t["protocol"] == "tracking" and sorted(t["rows"][0]["per_seed"]) == ["final_error", "rmse"]
+    capsys.readouterr()
+    assert main([*args, str(tmp_path / "u"), "--protocol", "tracking", "--methods", "oracle"]) == 2
+    assert "--methods: unknown name 'oracle'" in capsys.readouterr().err
+
+
+def test_lambda_overrides_reach_escort_and_leave_the_ablations_alone():
+    from escort_rl.bench.methods import applied_filter_set
+    from escort_rl.bench.synthetic import make_filter
+
+    kw = {"lambda_corr": 0.3, "lambda_temp": 0.2, "num_steps": 4}
+    assert make_filter("escort", kw).lambda_corr == 0.3
+    nocorr = make_filter("escort_nocorr", kw)
+    assert (nocorr.lambda_corr, nocorr.lambda_temp, nocorr.num_steps) == (0.0, 0.2, 4)
+    svgd = make_filter("svgd", kw)
+    assert (svgd.lambda_corr, svgd.lambda_temp, svgd.num_steps) == (0.0, 0.0, 4)
+    sweep = (("lambda_corr", "0.3"), ("projection", "random"))
+    assert applied_filter_set("escort", sweep) == {"lambda_corr": "0.3", "projection": "random"}
+    assert applied_filter_set("escort_nocorr", sweep) == {"projection": "random"}
+    assert applied_filter_set("escort_noproj", sweep) == {"lambda_corr": "0.3"}
+    assert applied_filter_set("svgd", sweep) == {}
+
+
+def test_tracking_model_scores_match_autograd(per_test_generator):
+    from escort_rl.bench.synthetic.tracking import GMMTracking
+    from escort_rl.bench.targets import load_target
+    from escort_rl.models.protocol import check_model
+
+    model = GMMTracking(load_target("gmm3d"))
+    check_model(model)
+    torch.testing.assert_close(model.noise.mean(), torch.zeros(3, dtype=torch.float64), atol=1e-12, rtol=0)
+    s = model.initial_state((5,), per_test_generator).to(torch.float64)
+    o = model.observe(s, None, per_test_generator)
+    x = (s + torch.randn(5, 3, generator=per_test_generator, dtype=torch.float64)).requires_grad_(True)
+    (grad,) = torch.autograd.grad(model.observation_log_prob(o, x, None).sum(), x)
+    torch.testing.assert_close(model.observation_score(o, x.detach(), None), grad)

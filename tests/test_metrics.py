@@ -471,3 +471,42 @@ def test_weighted_metrics_errors_name_the_argument():
         weighted_sliced_wasserstein(x[..., None], y[..., None], torch.ones(3, 2))
     with pytest.raises(ValueError, match="gamma"):
         weighted_mmd_squared(x[..., None], y[..., None], 0.0)
+
+
+# ----------------------------------------------------------------------------- Mahalanobis coverage
+
+def test_chi2_quantile_matches_closed_form_and_scipy():
+    from escort_rl.bench.metrics import chi2_quantile
+
+    assert chi2_quantile(2, 0.99) == pytest.approx(-2 * math.log(0.01), rel=1e-9)
+    for df in (1, 5, 20, 200):
+        assert chi2_quantile(df, 0.99) == pytest.approx(float(scipy.stats.chi2.ppf(0.99, df)), rel=1e-8)
+    with pytest.raises(ValueError, match="level"):
+        chi2_quantile(3, 1.0)
+
+
+@pytest.mark.parametrize("dim", [1, 5, 20, 50, 200])
+def test_exact_samples_cover_every_mode_at_every_dimension(dim, per_test_generator):
+    """The paper's τ = 1 ball misses the modes of exact samples from 20D; the Mahalanobis form does not."""
+    from escort_rl.bench.metrics import mode_coverage_mahalanobis
+    from escort_rl.bench.targets import scalability_target
+
+    t = scalability_target(dim, "block", 0)
+    x = t.sample(1000, per_test_generator)
+    assert float(mode_coverage_mahalanobis(x, t.means, t.covariances)) >= 0.95
+    if dim >= 20:
+        assert float(mode_coverage(x, t.means)) == 0.0  # the ball's degeneracy this replaces
+
+
+def test_mahalanobis_coverage_of_one_mode_is_one_over_k(per_test_generator):
+    from escort_rl.bench.metrics import mode_coverage_mahalanobis, mode_fractions_mahalanobis
+    from escort_rl.bench.targets import scalability_target
+
+    t = scalability_target(20, "banded", 0)
+    z = torch.randn(500, 20, generator=per_test_generator, dtype=torch.float64)
+    x = t.means[2] + z @ t.scale_tril[2].T  # every particle from component 2
+    f = mode_fractions_mahalanobis(x, t.means, t.covariances)
+    assert float(f[2]) > 0.95 and float(f.sum() - f[2]) == 0.0
+    assert float(mode_coverage_mahalanobis(x, t.means, t.covariances)) == pytest.approx(1 / 5)
+    batched = mode_coverage_mahalanobis(torch.stack([x, x]), t.means, t.covariances)
+    assert batched.shape == (2,)

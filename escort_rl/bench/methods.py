@@ -170,13 +170,35 @@ def method_config(domain: str, method: str, filter_set: tuple = ()):
     base = [f"filter={method}", f"env={domain}"]
     if not filter_set:
         return compose(base)
-    keys = set(compose(base).filter.keys())
+    keys = set(compose(base).filter.keys()) - own_ablation_keys(method)
     return compose(base + [f"filter.{k}={v}" for k, v in filter_set if k in keys])
 
 
+ABLATION_KEYS = ("lambda_corr", "lambda_temp", "projection")
+"""The keys an ablation is defined by: a filter config that sets one of them itself (``escort_nocorr``
+sets ``lambda_corr: 0``) keeps its value whatever ``--filter-set`` says, so that a sweep of
+``lambda_corr`` moves ESCORT and leaves ESCORT-NoCorr what its name says."""
+
+
+@lru_cache(maxsize=None)
+def own_ablation_keys(method: str) -> frozenset:
+    """The :data:`ABLATION_KEYS` that ``configs/filter/<method>.yaml`` sets over the filter config it
+    derives from (its ``defaults`` name another filter config); none for a base config."""
+    import yaml
+
+    from escort_rl.config import config_dir
+
+    folder = config_dir() / "filter"
+    path = folder / f"{method}.yaml"
+    own = (yaml.safe_load(path.read_text()) if path.exists() else None) or {}
+    parents = [d for d in own.get("defaults", []) if isinstance(d, str) and (folder / f"{d}.yaml").exists()]
+    return frozenset(k for k in ABLATION_KEYS if k in own) if parents else frozenset()
+
+
 def applied_filter_set(method: str, filter_set: tuple) -> dict:
-    """The subset of ``filter_set`` that applies to ``method``."""
-    keys = set(method_config(DOMAINS[0], method).filter.keys())
+    """The subset of ``filter_set`` that applies to ``method``: the keys its config has, less the
+    ablation keys it is defined by (:data:`ABLATION_KEYS`)."""
+    keys = set(method_config(DOMAINS[0], method).filter.keys()) - own_ablation_keys(method)
     return {k: v for k, v in filter_set if k in keys}
 
 
