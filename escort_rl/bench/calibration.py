@@ -38,6 +38,32 @@ def kalman_calibration(filt, steps: int = 12, n: int = 300, batch: int = 4, stat
     return float(torch.stack(maha).mean()), float(torch.stack(ratio).mean())
 
 
+def ar1_correlation(d: int, rho: float) -> torch.Tensor:
+    """``C_ij = ρ^|i−j|``, ``[d, d]`` (float64)."""
+    i = torch.arange(d, dtype=torch.float64)
+    return rho ** (i[:, None] - i[None, :]).abs()
+
+
+def fixed_point_check(filt, d: int = 5, n: int = 300, batch: int = 8, rho: float = 0.6, num_steps: int = 1000,
+                      seed: int = 0) -> tuple[float, float, float]:
+    """Fit ``filt`` (:meth:`ESCORTFilter.fit`) to the Gaussian ``N(0, C)``, ``C = ar1_correlation(d, ρ)``,
+    from ``N(0, 4 I)`` for ``num_steps`` iterations: where the evolution comes to rest, against the exact
+    target. Returns, over ``batch`` fits: the total-variance ratio ``tr(Σ̂)/tr(C)``, the correlation error
+    ``‖corr(x) − C‖_F`` and the error of the mean ``‖x̄‖``."""
+    cov = ar1_correlation(d, rho).to(torch.float32)
+    precision = torch.linalg.inv(cov)
+    g = torch.Generator().manual_seed(seed)
+    x0 = 2.0 * torch.randn(batch, n, d, generator=g)
+    x = filt.fit(lambda z: -0.5 * torch.einsum("...i,ij,...j->...", z, precision, z), x0, num_steps=num_steps,
+                 generator=g, proposal_log_prob=lambda z: -0.125 * (z * z).sum(-1))
+    centred = x - x.mean(-2, keepdim=True)
+    c = centred.transpose(-1, -2) @ centred / n
+    ratio = torch.diagonal(c, dim1=-2, dim2=-1).sum(-1) / cov.trace()
+    std = torch.diagonal(c, dim1=-2, dim2=-1).sqrt()
+    corr_err = torch.linalg.matrix_norm(c / std[..., :, None] / std[..., None, :] - cov)
+    return float(ratio.mean()), float(corr_err.mean()), float(x.mean(-2).norm(dim=-1).mean())
+
+
 def register(subparsers) -> None:
     """Add ``bench calibration`` to the ``bench`` subparsers."""
     cal = subparsers.add_parser("calibration", help="SVGD/ESCORT variants against the Kalman filter",
@@ -45,7 +71,23 @@ def register(subparsers) -> None:
                                 "Mahalanobis error and variance ratio against the exact Kalman posterior.")
     cal.add_argument("--particles", type=int, default=300)
     cal.add_argument("--steps", type=int, default=12)
+    cal.add_argument("--fixed-point", action="store_true",
+                     help="instead: where the correlation term's two forms bring a static fit to rest "
+                     "(N(0, AR(1) 0.6) in 5D, N = 300, 8 fits, K = 100 and 1000, lambda_corr 0, 0.1, 0.3, 1)")
     cal.set_defaults(handler=main)
+
+
+def fixed_point_table() -> None:
+    """Print :func:`fixed_point_check` for both forms of the correlation term over λ and K."""
+    from escort_rl.belief import ESCORTFilter
+
+    print("| corr_form | lambda_corr | K | variance ratio | correlation error | error of the mean |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for form in ("velocity", "position"):
+        for lam in (0.0, 0.1, 0.3, 1.0) if form == "velocity" else (0.1, 0.3, 1.0):
+            for k in (100, 1000):
+                r, c, m = fixed_point_check(ESCORTFilter(lambda_corr=lam, corr_form=form), num_steps=k)
+                print(f"| {form} | {lam} | {k} | {r:.3f} | {c:.3f} | {m:.3f} |", flush=True)
 
 
 def main(args) -> None:
@@ -55,8 +97,14 @@ def main(args) -> None:
 
     # the default training job's filter exactly as configs/filter/escort_train.yaml sets it (eager:
     # compiling changes nothing but the speed)
+    if args.fixed_point:
+        fixed_point_table()
+        return
     train_filter = build_filter(compose(["filter=escort_train", "filter.compile=false"]).filter)
     variants = [("sir", SIRFilter()), ("svgd", SVGDFilter()), ("escort", ESCORTFilter()),
+                ("escort lambda_corr=0.3", ESCORTFilter(lambda_corr=0.3)),
+                ("escort lambda_corr=1", ESCORTFilter(lambda_corr=1.0)),
+                ("escort corr_form=position lambda_corr=0.3", ESCORTFilter(corr_form="position", lambda_corr=0.3)),
                 ("escort corr_form=position", ESCORTFilter(corr_form="position")),
                 ("escort temp_schedule=constant", ESCORTFilter(temp_schedule="constant")),
                 ("escort jitter=0", ESCORTFilter(jitter=0.0)),

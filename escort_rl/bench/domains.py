@@ -46,7 +46,7 @@ from escort_rl.bench.trajectories import (BEHAVIOUR_POLICY, NonFiniteBeliefError
                                           time_per_step)
 from escort_rl.reporting.paths import display_path, write_results
 from escort_rl.reporting.plots import plot_curve_panels, plot_curves
-from escort_rl.reporting.stats import format_mean_se, mean_se
+from escort_rl.reporting.stats import format_importance, format_mean_se, mean_se, merge_importance
 from escort_rl.reporting.tables import method_table
 
 PARTICLE_GRID = (50, 100, 200, 500, 1000, 2000)
@@ -218,6 +218,7 @@ def _row(domain: str, method: str, n: int, parts: list[dict], seeds: list[int]) 
         "input_hashes": [h for p in parts for h in p["input_hashes"]],
         "initial_belief_hashes": [h for p in parts for h in p["belief_hashes"]],
         "accuracy": _accuracy(parts, steps),
+        "importance": merge_importance([p.get("importance") for p in parts]),
     }
 
 
@@ -604,6 +605,15 @@ def domains_markdown(result: dict) -> str:
         *_table(result, result["rows"], lambda r: format_mean_se(r["summary"]["mean_error"])),
         "",
         *_accuracy_sections(result),
+        "## Importance weights",
+        "",
+        "The effective sample size of the importance weights each filter formed, over every update: SIR's weights "
+        "before resampling; ESCORT's target samples of the correlation projections (the predicted particles "
+        "weighted by the likelihood), tempered where ESS/N falls below `ess_floor`. ESS/N averaged over beliefs "
+        "and steps, its minimum, the share of tempered updates and the mean tempering exponent β.",
+        "",
+        *_table(result, result["rows"], lambda r: format_importance(r.get("importance"))),
+        "",
         "## Wall-clock per filter update",
         "",
         f"Milliseconds per step for the whole batch of {result['seeds']} beliefs / per belief (the sum over "

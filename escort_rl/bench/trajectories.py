@@ -163,6 +163,7 @@ def filter_trajectories(domain: str, method: str, traj: dict, seeds: list[int], 
     out["accuracy"] = [{k: torch.stack([s[k] for s in series], 1) for k in series[0]} for series in accuracy]
     # particle-evolution iterations per update (K, or fewer with the adaptive stop); NaN for SIR
     out["iterations"] = filt.mean_iterations() if hasattr(filt, "mean_iterations") else float("nan")
+    out["importance"] = filt.importance_diagnostics()  # the ESS of every importance-weighted step
     return out
 
 

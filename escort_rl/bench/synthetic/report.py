@@ -12,7 +12,7 @@ import math
 
 from escort_rl.bench.methods import SYNTHETIC_METHODS
 from escort_rl.bench.synthetic.paper import RMSE_TABLE, TABLE2, TABLE2_METHODS
-from escort_rl.reporting.stats import format_mean_se, mean_se
+from escort_rl.reporting.stats import format_importance, format_mean_se, mean_se
 
 SIGNIFICANCE = 3.0
 """A paired difference is reported as one when ``|mean| > SIGNIFICANCE · s.e.``."""
@@ -40,17 +40,6 @@ def compare(name_a: str, a: list[float], name_b: str, b: list[float], lower_is_b
         return f"no difference ({diff:+.3g} ± {se:.2g})"
     a_better = (diff > 0) == lower_is_better
     return f"{name_a if a_better else name_b} better by {abs(diff):.3g} ± {se:.2g}"
-
-
-def _importance_note(row: dict) -> str:
-    imp = row.get("importance") or {}
-    if "mean_ess_fraction" in imp:
-        return (f"ESS/N {imp['mean_ess_fraction']:.3f} (min {imp['min_ess_fraction']:.3f}), "
-                f"tempered {imp['tempered_fraction']:.2f}, β {imp['mean_beta']:.3f}")
-    if "ess_fraction" in imp:
-        m, _ = mean_se(imp["ess_fraction"])
-        return f"ESS/N {m:.4f}"
-    return ""
 
 
 def _settings(result: dict) -> str:
@@ -87,7 +76,7 @@ def synthetic_markdown(result: dict) -> str:
         for r in result["rows"]:
             s = r["summary"]
             lines.append(f"| {r['target']} | {r['method']} | {format_mean_se(s['rmse'])} | "
-                         f"{format_mean_se(s['final_error'])} | {_importance_note(r)} | {r['seconds']:.1f} |")
+                         f"{format_mean_se(s['final_error'])} | {format_importance(r.get('importance'))} | {r['seconds']:.1f} |")
         return "\n".join(lines) + "\n"
     lines[2] += (" Metrics against N fresh exact samples: MMD² (biased V-statistic, RBF γ = 0.5, the square), W1 (1-D), "
                  "sliced W1 (100 fixed directions), mode coverage (more than 0.05/K of the particles inside the "
@@ -101,7 +90,7 @@ def synthetic_markdown(result: dict) -> str:
         lines.append(f"| {r['target']} | {r['method']} | {format_mean_se(s['mmd2'], 4)} | {format_mean_se(s['w1'])} | "
                      f"{format_mean_se(s['sliced_w1'])} | {format_mean_se(s['mode_coverage'], 2)} | "
                      f"{format_mean_se(s['mode_coverage_ball'], 2)} | {format_mean_se(s['corr_error'])} | "
-                     f"{format_mean_se(s['rmse'])} | {_importance_note(r)} | {r['seconds']:.1f} |")
+                     f"{format_mean_se(s['rmse'])} | {format_importance(r.get('importance'))} | {r['seconds']:.1f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -161,7 +150,7 @@ def scaling_markdown(result: dict) -> str:
             g, se = paired_difference(by["escort"]["per_seed"]["rmse"], by["escort_nocorr"]["per_seed"]["rmse"])
             gap = f"{g:+.3f} ± {se:.3f}"
         lines.append(f"| {d} | {st} | " + " | ".join(cells) + f" | {gap} | "
-                     f"{_importance_note(by['escort']) if 'escort' in by else ''} |")
+                     f"{format_importance(by['escort'].get('importance')) if 'escort' in by else ''} |")
     return "\n".join(lines) + "\n"
 
 

@@ -13,32 +13,13 @@ from escort_rl.bench.runner import CellStore, InProcessBackend, run_groups, seed
 from escort_rl.bench.synthetic.cells import INITS, TRACKING_METHODS, SyntheticCell, TrackingCell
 from escort_rl.bench.synthetic.tracking import STEPS
 from escort_rl.bench.targets import SCALABILITY_STRUCTURES, load_target
-from escort_rl.reporting.stats import mean_se
+from escort_rl.reporting.stats import mean_se, merge_importance
 
 SYNTHETIC_TARGETS = ("gmm1d", "gmm2d", "gmm3d", "gmm5d", "gmm20d")
 SCALING_DIMS = (1, 5, 20, 50, 100, 200)
 PROTOCOLS = ("static", "tracking")
 """``static``: fit a fixed target from a start (``--init``); ``tracking``: follow a latent state
 through the target-shaped likelihood (:mod:`escort_rl.bench.synthetic.tracking`)."""
-
-
-def _merge_importance(parts: list[dict]) -> dict:
-    """The importance records of a row's cells: per-seed lists concatenated, scalars averaged
-    weighted by their belief counts (``count``), the minimum kept as the minimum."""
-    merged: dict = {}
-    records = [p.get("importance") or {} for p in parts]
-    for key in sorted({k for r in records for k in r}):
-        values = [r[key] for r in records if key in r]
-        if isinstance(values[0], list):
-            merged[key] = [v for vs in values for v in vs]
-        elif key == "min_ess_fraction":
-            merged[key] = min(values)
-        elif key == "count":
-            merged[key] = sum(values)
-        else:
-            counts = [r.get("count", 1) for r in records if key in r]
-            merged[key] = sum(v * c for v, c in zip(values, counts)) / max(sum(counts), 1)
-    return merged
 
 
 def _run_grid(rows: list[dict], cells: dict, backend, cells_dir, progress) -> list[dict]:
@@ -48,7 +29,7 @@ def _run_grid(rows: list[dict], cells: dict, backend, cells_dir, progress) -> li
     def on_group(i, parts):
         per_seed = {k: [v for p in parts for v in p["per_seed"][k]] for k in parts[0]["per_seed"]}
         rows[i].update(seconds=sum(p["timing"]["seconds"] for p in parts), per_seed=per_seed,
-                       summary={k: mean_se(v) for k, v in per_seed.items()}, importance=_merge_importance(parts))
+                       summary={k: mean_se(v) for k, v in per_seed.items()}, importance=merge_importance([p.get("importance") for p in parts]))
         shown = [p["seed0_particles"] for p in parts if "seed0_particles" in p]
         if shown:
             rows[i]["_shown"] = torch.tensor(shown[0])
