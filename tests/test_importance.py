@@ -184,3 +184,18 @@ def test_filters_report_the_ess_of_their_weights(per_test_generator):
         filt.update(model, b, a, model.observe(s, a, g), generator=g)
         diag = filt.importance_diagnostics()
         assert diag["count"] == 4 and 0 < diag["min_ess_fraction"] <= diag["mean_ess_fraction"] <= 1
+
+
+def test_the_velocity_form_rests_where_svgd_rests_and_the_position_form_contracts():
+    """DESIGN's fixed-point analysis: at λ < 1/2 the velocity form cannot move SVGD's fixed point; the
+    position form does, toward a narrower belief."""
+    from escort_rl.bench.calibration import fixed_point_check
+
+    kw = dict(d=3, n=100, batch=2, num_steps=400)
+    svgd = fixed_point_check(ESCORTFilter(lambda_corr=0.0), **kw)
+    velocity = fixed_point_check(ESCORTFilter(lambda_corr=0.3), **kw)
+    position = fixed_point_check(ESCORTFilter(lambda_corr=0.1, corr_form="position"), **kw)
+    assert velocity[0] == pytest.approx(svgd[0], rel=0.02) and velocity[1] == pytest.approx(svgd[1], abs=0.02)
+    assert position[0] < 0.5 * svgd[0]
+    with pytest.warns(UserWarning, match="lambda_corr=1.0: with the velocity form"):
+        ESCORTFilter(lambda_corr=1.0)

@@ -16,6 +16,7 @@ One update, for particles ``X_t``, action ``a`` and the next observation ``o``:
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 
 import torch
@@ -179,7 +180,10 @@ class ESCORTFilter(BeliefFilter):
         bandwidth_scale: multiplies the median-heuristic bandwidth (default 1). With well-separated
             modes the median pairwise distance is the distance between modes, so the kernel spans
             several modes and particles move together; a scale below 1 localises the kernel.
-        lambda_corr: ``λ_corr`` (default 0.1; 0 gives ESCORT-NoCorr).
+        lambda_corr: ``λ_corr`` (default 0.1; 0 gives ESCORT-NoCorr). With the velocity form the
+            particles come to rest where SVGD's do for every ``λ_corr < 0.5`` (the term changes the
+            path only); from 0.5 it can reverse the velocity along a projection and diverge, which a
+            warning says.
         lambda_temp: ``λ_temp`` (default 0.1; 0 gives ESCORT-NoTemp).
         n_proj: number of correlation projections and of temporal directions (default 5).
         proj_dim: columns of each correlation projection ``A_k`` (default 2).
@@ -324,6 +328,11 @@ class ESCORTFilter(BeliefFilter):
         for name, ok, what in checks:
             if not ok:
                 raise ValueError(f"{type(self).__name__}.{name}: must be {what}, got {locals()[name]!r}")
+        if corr_form == "velocity" and lambda_corr >= 0.5:
+            warnings.warn(f"{type(self).__name__}.lambda_corr={lambda_corr}: with the velocity form, a projection of "
+                          "weight w_k > 1/(2 lambda_corr) reverses SVGD's velocity along it and the particles can "
+                          "diverge (docs/DESIGN.md, the correlation term's fixed points); keep lambda_corr < 0.5",
+                          stacklevel=2)
         self.num_steps, self.step_size, self.step_decay = num_steps, step_size, step_decay
         self.adagrad_alpha, self.repulsion, self.bandwidth_every = adagrad_alpha, repulsion, bandwidth_every
         self.bandwidth_scale = bandwidth_scale
