@@ -45,6 +45,7 @@ BENCHMARKS = (
     "escort_rl.bench.adaptive_stop",
     "escort_rl.bench.planner_budget",
     "escort_rl.bench.compare",
+    "escort_rl.bench.ablation",
     "escort_rl.bench.atari",
 )
 """The modules whose ``register(subparsers)`` adds a ``bench`` subcommand, in the order of the help."""

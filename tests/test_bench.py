@@ -270,3 +270,17 @@ def test_tracking_model_scores_match_autograd(per_test_generator):
     x = (s + torch.randn(5, 3, generator=per_test_generator, dtype=torch.float64)).requires_grad_(True)
     (grad,) = torch.autograd.grad(model.observation_log_prob(o, x, None).sum(), x)
     torch.testing.assert_close(model.observation_score(o, x.detach(), None), grad)
+
+
+def test_bench_ablation_pairs_rows_across_runs(tmp_path):
+    args = ["bench", "synthetic", "--quick", "--targets", "gmm2d", "--seeds", "3"]
+    assert main([*args, "--methods", "escort", "escort_nocorr", "--output", str(tmp_path / "a")]) == 0
+    assert main([*args, "--methods", "escort", "--filter-set", "lambda_corr=0.3", "--output", str(tmp_path / "b")]) == 0
+    out = tmp_path / "ablation.md"
+    assert main(["bench", "ablation", f"nocorr={tmp_path / 'a'}:escort_nocorr", f"l0.1={tmp_path / 'a'}",
+                 f"l0.3={tmp_path / 'b'}", "--metric", "sliced_w1", "--output", str(out)]) == 0
+    md = out.read_text()
+    assert "| row | nocorr | l0.1 | vs nocorr | l0.3 | vs nocorr |" in md and md.count("| gmm2d |") == 1
+    from escort_rl.bench.ablation import parse_run
+
+    assert parse_run("x=1=dir/y:svgd") == ("x=1", "dir/y", "svgd") and parse_run("dir")[2] == "escort"
