@@ -307,6 +307,18 @@ class SIRConfig:
     roughening: float = _f(0.0, ge=0)
 
 
+@dataclass
+class EnKFConfig:
+    """``configs/filter/enkf.yaml``: ``escort_rl.belief.EnKFFilter``'s arguments."""
+
+    _target_: str = "escort_rl.belief.EnKFFilter"
+    name: str = "enkf"
+    kind: str = _f("enkf", choices=["enkf"])
+    inflation: float = _f(1.0, ge=1)
+    localisation_radius: Optional[float] = _f(None, gt=0)
+    ridge: float = _f(1e-6, ge=0)
+
+
 def _prior() -> Any:
     return _f("smoothed", choices=["smoothed", "shrunk", "exact"])
 
@@ -363,7 +375,7 @@ class ESCORTConfig(SVGDConfig):
     ess_floor: float = _f(0.2, ge=0, le=1)
 
 
-FILTER_SCHEMAS = {"sir": SIRConfig, "svgd": SVGDConfig, "escort": ESCORTConfig}
+FILTER_SCHEMAS = {"sir": SIRConfig, "enkf": EnKFConfig, "svgd": SVGDConfig, "escort": ESCORTConfig}
 
 
 # ----------------------------------------------------------------------------------- trainers

@@ -9,7 +9,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import Compose, TransformedEnv
 
-from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
+from escort_rl.belief import EnKFFilter, ESCORTFilter, SIRFilter, SVGDFilter
 from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
 from escort_rl.models import DOMAINS, LightDark1D
@@ -19,7 +19,7 @@ from escort_rl.transforms import ActionRepeat, BeliefTransform
 # The benchmark domains, and the 1-D planning test problem (no env config; built by name for
 # `escort-rl bench planner-budget --domain lightdark1d`).
 MODELS = {**DOMAINS, "lightdark1d": LightDark1D}
-FILTERS = {"sir": SIRFilter, "svgd": SVGDFilter, "escort": ESCORTFilter}
+FILTERS = {"sir": SIRFilter, "enkf": EnKFFilter, "svgd": SVGDFilter, "escort": ESCORTFilter}
 
 
 def _kwargs(node, exclude: tuple[str, ...] = ("name",)) -> dict:

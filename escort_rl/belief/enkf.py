@@ -1,0 +1,151 @@
+"""The stochastic ensemble Kalman filter (Evensen 1994; Burgers, van Leeuwen & Evensen 1998), batched
+over beliefs ``[*B, N, d]``, on the model protocol alone.
+
+One update, for ensemble members ``x_i`` (the belief's particles), action ``a`` and observation ``o``:
+
+1. Forecast: ``x̃_i = transition(x_i, a)``; with ``inflation = ρ``, ``x̃_i ← x̄ + ρ (x̃_i − x̄)``.
+2. Perturbed observations: ``y_i ~ O(· | x̃_i, a)`` drawn by ``model.observe``, so the filter needs
+   neither an observation matrix nor the noise covariance: ``y_i − ȳ`` carries both ``H (x̃_i − x̄)``
+   and the observation noise.
+3. Gain from the ensemble's covariances (``N − 1`` normalised)::
+
+       C_xy = (1/(N−1)) Σ_i (x̃_i − x̄)(y_i − ȳ)ᵀ   [d, m],    C_yy = (1/(N−1)) Σ_i (y_i − ȳ)(y_i − ȳ)ᵀ   [m, m],
+       K = C_xy C_yy⁻¹,
+
+   each tapered elementwise by the Gaspari–Cohn function of the distance between coordinates when
+   ``localisation_radius`` is set (Houtekamer & Mitchell 2001).
+4. Analysis: ``x_i = x̃_i + K (o − y_i)``.
+
+For a linear-Gaussian model (``o = H s + v``) the analysis ensemble's mean and covariance converge to
+the Kalman filter's as ``N → ∞``; for other models the EnKF is the Gaussian (linear-update)
+approximation: it cannot hold two modes. No resampling and no weights: members are equally weighted.
+
+Examples:
+    >>> import torch
+    >>> from escort_rl.models import LinearGaussian
+    >>> model = LinearGaussian()
+    >>> f = EnKFFilter()
+    >>> b = f.init(model, (2,), 100, torch.Generator().manual_seed(0))
+    >>> a = torch.zeros(2, dtype=torch.long)
+    >>> f.update(model, b, a, torch.zeros(2, model.obs_dim)).particles.shape
+    torch.Size([2, 100, 4])
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from escort_rl.belief.base import BeliefFilter, check_output_shape
+from escort_rl.belief.checks import OFF
+from escort_rl.belief.particle_belief import ParticleBelief
+
+
+def gaspari_cohn(r: Tensor) -> Tensor:
+    """The Gaspari–Cohn (1999) compactly supported correlation function of ``r = distance / c``
+    (eq. 4.10): 1 at 0, 0 from ``r = 2`` on, smooth (C²) and positive definite in 3-D. Elementwise."""
+    r = r.abs()
+    inner = ((((-0.25 * r + 0.5) * r + 0.625) * r - 5.0 / 3.0) * r * r) + 1.0
+    outer = (((((r / 12.0 - 0.5) * r + 0.625) * r + 5.0 / 3.0) * r - 5.0) * r + 4.0 - 2.0 / (3.0 * r.clamp_min(1e-12)))
+    return torch.where(r <= 1.0, inner, torch.where(r < 2.0, outer, torch.zeros_like(r)))
+
+
+def coordinates(model, kind: str, size: int, state_dim: int) -> Tensor:
+    """Where each state (``kind="state"``) or observation (``"observation"``) coordinate lies, for
+    localisation: ``model.state_coordinates`` / ``model.observation_coordinates`` (``[size]`` or
+    ``[size, k]``) when the model defines them, else the index (state ``i``; observation ``j`` spread
+    over the state's index range, ``j · d / m``). Returns ``[size, k]`` float32."""
+    own = getattr(model, f"{kind}_coordinates", None)
+    if own is not None:
+        c = torch.as_tensor(own, dtype=torch.float32)
+        c = c.unsqueeze(-1) if c.ndim == 1 else c
+        if c.shape[0] != size:
+            raise ValueError(f"model.{kind}_coordinates: expected {size} rows, got shape {tuple(c.shape)}")
+        return c
+    index = torch.arange(size, dtype=torch.float32)
+    return (index if kind == "state" else index * state_dim / max(size, 1)).unsqueeze(-1)
+
+
+class EnKFFilter(BeliefFilter):
+    """The stochastic ensemble Kalman filter with perturbed observations (see the module docstring).
+
+    Args:
+        inflation: multiplicative covariance inflation ``ρ ≥ 1`` of the forecast anomalies (default 1:
+            off). Small ensembles underestimate their spread; ``ρ`` slightly above 1 counters it.
+        localisation_radius: the Gaspari–Cohn half-width ``c`` of the taper applied to ``C_xy`` and
+            ``C_yy``, in the units of the model's coordinates (:func:`coordinates`); correlations
+            beyond ``2c`` are cut. ``None`` (default): off.
+        ridge: added to the diagonal of ``C_yy``, times its mean diagonal, so that ``C_yy`` stays
+            invertible when ``N ≤ m`` (default 1e-6).
+
+    Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
+    naming the culprit when the input belief, what ``model.transition`` or ``model.observe`` returns,
+    or the result holds a NaN or an inf. One host synchronisation per update.
+    """
+
+    def __init__(self, inflation: float = 1.0, localisation_radius: float | None = None, ridge: float = 1e-6) -> None:
+        for name, value in (("inflation", inflation), ("ridge", ridge)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"EnKFFilter.{name}: must be a finite number, got {value!r}")
+        if inflation < 1.0:
+            raise ValueError(f"EnKFFilter.inflation: must be >= 1 (1 turns it off), got {inflation}")
+        if ridge < 0:
+            raise ValueError(f"EnKFFilter.ridge: must be >= 0, got {ridge}")
+        if localisation_radius is not None and (isinstance(localisation_radius, bool)
+                                                or not isinstance(localisation_radius, (int, float))
+                                                or not 0 < localisation_radius < math.inf):
+            raise ValueError(f"EnKFFilter.localisation_radius: must be a positive number or None, got "
+                             f"{localisation_radius!r}")
+        self.inflation, self.ridge = float(inflation), float(ridge)
+        self.localisation_radius = None if localisation_radius is None else float(localisation_radius)
+
+    def __repr__(self) -> str:
+        extra = "" if self.check_finite else ", check_finite=False"
+        return (f"EnKFFilter(inflation={self.inflation}, localisation_radius={self.localisation_radius}, "
+                f"ridge={self.ridge}{extra})")
+
+    def tapers(self, model, d: int, m: int, like: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The Gaspari–Cohn tapers ``[d, m]`` of ``C_xy`` and ``[m, m]`` of ``C_yy``, or ``None``."""
+        if self.localisation_radius is None:
+            return None
+        xs, ys = coordinates(model, "state", d, d), coordinates(model, "observation", m, d)
+        c = self.localisation_radius
+        taper_xy = gaspari_cohn(torch.cdist(xs, ys) / c)
+        taper_yy = gaspari_cohn(torch.cdist(ys, ys) / c)
+        return taper_xy.to(like), taper_yy.to(like)
+
+    def _update(self, model, belief, action, observation, generator, *, guard=None):
+        guard = OFF if guard is None else guard
+        x = belief.particles
+        n, d = x.shape[-2], x.shape[-1]
+        a = action.unsqueeze(-1).expand(x.shape[:-1])  # [*B, N]
+        x_pred = model.transition(x, a, generator)
+        check_output_shape("model.transition", x_pred, x.shape, "the particles' shape [*B, N, d]")
+        guard.model_values("model.transition", x_pred)
+        w = belief.weights().unsqueeze(-1)  # [*B, N, 1]; equal for an EnKF's own beliefs
+        mean = (w * x_pred).sum(-2, keepdim=True)
+        if self.inflation != 1.0:
+            x_pred = mean + self.inflation * (x_pred - mean)
+        y = model.observe(x_pred, a, generator)
+        check_output_shape("model.observe", y, (*x.shape[:-1], observation.shape[-1]),
+                           "one observation per particle, [*B, N, obs_dim]")
+        guard.model_values("model.observe", y)
+        m = y.shape[-1]
+        dx = x_pred - mean
+        dy = y - (w * y).sum(-2, keepdim=True)
+        scale = n / max(n - 1, 1)  # weighted covariances with the N − 1 normalisation at equal weights
+        c_xy = scale * (w * dx).transpose(-1, -2) @ dy  # [*B, d, m]
+        c_yy = scale * (w * dy).transpose(-1, -2) @ dy  # [*B, m, m]
+        tapers = self.tapers(model, d, m, c_xy)
+        if tapers is not None:
+            c_xy, c_yy = c_xy * tapers[0], c_yy * tapers[1]
+        eye = torch.eye(m, dtype=c_yy.dtype, device=c_yy.device)
+        jitter = self.ridge * torch.diagonal(c_yy, dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)
+        c_yy = c_yy + jitter[..., None, None] * eye
+        innovations = observation.unsqueeze(-2) - y  # [*B, N, m]
+        # K (o − y_i) = C_xy C_yy⁻¹ (o − y_i), for every member at once: solve C_yy Z = (o − y)ᵀ
+        z = torch.linalg.solve(c_yy, innovations.transpose(-1, -2))  # [*B, m, N]
+        x_post = x_pred + (c_xy @ z).transpose(-1, -2)
+        return ParticleBelief(x_post, belief.log_weights)
