@@ -254,6 +254,19 @@ class MultiTargetTracking20DModelConfig:
 
 
 @dataclass
+class LinearGaussianModelConfig:
+    """``escort_rl.models.LinearGaussian``'s scalar family: the dimension and the observation's sharpness."""
+
+    _target_: str = "escort_rl.models.LinearGaussian"
+    state_dim: int = _f(4, ge=1)
+    obs_dim: Optional[int] = _f(None, ge=1)
+    transition_scale: float = 0.95
+    process_std: float = _f(0.1 ** 0.5, gt=0)
+    obs_std: float = _f(0.5, gt=0)
+    prior_std: float = _f(1.0, gt=0)
+
+
+@dataclass
 class EnvConfig:
     """The keys every env group option has."""
 
@@ -290,8 +303,16 @@ class MultiTargetTracking20DEnvConfig(EnvConfig):
     model: MultiTargetTracking20DModelConfig = _sub(MultiTargetTracking20DModelConfig)
 
 
+@dataclass
+class LinearGaussianEnvConfig(EnvConfig):
+    """``configs/env/linear_gaussian.yaml``: the linear-Gaussian family, whose exact posterior is Kalman's."""
+
+    name: str = _f("linear_gaussian", choices=["linear_gaussian"])
+    model: LinearGaussianModelConfig = _sub(LinearGaussianModelConfig)
+
+
 ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "kidnapped20d": KidnappedRobot20DEnvConfig,
-               "mtt20d": MultiTargetTracking20DEnvConfig}
+               "mtt20d": MultiTargetTracking20DEnvConfig, "linear_gaussian": LinearGaussianEnvConfig}
 
 
 # ------------------------------------------------------------------------------------ filters

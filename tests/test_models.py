@@ -522,3 +522,15 @@ def test_linear_gaussian_log_probs_match_torch():
 def test_linear_gaussian_rejects_non_pd_covariance():
     with pytest.raises(ValueError, match="process_cov"):
         LinearGaussian(state_dim=2, process_cov=torch.tensor([[1.0, 2.0], [2.0, 1.0]]))
+
+
+def test_linear_gaussian_family_from_config_by_dimension_and_sharpness():
+    from escort_rl.config import compose
+    from escort_rl.trainers.builders import build_model
+
+    model = build_model(compose(["env=linear_gaussian", "env.model.state_dim=50", "env.model.obs_std=0.1"]).env)
+    assert model.state_dim == model.obs_dim == 50 and model.n_actions == 100
+    torch.testing.assert_close(model.R, 0.01 * torch.eye(50))
+    torch.testing.assert_close(model.Q, 0.1 * torch.eye(50))
+    with pytest.raises(ValueError, match="LinearGaussian.obs_std: must be a positive finite number"):
+        LinearGaussian(obs_std=0.0)

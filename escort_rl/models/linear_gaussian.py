@@ -20,12 +20,15 @@ class LinearGaussian:
 
     Args:
         state_dim, obs_dim, n_actions: sizes.
-        transition_matrix: ``F`` ``[d, d]``; default ``0.95·I``.
-        process_cov: ``Q`` ``[d, d]``; default ``0.1·I``.
+        transition_matrix: ``F`` ``[d, d]``; default ``transition_scale·I``.
+        process_cov: ``Q`` ``[d, d]``; default ``process_std²·I``.
         observation_matrix: ``H`` ``[m, d]``; default the first ``m`` coordinates.
-        observation_cov: ``R`` ``[m, m]``; default ``0.25·I``.
+        observation_cov: ``R`` ``[m, m]``; default ``obs_std²·I``.
         controls: ``u`` ``[n_actions, d]``; default ``±0.5`` along each axis.
-        prior_mean, prior_cov: ``m_0`` ``[d]`` and ``P_0`` ``[d, d]``; default ``0`` and ``I``.
+        prior_mean, prior_cov: ``m_0`` ``[d]`` and ``P_0`` ``[d, d]``; default ``0`` and ``prior_std²·I``.
+        transition_scale, process_std, obs_std, prior_std: the scalar family the matrices default to
+            (0.95, sqrt(0.1), 0.5, 1), so a config can build the model by dimension and observation
+            sharpness (``env=linear_gaussian env.model.state_dim=100 env.model.obs_std=0.1``).
     """
 
     def __init__(
@@ -41,21 +44,33 @@ class LinearGaussian:
         prior_mean: Tensor | None = None,
         prior_cov: Tensor | None = None,
         device: torch.device | str | None = None,
+        transition_scale: float = 0.95,
+        process_std: float = 0.1 ** 0.5,
+        obs_std: float = 0.5,
+        prior_std: float = 1.0,
     ) -> None:
+        for name, value in (("state_dim", state_dim), ("obs_dim", obs_dim), ("n_actions", n_actions)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+                raise ValueError(f"LinearGaussian.{name}: must be an int >= 1, got {value!r}")
+        for name, value in (("process_std", process_std), ("obs_std", obs_std), ("prior_std", prior_std)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
+                raise ValueError(f"LinearGaussian.{name}: must be a positive finite number, got {value!r}")
         d = state_dim
         m = obs_dim if obs_dim is not None else d
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         f32 = dict(dtype=torch.float32, device=self.device)
-        self.F = torch.as_tensor(transition_matrix, **f32) if transition_matrix is not None else 0.95 * torch.eye(d, **f32)
-        self.Q = torch.as_tensor(process_cov, **f32) if process_cov is not None else 0.1 * torch.eye(d, **f32)
+        eye = torch.eye(d, **f32)
+        self.F = torch.as_tensor(transition_matrix, **f32) if transition_matrix is not None else transition_scale * eye
+        self.Q = torch.as_tensor(process_cov, **f32) if process_cov is not None else process_std**2 * eye
         self.H = torch.as_tensor(observation_matrix, **f32) if observation_matrix is not None else torch.eye(m, d, **f32)
-        self.R = torch.as_tensor(observation_cov, **f32) if observation_cov is not None else 0.25 * torch.eye(m, **f32)
+        self.R = (torch.as_tensor(observation_cov, **f32) if observation_cov is not None
+                  else obs_std**2 * torch.eye(m, **f32))
         if controls is None:
             eye = torch.eye(d, **f32)
             controls = torch.cat([0.5 * eye, -0.5 * eye], dim=0)
         self.controls = torch.as_tensor(controls, **f32)
         self.m0 = torch.as_tensor(prior_mean, **f32) if prior_mean is not None else torch.zeros(d, **f32)
-        self.P0 = torch.as_tensor(prior_cov, **f32) if prior_cov is not None else torch.eye(d, **f32)
+        self.P0 = torch.as_tensor(prior_cov, **f32) if prior_cov is not None else prior_std**2 * eye
         self.state_dim, self.obs_dim = d, m
         self.n_actions = n_actions if n_actions is not None else self.controls.shape[0]
         for name, mat in (("process_cov", self.Q), ("observation_cov", self.R), ("prior_cov", self.P0)):

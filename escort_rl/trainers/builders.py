@@ -12,13 +12,13 @@ from torchrl.envs import Compose, TransformedEnv
 from escort_rl.belief import EnKFFilter, ESCORTFilter, SIRFilter, SVGDFilter
 from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
-from escort_rl.models import DOMAINS, LightDark1D
+from escort_rl.models import DOMAINS, LightDark1D, LinearGaussian
 from escort_rl.modules import DeepSetsActor
 from escort_rl.transforms import ActionRepeat, BeliefTransform
 
 # The benchmark domains, and the 1-D planning test problem (no env config; built by name for
 # `escort-rl bench planner-budget --domain lightdark1d`).
-MODELS = {**DOMAINS, "lightdark1d": LightDark1D}
+MODELS = {**DOMAINS, "lightdark1d": LightDark1D, "linear_gaussian": LinearGaussian}
 FILTERS = {"sir": SIRFilter, "enkf": EnKFFilter, "svgd": SVGDFilter, "escort": ESCORTFilter}
 
 
