@@ -8,27 +8,15 @@ import torch
 
 from escort_rl.belief import EnKFFilter
 from escort_rl.belief.enkf import gaspari_cohn
+from escort_rl.bench.calibration import kalman_episode, kalman_errors
 from escort_rl.models import LinearGaussian
 
 
 def _episode(filt, model, n, steps, batch, g):
-    """Mean Mahalanobis error of the ensemble mean in the Kalman covariance, and tr(Σ̂)/tr(P), per belief
-    at the last step; both filters on the same seeded episode."""
-    belief = filt.init(model, (batch,), n, g)
-    s = model.initial_state((batch,), g)
-    mean = model.m0.expand(batch, model.state_dim).double()
-    cov = model.P0.expand(batch, model.state_dim, model.state_dim).double()
-    for _ in range(steps):
-        a = torch.randint(0, model.n_actions, (batch,), generator=g)
-        s = model.transition(s, a, g)
-        o = model.observe(s, a, g)
-        belief = filt.update(model, belief, a, o, g)
-        mean, cov = model.kalman_step(mean, cov, a, o)
-    diff = (belief.mean().double() - mean).unsqueeze(-1)
-    maha = torch.sqrt((diff.transpose(-1, -2) @ torch.linalg.solve(cov, diff)).squeeze((-1, -2)))
-    ratio = torch.diagonal(belief.covariance().double(), dim1=-2, dim2=-1).sum(-1) / torch.diagonal(
-        cov, dim1=-2, dim2=-1).sum(-1)
-    return maha, ratio
+    """The Mahalanobis error of the ensemble mean and tr(Σ̂)/tr(P) against Kalman, per belief, at the last step."""
+    for belief, mean, cov in kalman_episode(filt, model, n, steps, batch, g):
+        pass
+    return kalman_errors(belief, mean, cov)
 
 
 def test_enkf_converges_to_the_kalman_posterior(per_test_generator):

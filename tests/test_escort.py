@@ -291,6 +291,7 @@ def test_max_sliced_directions_find_the_shift():
     torch.testing.assert_close(w.sum(-1), torch.ones(1))
 
 
+@pytest.mark.parametrize("cls", [ESCORTFilter, SVGDFilter])
 def test_compiled_update_matches_eager(cls):
     """``compile=True`` runs the same iteration through torch.compile: same particles up to float error."""
     model = LinearGaussian(state_dim=4, obs_dim=2)

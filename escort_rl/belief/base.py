@@ -135,6 +135,17 @@ class BeliefFilter(ABC):
         guard.verify()
         return posterior
 
+    @staticmethod
+    def _predict(model, belief: ParticleBelief, action: Tensor, generator, guard) -> tuple[Tensor, Tensor]:
+        """``x̃ = model.transition(x, a)`` for the belief's particles, its shape and values checked
+        (``guard`` records them): returns ``x̃`` ``[*B, N, d]`` and the action expanded to ``[*B, N]``."""
+        x = belief.particles
+        a = action.unsqueeze(-1).expand(x.shape[:-1])
+        x_next = model.transition(x, a, generator)
+        check_output_shape("model.transition", x_next, x.shape, "the particles' shape [*B, N, d]")
+        guard.model_values("model.transition", x_next)
+        return x_next, a
+
     @abstractmethod
     def _update(
         self,

@@ -120,10 +120,7 @@ class EnKFFilter(BeliefFilter):
         guard = OFF if guard is None else guard
         x = belief.particles
         n, d = x.shape[-2], x.shape[-1]
-        a = action.unsqueeze(-1).expand(x.shape[:-1])  # [*B, N]
-        x_pred = model.transition(x, a, generator)
-        check_output_shape("model.transition", x_pred, x.shape, "the particles' shape [*B, N, d]")
-        guard.model_values("model.transition", x_pred)
+        x_pred, a = self._predict(model, belief, action, generator, guard)
         w = belief.weights().unsqueeze(-1)  # [*B, N, 1]; equal for an EnKF's own beliefs
         mean = (w * x_pred).sum(-2, keepdim=True)
         if self.inflation != 1.0:

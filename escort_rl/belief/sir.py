@@ -70,10 +70,7 @@ class SIRFilter(BeliefFilter):
         guard = OFF if guard is None else guard
         x = belief.particles
         n, d = x.shape[-2], x.shape[-1]
-        a = action.unsqueeze(-1).expand(x.shape[:-1])  # [*B, N]
-        x_next = model.transition(x, a, generator)
-        check_output_shape("model.transition", x_next, x.shape, "the particles' shape [*B, N, d]")
-        guard.model_values("model.transition", x_next)
+        x_next, a = self._predict(model, belief, action, generator, guard)
         log_lik = model.observation_log_prob(observation.unsqueeze(-2), x_next, a)  # [*B, N]
         check_output_shape("model.observation_log_prob", log_lik, x.shape[:-1], "one log-density per particle, [*B, N]")
         guard.model_log_density("model.observation_log_prob", log_lik)

@@ -4,8 +4,38 @@ filter over one episode (SPEC §4)."""
 from __future__ import annotations
 
 import torch
+from torch import Tensor
 
 from escort_rl.models import LinearGaussian
+
+
+def kalman_episode(filt, model, n: int, steps: int, batch: int, generator: torch.Generator):
+    """Run ``filt`` and the Kalman filter (``model.kalman_step``) on the same seeded episode of a
+    linear-Gaussian ``model`` (uniform random actions), yielding after each step the belief and the
+    exact posterior's mean ``[batch, d]`` and covariance ``[batch, d, d]`` (float64)."""
+    d = model.state_dim
+    belief = filt.init(model, (batch,), n, generator)
+    s = model.initial_state((batch,), generator)
+    mean = model.m0.expand(batch, d).double()
+    cov = model.P0.expand(batch, d, d).double()
+    for _ in range(steps):
+        a = torch.randint(0, model.n_actions, (batch,), generator=generator)
+        s = model.transition(s, a, generator)
+        o = model.observe(s, a, generator)
+        belief = filt.update(model, belief, a, o, generator)
+        mean, cov = model.kalman_step(mean, cov, a, o)
+        yield belief, mean, cov
+
+
+def kalman_errors(belief, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
+    """Per belief: the Mahalanobis distance of the belief mean from the Kalman mean in the Kalman
+    covariance, ``sqrt((m − m_K)ᵀ P_K⁻¹ (m − m_K))``, and the total-variance ratio ``tr(Σ)/tr(P_K)``
+    (``[B]`` each, float64)."""
+    diff = (belief.mean().double() - mean).unsqueeze(-1)
+    maha = torch.sqrt((diff.transpose(-1, -2) @ torch.linalg.solve(cov, diff)).squeeze((-1, -2)))
+    ratio = (torch.diagonal(belief.covariance().double(), dim1=-2, dim2=-1).sum(-1)
+             / torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1))
+    return maha, ratio
 
 
 def kalman_calibration(filt, steps: int = 12, n: int = 300, batch: int = 4, state_dim: int = 4,
@@ -13,28 +43,17 @@ def kalman_calibration(filt, steps: int = 12, n: int = 300, batch: int = 4, stat
     """Run ``filt`` and the Kalman filter on the same seeded episodes of ``LinearGaussian(state_dim)``.
 
     Returns, averaged over the steps and the ``batch`` episodes: the Mahalanobis distance of the
-    belief mean from the Kalman mean in the Kalman covariance, ``sqrt((m - m_K)ᵀ P_K⁻¹ (m - m_K))``,
-    and the ratio of total variances ``tr(Σ_belief) / tr(P_K)``. Raises if particles turn non-finite.
+    belief mean from the Kalman mean and the ratio of total variances (:func:`kalman_errors`).
+    Raises if particles turn non-finite.
     """
     model = LinearGaussian(state_dim=state_dim)
-    g = torch.Generator().manual_seed(seed)
-    belief = filt.init(model, (batch,), n, g)
-    s = model.initial_state((batch,), g)
-    mean = model.m0.expand(batch, state_dim).double()
-    cov = model.P0.expand(batch, state_dim, state_dim).double()
     maha, ratio = [], []
-    for _ in range(steps):
-        a = torch.randint(0, model.n_actions, (batch,), generator=g)
-        s = model.transition(s, a, g)
-        o = model.observe(s, a, g)
-        belief = filt.update(model, belief, a, o, g)
-        mean, cov = model.kalman_step(mean, cov, a, o)
+    for belief, mean, cov in kalman_episode(filt, model, n, steps, batch, torch.Generator().manual_seed(seed)):
         if not torch.isfinite(belief.particles).all():
             raise FloatingPointError("belief.particles: non-finite values during calibration")
-        diff = (belief.mean().double() - mean).unsqueeze(-1)
-        maha.append(torch.sqrt((diff.transpose(-1, -2) @ torch.linalg.solve(cov, diff)).squeeze()).mean())
-        ratio.append((torch.diagonal(belief.covariance().double(), dim1=-2, dim2=-1).sum(-1)
-                      / torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1)).mean())
+        m, r = kalman_errors(belief, mean, cov)
+        maha.append(m.mean())
+        ratio.append(r.mean())
     return float(torch.stack(maha).mean()), float(torch.stack(ratio).mean())
 
 
