@@ -46,6 +46,7 @@ BENCHMARKS = (
     "escort_rl.bench.planner_budget",
     "escort_rl.bench.compare",
     "escort_rl.bench.ablation",
+    "escort_rl.bench.frontier",
     "escort_rl.bench.atari",
 )
 """The modules whose ``register(subparsers)`` adds a ``bench`` subcommand, in the order of the help."""

@@ -130,10 +130,56 @@ def step_summary(particles: Tensor, log_w: Tensor, parts: dict, sample: int, gen
     for name, dims in parts.items():
         x = particles[..., list(dims)]
         mean, cov = weighted_moments(x, w)
-        y = x.gather(-2, idx[..., None].expand(*idx.shape, len(dims))).float()
-        gamma = median_gamma(y)
-        out[name] = {"mean": mean.float(), "cov": cov.float(), "sample": y, "gamma": gamma.float(),
-                     "kyy": kernel_mean(y, y, gamma).float()}
+        out[name] = part_summary(mean, cov, x.gather(-2, idx[..., None].expand(*idx.shape, len(dims))).float())
+    return out
+
+
+def part_summary(mean: Tensor, cov: Tensor, y: Tensor) -> dict:
+    """One part of one step of a reference: its ``mean`` ``[B, dp]`` and ``cov`` ``[B, dp, dp]``, the
+    equally weighted ``sample`` ``y`` ``[B, M, dp]`` the sample-based distances use, its median-heuristic
+    ``gamma`` ``[B]`` and kernel mean ``kyy`` ``[B]``."""
+    gamma = median_gamma(y)
+    return {"mean": mean.float(), "cov": cov.float(), "sample": y, "gamma": gamma.float(),
+            "kyy": kernel_mean(y, y, gamma).float()}
+
+
+def has_exact_posterior(model) -> bool:
+    """Whether ``model`` gives its exact filtering posterior: a Gaussian prior ``m0``, ``P0`` and
+    ``kalman_step(mean, cov, action, observation) -> (mean, cov)`` (``LinearGaussian``; a user's model
+    may define the same three)."""
+    return callable(getattr(model, "kalman_step", None)) and hasattr(model, "m0") and hasattr(model, "P0")
+
+
+def exact_reference(model, traj: dict, seeds: list[int], sample: int = SAMPLE, base_seed: int = 0,
+                    name: str = "") -> dict:
+    """The exact posterior of a model with one (:func:`has_exact_posterior`) on the shared trajectories,
+    in the format of :func:`reference_posterior`: per part the exact ``mean`` and ``cov`` at every step
+    ``t = 0..T``, and ``sample`` exact draws of ``N(mean, cov)`` for the sample-based distances (seeded
+    by the first seed); ``ess`` is NaN (no weights)."""
+    from escort_rl.bench.trajectories import derived_seed
+
+    parts = state_parts(model)
+    b, d = len(seeds), model.state_dim
+    mean = model.m0.double().expand(b, d)
+    cov = model.P0.double().expand(b, d, d)
+    g = torch.Generator().manual_seed(derived_seed("exact-reference-sample", base_seed, seeds[0]))
+    steps = []
+    for t in range(traj["actions"].shape[1] + 1):
+        if t > 0:
+            mean, cov = model.kalman_step(mean, cov, traj["actions"][:, t - 1], traj["observations"][:, t - 1])
+        step = {"ess": torch.full((b,), float("nan"), dtype=torch.float64)}
+        for part, dims in parts.items():
+            idx = list(dims)
+            m, c = mean[..., idx], cov[..., idx, :][..., idx]
+            z = torch.randn(b, sample, len(idx), generator=g, dtype=torch.float64)
+            tril = torch.linalg.cholesky(0.5 * (c + c.transpose(-1, -2)))
+            step[part] = part_summary(m, c, (m.unsqueeze(-2) + z @ tril.transpose(-1, -2)).float())
+        steps.append(step)
+    out = _stack(steps)
+    for part, dims in parts.items():
+        gp = torch.Generator().manual_seed(derived_seed(f"reference-projections/{name}/{part}", 0, 0))
+        out[part]["projections"] = random_projections(PROJECTIONS, len(dims), gp, dtype=torch.float32)
+        out[part]["dims"] = torch.tensor(dims, dtype=torch.int64)
     return out
 
 
@@ -231,11 +277,16 @@ class ReferenceCell(Cell):
         spec.pop("folder")
         return spec
 
-    def run(self) -> dict:
+    def model(self):
+        """The model whose posterior this is: the domain's (a subclass may build another)."""
         from escort_rl.bench.methods import build_domain
+
+        return build_domain(self.domain)[0]
+
+    def run(self) -> dict:
         from escort_rl.bench.trajectories import generate_trajectories
 
-        model, _ = build_domain(self.domain)
+        model = self.model()
         seeds = list(self.seeds)
         traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
         t0 = time.perf_counter()

@@ -178,3 +178,26 @@ def plot_curve_panels(panels: dict, path: Path, xlabel: str, ncols: int, title: 
         ax.set_visible(False)
     axes.flat[0].legend(fontsize=7)
     return _finish(fig, path, title)
+
+
+def plot_frontier(rows: list[dict], front: list[str], path: Path, xlabel: str, ylabel: str, title: str = "",
+                  label=None) -> Path:
+    """Accuracy against cost on log–log axes: one marker series per ``row["method"]`` (``ms_per_update``
+    against ``error``), the points of ``front`` (their ``label(row)``) joined by a line."""
+    fig, ax = plt.subplots(figsize=(6.0, 4.2))
+    by_method: dict = {}
+    for r in rows:
+        if r["error"] == r["error"] and r["error"] > 0:
+            by_method.setdefault(r["method"], []).append(r)
+    for method, rs in by_method.items():
+        ax.scatter([r["ms_per_update"] for r in rs], [r["error"] for r in rs], label=method, s=22)
+    on = sorted((r for r in rows if label is not None and label(r) in front), key=lambda r: r["ms_per_update"])
+    if on:
+        ax.plot([r["ms_per_update"] for r in on], [r["error"] for r in on], color="black", lw=1, ls="--",
+                label="Pareto front")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=8)
+    return _finish(fig, path, title)

@@ -1,0 +1,182 @@
+"""The frontier's cells: one filter at one cost setting (N, and K for SVGD/ESCORT) on a model's shared
+trajectories, timed per update and compared with the reference posterior at every step.
+
+**The model** is named by a string and its arguments, so that a cell is plain data:
+
+- ``env:<name>`` with Hydra overrides of the env group (``model.state_dim=100``): a package domain or
+  family (``configs/env/<name>.yaml``);
+- ``class:<pkg.module>:<Class>`` with ``key=value`` keyword arguments: a user's own model class,
+  anything on the model protocol.
+
+**The reference** is the exact posterior where the model has one
+(:func:`~escort_rl.bench.reference.has_exact_posterior`: the linear-Gaussian family's Kalman filter),
+computed in the cell; otherwise a large SIR reference (:class:`FrontierReferenceCell`), computed once
+per seed block and loaded by every cell from its file, its hash checked.
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import torch
+
+from escort_rl.bench.reference import Reference, ReferenceCell, exact_reference, has_exact_posterior
+from escort_rl.bench.runner import Cell
+
+FILTER_METHODS = ("sir", "enkf", "svgd", "escort")
+"""The frontier's filters: SIR and EnKF cost N; SVGD and ESCORT cost N × K."""
+ITERATIVE = ("svgd", "escort")
+
+
+def _parse_value(text: str):
+    from omegaconf import OmegaConf
+
+    return OmegaConf.from_dotlist([f"value={text}"])["value"]
+
+
+@lru_cache(maxsize=16)
+def build_model(model: str, model_args: tuple = ()):
+    """The model of a cell: ``env:<name>`` with env-group overrides, or ``class:<module>:<Class>`` with
+    ``key=value`` arguments (values read as OmegaConf reads a dotlist). Raises ``ValueError`` naming
+    ``--model`` or the argument that does not fit."""
+    kind, _, target = model.partition(":")
+    if kind == "env":
+        from escort_rl.config import compose
+        from escort_rl.trainers.builders import build_model as build_env_model
+
+        cfg = compose([f"env={target}", *(f"env.{a}" for a in model_args)])
+        return build_env_model(cfg.env)
+    if kind != "class" or ":" not in target:
+        raise ValueError(f"--model: expected pkg.module:Class (or env=NAME), got {target or model!r}")
+    module, _, name = target.partition(":")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError) as err:
+        raise ValueError(f"--model: cannot import {module}:{name} ({err}); is the module on the path?") from None
+    kwargs = {}
+    for item in model_args:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--model-arg: '{item}' is not of the form KEY=VALUE")
+        kwargs[key] = _parse_value(value)
+    try:
+        return cls(**kwargs)
+    except TypeError as err:
+        raise ValueError(f"--model-arg: {name}({', '.join(kwargs)}) failed: {err}") from None
+
+
+def model_label(model: str, model_args: tuple = ()) -> str:
+    """A short file-safe name of a model spec, for cell keys and titles."""
+    raw = model.split(":")[-1] + ("-" + "-".join(model_args) if model_args else "")
+    return re.sub(r"[^A-Za-z0-9_.=-]+", "_", raw.replace("model.", ""))[:80]
+
+
+def make_filter(method: str, num_steps: int = 0, compile: bool = False):
+    """The filter of a frontier row: SIR, EnKF, SVGD or ESCORT (its defaults), with ``K = num_steps``
+    and ``compile`` for the iterative two."""
+    from escort_rl.belief import EnKFFilter, ESCORTFilter, SIRFilter, SVGDFilter
+
+    if method == "sir":
+        return SIRFilter()
+    if method == "enkf":
+        return EnKFFilter()
+    if method in ITERATIVE:
+        cls = ESCORTFilter if method == "escort" else SVGDFilter
+        return cls(num_steps=int(num_steps), compile=bool(compile))
+    raise ValueError(f"--methods: unknown filter '{method}'; choose from {', '.join(FILTER_METHODS)}")
+
+
+@dataclass(frozen=True)
+class FrontierReferenceCell(ReferenceCell):
+    """The SIR reference posterior (:class:`~escort_rl.bench.reference.ReferenceCell`) of a frontier
+    model: ``domain`` is the model's label, ``model_spec``/``model_args`` build it."""
+
+    model_spec: str = ""
+    model_args: tuple = ()
+
+    def model(self):
+        return build_model(self.model_spec, tuple(self.model_args))
+
+
+@dataclass(frozen=True)
+class FrontierCell(Cell):
+    """One filter at one cost on the shared trajectories of ``seeds`` (one batch ``[S, N, d]``).
+
+    Returns ``per_seed``: each distance to the reference (``<part>/<metric>``, :meth:`Reference.compare`)
+    averaged over steps 1..T, per seed; ``timing``: the wall-clock of the updates after the first (the
+    first warms up, and compiles with ``compile``), as seconds per update of one belief (the batch's
+    time over its ``S`` beliefs); ``failed`` when the belief diverged.
+
+    Examples:
+        >>> cell = FrontierCell(model="env:linear_gaussian", method="enkf", particles=50, seeds=(0, 1), steps=3)
+        >>> out = cell.run()
+        >>> sorted(out["per_seed"])[:2], len(out["per_seed"]["position/mean"])
+        (['position/cov', 'position/mean'], 2)
+    """
+
+    model: str
+    method: str
+    particles: int
+    seeds: tuple
+    steps: int
+    num_steps: int = 0
+    compile: bool = False
+    model_args: tuple = ()
+    base_seed: int = 0
+    reference: tuple = ()
+    """``(file, hash)`` of the SIR reference (:class:`FrontierReferenceCell`); empty for an exact one."""
+    reference_folder: str = ""
+
+    def key(self) -> str:
+        k = f"-K{self.num_steps}" if self.method in ITERATIVE else ""
+        return (f"frontier/{model_label(self.model, self.model_args)}/{self.method}/N{self.particles}{k}-"
+                f"T{self.steps}-seeds{self.seeds[0]}-{self.seeds[-1]}")
+
+    def spec(self) -> dict:
+        spec = super().spec()
+        spec.pop("reference_folder")
+        return spec
+
+    def load_reference(self, model, traj: dict, seeds: list[int]) -> Reference:
+        if not self.reference:
+            if not has_exact_posterior(model):
+                raise ValueError(f"{self.key()}: the model has no exact posterior and no reference file was given")
+            return Reference(exact_reference(model, traj, seeds, base_seed=self.base_seed,
+                                             name=model_label(self.model, self.model_args)))
+        file, digest = self.reference
+        ref = Reference.load(Path(self.reference_folder) / file, digest)
+        if ref.data["input_hashes"] != list(traj["hashes"]):
+            raise RuntimeError(f"{self.key()}: its reference posterior was computed on other trajectories")
+        return ref
+
+    def run(self) -> dict:
+        from escort_rl.bench.trajectories import belief_failures, derived_seed, generate_trajectories, initial_beliefs
+
+        model = build_model(self.model, tuple(self.model_args))
+        seeds = list(self.seeds)
+        traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
+        ref = self.load_reference(model, traj, seeds)
+        filt = make_filter(self.method, self.num_steps, self.compile)
+        belief, _ = initial_beliefs(filt, model, seeds, self.particles, self.base_seed)
+        g = torch.Generator().manual_seed(derived_seed("filter", self.base_seed, seeds[0]))
+        series, seconds, failed = [], 0.0, None
+        for t in range(self.steps):
+            t0 = time.perf_counter()
+            try:
+                belief = filt.update(model, belief, traj["actions"][:, t], traj["observations"][:, t], g)
+            except belief_failures() as err:
+                failed = {"step": t + 1, "message": str(err).splitlines()[0]}
+                break
+            if t > 0:
+                seconds += time.perf_counter() - t0
+            series.append(ref.compare(belief.particles.detach(), belief.log_weights.detach(), t + 1))
+        out = {"failed": failed, "importance": filt.importance_diagnostics(),
+               "timing": {"seconds_per_update": seconds / max(self.steps - 1, 1) / len(seeds)}}
+        if failed is None:
+            out["per_seed"] = {k: torch.stack([s[k] for s in series], 1).mean(1).tolist() for k in series[0]}
+        return out

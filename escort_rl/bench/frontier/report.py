@@ -1,0 +1,58 @@
+"""Markdown of the frontier: every row, the Pareto front, the closest filter at each time budget, and
+one line of advice."""
+
+from __future__ import annotations
+
+from escort_rl.bench.frontier.run import label
+from escort_rl.reporting.stats import format_importance, format_mean_se
+
+METRIC_NAMES = {"w1": "sliced W1", "mean": "‖mean − mean_ref‖₂", "cov": "‖cov − cov_ref‖_F", "mmd2": "MMD²"}
+
+
+def advice(result: dict, budget_ms: float = 10.0) -> str:
+    """"At 10 ms per update, use …": the closest filter within the budget, or the cheapest row."""
+    fits = [b for b in result["budgets"] if b["ms"] <= budget_ms and b["best"] is not None]
+    if fits:
+        best = fits[-1]
+        return (f"At {budget_ms:g} ms per update, use {best['best']} ({METRIC_NAMES[result['metric']]} "
+                f"{best['error']:.3g} to the reference).")
+    rows = [r for r in result["rows"] if r["error"] == r["error"]]
+    if not rows:
+        return "No filter kept a finite belief."
+    cheapest = min(rows, key=lambda r: r["ms_per_update"])
+    return (f"No filter fits {budget_ms:g} ms per update here; the cheapest is {label(cheapest)} at "
+            f"{cheapest['ms_per_update']:.3g} ms.")
+
+
+def frontier_markdown(result: dict) -> str:
+    part, metric = result["part"], result["metric"]
+    lines = [
+        f"# Accuracy against time per update: {result['model_name']} ({result['model']}"
+        + (" " + " ".join(result["model_args"]) if result["model_args"] else "") + ")", "",
+        f"d = {result['state_dim']}, obs_dim = {result['obs_dim']}; {result['seeds']} seeds × {result['steps']} steps "
+        f"of shared trajectories (uniform random actions); reference: {result['reference']}. Distances to the "
+        f"reference on the state part `{part}`, averaged over steps 1..T, mean ± s.e. over seeds. Time: ms per "
+        f"update of one belief (the {result['seeds']} seeds' beliefs updated as one batch, the first update "
+        f"excluded), {result['threads']} torch thread(s)"
+        + (", SVGD/ESCORT compiled" if result["compile"] else ", eager") + ".", "",
+        "**" + advice(result) + "**", "",
+        "## Closest filter at each time budget", "",
+        f"| budget (ms per update) | filter | {METRIC_NAMES[metric]} |", "| --- | --- | --- |",
+    ]
+    for b in result["budgets"]:
+        lines.append(f"| {b['ms']:g} | {b['best'] or '— (none fits)'} | "
+                     f"{'—' if b['error'] is None else format(b['error'], '.4g')} |")
+    lines += ["", f"Pareto front ({METRIC_NAMES[metric]} against time): " + ", ".join(result["front"]) + ".", "",
+              "## Every row", "",
+              "| filter | ms per update | sliced W1 | mean error | covariance error | MMD² | on the front | "
+              "ESS of the importance weights |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in sorted(result["rows"], key=lambda r: (r["method"], r["particles"], r["num_steps"])):
+        if r.get("failed"):
+            lines.append(f"| {label(r)} | {r['ms_per_update']:.3g} | diverged at step {r['failed']['step']} | | | | | |")
+            continue
+        s = r["summary"]
+        lines.append(f"| {label(r)} | {r['ms_per_update']:.3g} | " + " | ".join(
+            format_mean_se(s[f"{part}/{m}"], 4) for m in ("w1", "mean", "cov", "mmd2"))
+            + f" | {'yes' if label(r) in result['front'] else ''} | {format_importance(r['importance'])} |")
+    return "\n".join(lines) + "\n"

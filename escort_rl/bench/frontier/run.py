@@ -1,0 +1,111 @@
+"""The frontier's grid: every filter over its cost knobs on one model, the reference first where the
+model has no exact posterior, then one cell per (filter, N, K), on any backend of
+:mod:`escort_rl.bench.runner` (saved as they finish; a rerun skips them)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from escort_rl.bench.frontier.cells import (
+    FILTER_METHODS,
+    ITERATIVE,
+    FrontierCell,
+    FrontierReferenceCell,
+    build_model,
+    model_label,
+)
+from escort_rl.bench.frontier.pareto import best_at_budgets, pareto_front
+from escort_rl.bench.methods import check_choices
+from escort_rl.bench.reference import has_exact_posterior
+from escort_rl.bench.runner import CellStore, InProcessBackend, run_cells
+from escort_rl.reporting.stats import mean_se
+
+DEFAULT_PARTICLES = {"sir": (100, 300, 1000, 3000, 10_000, 30_000, 100_000),
+                     "enkf": (100, 300, 1000, 3000, 10_000, 30_000, 100_000),
+                     "svgd": (30, 100, 300, 1000), "escort": (30, 100, 300, 1000)}
+DEFAULT_ITERATIONS = (5, 15, 50)
+BUDGETS_MS = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
+"""The time budgets (ms per update of one belief) of the "closest filter at each budget" table."""
+METRICS = ("w1", "mean", "cov", "mmd2")
+
+
+def frontier_cells(model: str, model_args: tuple, methods, particles: dict, iterations, seeds: int, steps: int,
+                   compile: bool, threads: int = 1, base_seed: int = 0, reference: tuple = (),
+                   reference_folder: str = "") -> list[FrontierCell]:
+    """One cell per (filter, N) for SIR and EnKF and per (filter, N, K) for SVGD and ESCORT."""
+    cells = []
+    for method in methods:
+        for n in particles[method]:
+            for k in (iterations if method in ITERATIVE else (0,)):
+                cells.append(FrontierCell(model=model, model_args=tuple(model_args), method=method, particles=int(n),
+                                          num_steps=int(k), seeds=tuple(range(seeds)), steps=steps,
+                                          compile=compile and method in ITERATIVE, base_seed=base_seed,
+                                          reference=reference, reference_folder=reference_folder, threads=threads))
+    return cells
+
+
+def _row(cell: FrontierCell, result: dict, metric: str, part: str) -> dict:
+    row = {"method": cell.method, "particles": cell.particles, "num_steps": cell.num_steps,
+           "ms_per_update": 1e3 * result["timing"]["seconds_per_update"], "failed": result.get("failed"),
+           "importance": result.get("importance") or {}}
+    if result.get("failed") is None:
+        row["per_seed"] = result["per_seed"]
+        row["summary"] = {k: mean_se(v) for k, v in result["per_seed"].items()}
+        row["error"] = row["summary"][f"{part}/{metric}"][0]
+    else:
+        row["error"] = float("nan")
+    return row
+
+
+def label(row: dict) -> str:
+    """``escort N=100 K=15``."""
+    return f"{row['method']} N={row['particles']}" + (f" K={row['num_steps']}" if row["method"] in ITERATIVE else "")
+
+
+def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, particles: dict | None = None,
+                 iterations=DEFAULT_ITERATIONS, seeds: int = 5, steps: int = 20, compile: bool = False,
+                 metric: str = "w1", reference_particles: int = 100_000, backend=None, threads: int = 1,
+                 output: Path | None = None, progress=None, base_seed: int = 0) -> dict:
+    """Every filter over its costs on ``model``; each row's distances to the reference (mean ± s.e. over
+    seeds, time-averaged over the steps), its ms per update, and the Pareto front on ``metric`` of the
+    model's first state part against time. ``output``: where the cells (and the SIR reference) are kept.
+    """
+    check_choices("--methods", methods, FILTER_METHODS)
+    check_choices("--metric", [metric], METRICS, "metric")
+    particles = {m: tuple((particles or {}).get(m, DEFAULT_PARTICLES[m])) for m in methods}
+    built = build_model(model, tuple(model_args))
+    from escort_rl.bench.reference import state_parts
+
+    part = next(iter(state_parts(built)))
+    store = CellStore(Path(output) / "cells") if output is not None else None
+    backend = backend or InProcessBackend()
+    reference, folder, reference_kind = (), "", "exact"
+    try:
+        if not has_exact_posterior(built):
+            folder = str((Path(output) if output is not None else Path(".")) / "reference")
+            ref_cell = FrontierReferenceCell(domain=model_label(model, model_args), particles=int(reference_particles),
+                                             steps=steps, seeds=tuple(range(seeds)), base_seed=base_seed,
+                                             folder=folder, model_spec=model, model_args=tuple(model_args),
+                                             threads=threads)
+            ref = store.load(ref_cell) if store is not None else None
+            if ref is None or not ref_cell.valid(ref):  # a missing or damaged file is computed again
+                [ref] = run_cells([ref_cell], backend, None, desc="frontier reference")
+                if store is not None:
+                    store.save(ref_cell, ref)
+            reference, reference_kind = (ref["file"], ref["hash"]), f"SIR with {reference_particles} particles"
+        cells = frontier_cells(model, model_args, methods, particles, iterations, seeds, steps, compile, threads,
+                               base_seed, reference, folder)
+        results = run_cells(cells, backend, store, desc="frontier cells",
+                            on_result=(lambda c, r: progress(_row(c, r, metric, part))) if progress else None)
+    finally:
+        backend.close()
+    rows = [_row(c, r, metric, part) for c, r in zip(cells, results)]
+    points = [(label(r), r["ms_per_update"], r["error"]) for r in rows]
+    front = pareto_front(points)
+    best = best_at_budgets(points, BUDGETS_MS)
+    return {"model": model, "model_args": list(model_args), "model_name": type(built).__name__,
+            "state_dim": built.state_dim, "obs_dim": built.obs_dim, "reference": reference_kind, "part": part,
+            "metric": metric, "seeds": seeds, "steps": steps, "compile": compile, "threads": threads,
+            "rows": rows, "front": [p[0] for p in front],
+            "budgets": [{"ms": b, "best": None if p is None else p[0], "error": None if p is None else p[2]}
+                        for b, p in zip(BUDGETS_MS, best)]}

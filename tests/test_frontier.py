@@ -1,0 +1,98 @@
+"""The frontier (escort_rl.bench.frontier): the Pareto selection on a hand-made table, and the command
+on the linear-Gaussian family and on a user's own model class that imports nothing from escort_rl."""
+
+import json
+import math
+import textwrap
+
+import pytest
+
+from escort_rl.bench.frontier import best_at_budgets, pareto_front
+from escort_rl.cli import main
+
+USER_MODEL = textwrap.dedent('''
+    import math
+    import torch
+
+    class Drift:
+        """A 2-D random walk seen through noise, on the model protocol (no escort_rl import)."""
+        n_actions = 2
+
+        def __init__(self, obs_std=0.5):
+            self.state_dim = self.obs_dim = 2
+            self.obs_std = float(obs_std)
+
+        def initial_state(self, shape, generator=None):
+            return torch.randn(*shape, 2, generator=generator)
+
+        def initial_belief(self, shape, n, generator=None):
+            return torch.randn(*shape, n, 2, generator=generator)
+
+        def transition_mean(self, s, a):
+            return s + 0.1 * (2.0 * a.unsqueeze(-1).to(s.dtype) - 1.0)
+
+        def transition_scale_tril(self):
+            return 0.3 * torch.eye(2)
+
+        def transition(self, s, a, generator=None):
+            return self.transition_mean(s, a) + 0.3 * torch.randn(s.shape, generator=generator)
+
+        def transition_log_prob(self, s_next, s, a):
+            z = (s_next - self.transition_mean(s, a)) / 0.3
+            return -0.5 * (z * z).sum(-1) - 2 * math.log(0.3) - math.log(2 * math.pi)
+
+        def observe(self, s_next, a, generator=None):
+            return s_next + self.obs_std * torch.randn(s_next.shape, generator=generator)
+
+        def observation_log_prob(self, o, s_next, a):
+            z = (o - s_next) / self.obs_std
+            return -0.5 * (z * z).sum(-1) - 2 * math.log(self.obs_std) - math.log(2 * math.pi)
+
+        def reward(self, s, a, s_next):
+            return torch.zeros(s.shape[:-1])
+
+        def is_terminal(self, s):
+            return torch.zeros(s.shape[:-1], dtype=torch.bool)
+''')
+
+
+def test_pareto_front_and_budgets_on_a_hand_made_table():
+    pts = [("sir 100", 1.0, 0.50), ("sir 1000", 3.0, 0.20), ("enkf 100", 0.5, 0.60),
+           ("escort", 10.0, 0.25),  # dominated by sir 1000: slower and worse
+           ("enkf 1000", 3.0, 0.20),  # ties sir 1000 exactly: both on the front
+           ("svgd", 20.0, 0.05), ("bad", math.nan, 0.01)]
+    assert [p[0] for p in pareto_front(pts)] == ["enkf 100", "sir 100", "sir 1000", "enkf 1000", "svgd"]
+    best = best_at_budgets(pts, [0.1, 0.5, 2.0, 5.0, 100.0])
+    assert best[0] is None and best[1][0] == "enkf 100" and best[2][0] == "sir 100"
+    assert best[3][2] == 0.20 and best[4][0] == "svgd"
+
+
+def test_bench_frontier_on_the_linear_gaussian_family(tmp_path):
+    out = tmp_path / "lg"
+    argv = ["bench", "frontier", "env=linear_gaussian", "env.model.state_dim=3", "env.model.obs_std=0.2",
+            "--quick", "--sir-particles", "50", "200", "--enkf-particles", "50", "--escort-particles", "20",
+            "--svgd-particles", "20", "--num-steps", "3", "--steps", "3", "--output", str(out)]
+    assert main(argv) == 0
+    result = json.loads((out / "frontier.json").read_text())
+    assert result["reference"] == "exact" and result["state_dim"] == 3
+    assert {r["method"] for r in result["rows"]} == {"sir", "enkf", "svgd", "escort"}
+    assert result["front"] and all(r["ms_per_update"] > 0 for r in result["rows"])
+    assert (out / "frontier.png").exists() and "per update, use" in (out / "frontier.md").read_text()
+    assert main(argv) == 0  # a rerun loads every cell
+
+
+def test_bench_frontier_on_a_users_own_model_class(tmp_path, monkeypatch, capsys):
+    (tmp_path / "my_models.py").write_text(USER_MODEL)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    out = tmp_path / "mine"
+    argv = ["bench", "frontier", "--model", "my_models:Drift", "--model-arg", "obs_std=0.3", "--quick",
+            "--methods", "sir", "enkf", "--sir-particles", "30", "100", "--enkf-particles", "30",
+            "--reference-particles", "500", "--steps", "3", "--output", str(out)]
+    assert main(argv) == 0
+    result = json.loads((out / "frontier.json").read_text())
+    assert result["reference"] == "SIR with 500 particles" and result["model_name"] == "Drift"
+    assert len(result["rows"]) == 3 and list((out / "reference").rglob("*.pt"))
+    capsys.readouterr()
+    assert main(["bench", "frontier", "--model", "my_models:Nope", "--quick", "--output", str(out)]) == 2
+    assert "--model: cannot import my_models:Nope" in capsys.readouterr().err
+    assert main(["bench", "frontier", "env=linear_gaussian", "--model", "my_models:Drift", "--output", str(out)]) == 2
