@@ -96,3 +96,16 @@ def test_bench_frontier_on_a_users_own_model_class(tmp_path, monkeypatch, capsys
     assert main(["bench", "frontier", "--model", "my_models:Nope", "--quick", "--output", str(out)]) == 2
     assert "--model: cannot import my_models:Nope" in capsys.readouterr().err
     assert main(["bench", "frontier", "env=linear_gaussian", "--model", "my_models:Drift", "--output", str(out)]) == 2
+
+
+def test_bench_regime_map_runs_a_frontier_per_point(tmp_path):
+    out = tmp_path / "map"
+    argv = ["bench", "regime-map", "--dims", "2", "3", "--obs-std", "0.2", "--methods", "sir", "enkf", "escort",
+            "--sir-particles", "40", "--enkf-particles", "40", "--escort-particles", "16", "--num-steps", "2",
+            "--seeds", "2", "--steps", "2", "--output", str(out)]
+    assert main(argv) == 0
+    result = json.loads((out / "regime_map.json").read_text())
+    assert [(p["dim"], p["obs_std"]) for p in result["points"]] == [(2, 0.2), (3, 0.2)]
+    md = (out / "regime_map.md").read_text()
+    assert "ESCORT is on the front at:" in md and md.count("| 0.2 |") == 2
+    assert (out / "D2_obs0.2" / "cells").is_dir()
