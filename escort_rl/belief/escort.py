@@ -620,7 +620,8 @@ class ESCORTFilter(BeliefFilter):
 def gaussian_fit_log_prob(x: Tensor) -> Tensor:
     """``log N(x_i; x̄, Σ̂)`` of each particle under the Gaussian with the particles' own mean and
     covariance (a ridge of ``1e-6 · tr(Σ̂)/d`` keeps it factorable; with ``N ≤ d`` particles, where
-    ``Σ̂`` is singular, its diagonal): ``[*B, N, d] -> [*B, N]``."""
+    ``Σ̂`` is singular, its diagonal): ``[*B, N, d] -> [*B, N]``; NaN for a belief whose covariance is
+    not finite or cannot be factored (never an exception: :meth:`ESCORTFilter.fit` names bad particles)."""
     d = x.shape[-1]
     mean = x.mean(-2, keepdim=True)
     c = x - mean
@@ -629,10 +630,16 @@ def gaussian_fit_log_prob(x: Tensor) -> Tensor:
         cov = torch.diag_embed(torch.diagonal(cov, dim1=-2, dim2=-1))
     ridge = 1e-6 * torch.diagonal(cov, dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)
     cov = cov + ridge[..., None, None] * torch.eye(d, dtype=x.dtype, device=x.device)
-    tril = torch.linalg.cholesky(cov)
+    bad = ~is_finite(cov).all(-1).all(-1)  # non-finite particles: the caller's guard names them
+    cov = torch.where(bad[..., None, None], torch.eye(d, dtype=x.dtype, device=x.device), cov)
+    tril, info = torch.linalg.cholesky_ex(cov)
+    bad = bad | (info != 0)
+    tril = torch.where(bad[..., None, None], torch.eye(d, dtype=x.dtype, device=x.device), tril)
     z = torch.linalg.solve_triangular(tril, c.transpose(-1, -2), upper=False)  # [*B, d, N]
     half_log_det = torch.log(torch.diagonal(tril, dim1=-2, dim2=-1)).sum(-1, keepdim=True)
-    return -0.5 * (z * z).sum(-2) - half_log_det - 0.5 * d * math.log(2 * math.pi)
+    out = -0.5 * (z * z).sum(-2) - half_log_det - 0.5 * d * math.log(2 * math.pi)
+    # a belief whose moments cannot be factored gets no Gaussian: NaN, which its weights treat as impossible
+    return torch.where(bad.unsqueeze(-1), torch.full_like(out, float("nan")), out)
 
 
 def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]],
