@@ -1,4 +1,4 @@
-"""The accuracy–cost frontier (SPEC §13): for any model, each filter over its cost knobs against the
+"""The accuracy–cost frontier: for any model, each filter over its cost knobs against the
 reference posterior, and the Pareto front of distance against time per update.
 
 - :mod:`~escort_rl.bench.frontier.cells`: the model spec, the reference and one filter's cell;

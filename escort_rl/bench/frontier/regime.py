@@ -1,5 +1,5 @@
 """The regime map (``escort-rl bench regime-map``): the frontier over dimension × observation
-sharpness on the linear-Gaussian family, whose exact posterior is Kalman's (SPEC §13).
+sharpness on the linear-Gaussian family, whose exact posterior is Kalman's.
 
 Each point ``(D, r)`` is a whole frontier (:func:`~escort_rl.bench.frontier.run.run_frontier`) of
 ``env=linear_gaussian env.model.state_dim=D env.model.obs_std=r`` in its own folder, so a killed map

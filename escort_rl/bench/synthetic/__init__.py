@@ -1,4 +1,4 @@
-"""The synthetic benchmark (SPEC §7, §14): the paper's GMM targets (Table 2) and the 5-mode
+"""The synthetic benchmark: the paper's GMM targets (Table 2) and the 5-mode
 scalability targets (the RMSE scaling table), under a static and a tracking protocol.
 
 - :mod:`~escort_rl.bench.synthetic.cells`: the starts, the fits, the scores and the cells;
