@@ -108,4 +108,5 @@ def test_bench_regime_map_runs_a_frontier_per_point(tmp_path):
     assert [(p["dim"], p["obs_std"]) for p in result["points"]] == [(2, 0.2), (3, 0.2)]
     md = (out / "regime_map.md").read_text()
     assert "ESCORT is on the front at:" in md and md.count("| 0.2 |") == 2
-    assert (out / "D2_obs0.2" / "cells").is_dir()
+    assert (out / "D2_obs0.2" / "cells").is_dir() and (out / "D2_obs0.2" / "frontier.md").exists()
+    assert (out / "regime_map.png").exists()

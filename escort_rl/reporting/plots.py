@@ -201,3 +201,28 @@ def plot_frontier(rows: list[dict], front: list[str], path: Path, xlabel: str, y
     ax.set_ylabel(ylabel)
     ax.legend(fontsize=8)
     return _finish(fig, path, title)
+
+
+def plot_regime_map(points: list[dict], path: Path, budgets=(1.0, 10.0, 100.0), title: str = "") -> Path:
+    """One panel per time budget: a grid of (dimension, observation std) points, each coloured and
+    labelled by the filter closest to the reference within that budget (``point["budgets"]``)."""
+    dims = sorted({p["dim"] for p in points})
+    stds = sorted({p["obs_std"] for p in points})
+    methods = sorted({(b["best"] or "none").split()[0] for p in points for b in p["budgets"]})
+    colours = {m: plt.cm.tab10(i) for i, m in enumerate(methods)}
+    fig, axes = plt.subplots(1, len(budgets), figsize=(3.4 * len(budgets), 0.5 + 0.55 * len(dims) + 1.2),
+                             squeeze=False)
+    for ax, budget in zip(axes[0], budgets):
+        for p in points:
+            best = next((b["best"] for b in p["budgets"] if b["ms"] == budget), None) or "none"
+            x, y = stds.index(p["obs_std"]), dims.index(p["dim"])
+            ax.add_patch(plt.Rectangle((x - 0.5, y - 0.5), 1, 1, color=colours[best.split()[0]], alpha=0.55))
+            ax.text(x, y, best.replace(" K=", "\nK=").replace(" N=", "\nN="), ha="center", va="center", fontsize=6)
+        ax.set_xlim(-0.5, len(stds) - 0.5)
+        ax.set_ylim(-0.5, len(dims) - 0.5)
+        ax.set_xticks(range(len(stds)), [f"{s:g}" for s in stds])
+        ax.set_yticks(range(len(dims)), [str(d) for d in dims])
+        ax.set_xlabel("observation std")
+        ax.set_ylabel("dimension D")
+        ax.set_title(f"closest within {budget:g} ms", fontsize=8)
+    return _finish(fig, path, title)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from escort_rl.bench.frontier.cells import FILTER_METHODS
@@ -66,12 +67,28 @@ def model_spec(args) -> tuple[str, tuple]:
     return f"env:{env or 'linear_gaussian'}", tuple(env_args)
 
 
-def main(args) -> None:
+def write_frontier(out: Path, result: dict, echo: bool = True) -> None:
+    """``frontier.json``, ``frontier.md`` and ``frontier.png`` of one frontier in ``out``."""
     from escort_rl.bench.frontier.report import frontier_markdown
     from escort_rl.bench.frontier.run import label
-    from escort_rl.bench.runner import backend_from_args
-    from escort_rl.reporting.paths import write_results
     from escort_rl.reporting.plots import plot_frontier
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    plot_frontier(result["rows"], result["front"], out / "frontier.png", xlabel="ms per update (one belief)",
+                  ylabel=f"{result['metric']} to the reference ({result['part']})",
+                  title=f"{result['model_name']} " + " ".join(result["model_args"]), label=label)
+    md = frontier_markdown(result)
+    (out / "frontier.json").write_text(json.dumps(result, indent=1))
+    (out / "frontier.md").write_text(md)
+    if echo:
+        print(md)
+        print(f"results: {out.resolve()}")
+
+
+def main(args) -> None:
+    from escort_rl.bench.frontier.run import label
+    from escort_rl.bench.runner import backend_from_args
 
     model, model_args = model_spec(args)
     quick = QUICK if args.quick else {}
@@ -93,7 +110,4 @@ def main(args) -> None:
                           steps=explicit("steps", 20), compile=args.compile, metric=args.metric,
                           reference_particles=explicit("reference_particles", 100_000),
                           backend=backend_from_args(args), threads=args.threads or 1, output=out, progress=show)
-    plot_frontier(result["rows"], result["front"], out / "frontier.png", xlabel="ms per update (one belief)",
-                  ylabel=f"{args.metric} to the reference ({result['part']})",
-                  title=f"{result['model_name']} " + " ".join(result["model_args"]), label=label)
-    write_results(out, "frontier", result, frontier_markdown(result))
+    write_frontier(out, result)

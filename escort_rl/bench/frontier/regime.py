@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from escort_rl.bench.frontier.cli import write_frontier
 from escort_rl.bench.frontier.run import BUDGETS_MS, run_frontier
 
 
@@ -27,6 +28,7 @@ def run_regime_map(dims, obs_stds, root: Path, progress=None, make_backend=None,
             result = run_frontier("env:linear_gaussian", (f"model.state_dim={int(d)}", f"model.obs_std={float(r)}"),
                                   output=point_folder(root, d, r), progress=progress,
                                   backend=make_backend() if make_backend else None, **frontier)
+            write_frontier(point_folder(root, d, r), result, echo=False)
             points.append({"dim": int(d), "obs_std": float(r), "front": result["front"],
                            "budgets": result["budgets"], "metric": result["metric"],
                            "methods_on_front": sorted({f.split()[0] for f in result["front"]})})
@@ -89,8 +91,12 @@ def main(args) -> None:
         print(f"{row['method']:>7} N={row['particles']:<6} K={row['num_steps']:<3}: {row['ms_per_update']:.3g} ms, "
               f"error {row['error']:.4g}", flush=True)
 
+    from escort_rl.reporting.plots import plot_regime_map
+
     result = run_regime_map(args.dims, args.obs_std, out, progress=show, methods=args.methods, particles=particles,
                             iterations=args.num_steps or DEFAULT_ITERATIONS, seeds=args.seeds, steps=args.steps,
                             compile=args.compile, make_backend=lambda: backend_from_args(args),
                             threads=args.threads or 1)
+    plot_regime_map(result["points"], out / "regime_map.png",
+                    title="Linear-Gaussian family: the closest filter to the Kalman posterior per time budget")
     write_results(out, "regime_map", result, regime_markdown(result))
