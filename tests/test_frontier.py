@@ -5,7 +5,6 @@ import json
 import math
 import textwrap
 
-import pytest
 
 from escort_rl.bench.frontier import best_at_budgets, pareto_front
 from escort_rl.cli import main

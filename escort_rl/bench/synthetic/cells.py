@@ -37,8 +37,13 @@ from escort_rl.belief.prior import silverman_factor
 from escort_rl.belief.sir import systematic_resample_indices
 from escort_rl.bench import metrics
 from escort_rl.bench.runner import Cell
-from escort_rl.bench.targets import GaussianMixture, initial_distribution, load_target, scalability_initial, \
-    scalability_target
+from escort_rl.bench.targets import (
+    GaussianMixture,
+    initial_distribution,
+    load_target,
+    scalability_initial,
+    scalability_target,
+)
 
 INITS = ("cloud", "overlap", "resampled")
 """The starts of the static protocol (:func:`start_distribution`, :func:`initial_particles`)."""
