@@ -1,4 +1,4 @@
-"""`escort-rl bench domains`, protocol (a) shared trajectories (SPEC §6): tiny runs only."""
+"""`escort-rl bench domains`, protocol (a) shared trajectories: tiny runs only."""
 
 import json
 import math

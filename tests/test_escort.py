@@ -151,7 +151,7 @@ def _episode_errors(filt, steps=12, n=300, batch=4, seed=0):
                                   ESCORTFilter(num_steps=15, step_size=0.15, prior="shrunk")],
                          ids=["svgd", "escort", "escort-shrunk", "escort-train-shrunk"])
 def test_calibrated_against_the_kalman_filter(filt):
-    """SPEC §4: over a 12-step episode with N=300, mean within 0.6 Mahalanobis units of the Kalman
+    """Calibration: over a 12-step episode with N=300, mean within 0.6 Mahalanobis units of the Kalman
     mean on average, and total variance within [0.6, 1.6]× the Kalman variance."""
     maha, ratio = _episode_errors(filt)
     assert maha < 0.6, maha
@@ -379,7 +379,7 @@ def test_adaptive_stop_at_the_first_window_equals_running_that_many_iterations()
 
 def test_adaptive_stop_saves_iterations_and_stays_calibrated():
     """On the Kalman calibration episode a tolerance of 0.05 runs well under K = 50 iterations per
-    update, with the mean and variance still within the calibration bounds of SPEC §4."""
+    update, with the mean and variance still within the calibration bounds."""
     filt = ESCORTFilter(stop_tolerance=0.05)
     maha, ratio = _episode_errors(filt)
     assert filt.mean_iterations() < 40, filt.mean_iterations()

@@ -1,4 +1,4 @@
-"""The package's layering (SPEC §2): no import cycle between modules, no lower layer importing a
+"""The package's layering: no import cycle between modules, no lower layer importing a
 higher one, and no private name imported from another module. Read from the source with ``ast``,
 function-level (lazy) imports included."""
 

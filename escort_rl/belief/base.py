@@ -1,7 +1,7 @@
 """The filter interface that SIR, SVGD and ESCORT share, with input validation.
 
 A filter is stateless apart from its configuration: the belief is passed in and returned.
-Filters know nothing of TorchRL; they see plain tensors and a model (SPEC §2).
+Filters know nothing of TorchRL; they see plain tensors and a model.
 
 Filters never return NaN or inf silently. With ``check_finite`` on (the default), ``init`` and
 ``update`` raise :class:`~escort_rl.belief.checks.NonFiniteError` (a ``ValueError``) naming the

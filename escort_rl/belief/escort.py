@@ -1,4 +1,4 @@
-"""ESCORT and SVGD belief filters (SPEC §4), batched over beliefs ``[*B, N, d]``.
+"""ESCORT and SVGD belief filters, batched over beliefs ``[*B, N, d]``.
 
 One update, for particles ``X_t``, action ``a`` and the next observation ``o``:
 
@@ -205,7 +205,7 @@ class ESCORTFilter(BeliefFilter):
             ``1 + h²``; :class:`~escort_rl.belief.prior.SmoothedPrior`) or ``"exact"`` (the transition
             mixture, for models that give only ``transition_log_prob``).
         jitter: std of the Gaussian jitter; ``None`` gives ``sqrt(0.01 (1 + 0.1 d))``, 0 turns it off.
-        jitter_at: ``"end"`` (default, SPEC §4 step 4): added to the evolved particles, so the belief
+        jitter_at: ``"end"`` (default): added to the evolved particles, so the belief
             carries it as spread. ``"start"``: added to the predicted particles the evolution starts
             from, where it still spreads the start but the K iterations then move the particles
             toward the target, so the belief the consumer reads is the evolution's.

@@ -1,4 +1,4 @@
-"""The predicted prior p̂ of a belief update, and its score (SPEC §4, step 2)."""
+"""The predicted prior p̂ of a belief update, and its score."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Projections for ESCORT's regularisers: correlation-aware subspaces and 1-D optimal transport
-matchings (SPEC §4, step 3). Batched over beliefs ``[*B, N, d]``."""
+matchings. Batched over beliefs ``[*B, N, d]``."""
 
 from __future__ import annotations
 

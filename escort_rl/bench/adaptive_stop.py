@@ -63,7 +63,7 @@ def adaptive_stop_markdown(rows: list[dict], method: str = "escort") -> str:
                      f"{r['final_error'][0]:.3f} ± {r['final_error'][1]:.3f} | "
                      f"{r['mean_error'][0]:.3f} ± {r['mean_error'][1]:.3f} | {1e3 * r['seconds_per_step']:.0f} |")
     lines += ["", "Calibration against the Kalman filter (linear-Gaussian, d = 4, N = 300, 12 steps, 4 episodes; "
-              "bounds of SPEC §4: Mahalanobis < 0.6, variance ratio in [0.6, 1.6]):", "",
+              "the calibration bounds: Mahalanobis < 0.6, variance ratio in [0.6, 1.6]):", "",
               "| stop_tolerance | iterations per update | mean Mahalanobis error | variance ratio |",
               "| --- | --- | --- | --- |"]
     for r in rows:

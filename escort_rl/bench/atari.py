@@ -1,4 +1,4 @@
-"""``escort-rl bench atari``: Flickering Atari, the paper's Table 4 (SPEC §12).
+"""``escort-rl bench atari``: Flickering Atari, the paper's Table 4.
 
 Each (game, agent, seed) is one cell (:class:`AtariCell`): an A2C training run
 (:class:`escort_rl.trainers.atari_a2c.AtariA2C`) on the training scaffold, in

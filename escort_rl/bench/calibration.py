@@ -1,5 +1,5 @@
 """Calibration against the exact posterior: filters on a linear-Gaussian model versus the Kalman
-filter over one episode (SPEC §4)."""
+filter over one episode."""
 
 from __future__ import annotations
 

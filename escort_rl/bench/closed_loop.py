@@ -1,4 +1,4 @@
-"""The domain benchmark, protocol (b) "closed loop" (SPEC §6).
+"""The domain benchmark, protocol (b) "closed loop".
 
 For each domain and method (a filter config name under ``configs/filter/``) the trainer named by
 ``trainer`` in ``configs/bench/closed_loop.yaml`` (PPO; without the key, the config's default,

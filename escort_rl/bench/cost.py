@@ -1,4 +1,4 @@
-"""The cost of one belief update (SPEC §8): time against d, N and batch B for ESCORT, SVGD and SIR
+"""The cost of one belief update: time against d, N and batch B for ESCORT, SVGD and SIR
 in the same run, a breakdown of ESCORT's time, a fitted scaling exponent in d, and achieved
 GFLOP/s next to the machine's measured float32 matmul GFLOP/s."""
 

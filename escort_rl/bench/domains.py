@@ -1,4 +1,4 @@
-"""The domain benchmark (SPEC §6), protocol (a) "shared trajectories", as a grid of cells.
+"""The domain benchmark, protocol (a) "shared trajectories", as a grid of cells.
 
 Every method (a filter config name, so a new config is a new row; or a learned belief) filters the
 same seeded action/observation sequences from the same seeded priors
@@ -694,7 +694,7 @@ def register(subparsers) -> None:
     """Add ``bench domains`` (protocols (a) and (b)) to the ``bench`` subparsers."""
     dom = subparsers.add_parser(
         "domains", help="filters on Light-Dark, Kidnapped Robot, MTT: shared trajectories",
-        description="Protocol (a) of SPEC §6 (paper Table 1 layout): every method filters the same seeded "
+        description="Protocol (a) (paper Table 1 layout): every method filters the same seeded "
         "trajectories (uniform random actions) from the same seeded priors; final and time-averaged position "
         "error (mean ± s.e. over seeds), ms per step, and a table at equal wall-clock per step. Methods are "
         "filter config names. The grid's cells (domain × method × seeds) run on --backend; each is saved in "

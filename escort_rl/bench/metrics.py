@@ -1,5 +1,5 @@
-"""Belief-approximation metrics of the synthetic benchmark (paper, appendix "Evaluation Metrics";
-SPEC §7), as pure torch functions.
+"""Belief-approximation metrics of the synthetic benchmark (paper, appendix "Evaluation Metrics"),
+as pure torch functions.
 
 Conventions. ``x`` holds approximating particles, ``y`` reference samples (e.g. exact samples of
 the target). Sample sets are ``[N, d]``; functions that say so also take leading batch dimensions
@@ -417,7 +417,7 @@ def mode_fractions(particles, means, tau: float = 1.0, weights=None) -> Tensor:
 
 def mode_coverage(particles, means, tau: float = 1.0, threshold: float | None = None,
                   weights=None) -> Tensor:
-    r"""Mode coverage ratio (paper, appendix "Evaluation Metrics"; SPEC §7).
+    r"""Mode coverage ratio (paper, appendix "Evaluation Metrics").
 
     Mode k is covered iff ``f_k > threshold`` where ``f_k`` is the fraction of particles with
     ``‖x_i − μ_k‖₂ < τ`` (see :func:`mode_fractions`) and ``threshold = 0.05 / K`` by default.

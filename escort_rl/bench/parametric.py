@@ -1,4 +1,4 @@
-"""The DVRL-style parametric row of the synthetic benchmark (SPEC §7).
+"""The DVRL-style parametric row of the synthetic benchmark.
 
 DVRL's belief draws its particles from a proposal network, a diagonal Gaussian
 ``q(z) = N(μ(h), diag σ(h)²)`` (:class:`escort_rl.modules.dvrl_networks.GaussianHead`), and weights

@@ -1,4 +1,4 @@
-"""Protocol (a)'s reference posterior, and each belief's distance to it (SPEC §6).
+"""Protocol (a)'s reference posterior, and each belief's distance to it.
 
 **The reference** is a bootstrap particle filter with many particles (``--reference-particles``,
 default 10⁵): propagate through the model's transition, weight by its observation likelihood,

@@ -1,5 +1,5 @@
 """Synthetic multi-modal targets of the benchmark (paper, appendix "Synthetic multi-modal
-distributions"; SPEC §7): Gaussian mixtures in 1D/2D/3D/5D/20D and the 5-mode scalability mixtures
+distributions"): Gaussian mixtures in 1D/2D/3D/5D/20D and the 5-mode scalability mixtures
 at 1..200D, with the initial particle clouds.
 
 All numbers live in ``configs/bench/synthetic.yaml`` (which values are the paper's and which are

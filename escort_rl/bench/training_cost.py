@@ -1,4 +1,4 @@
-"""What training on a belief costs (SPEC §8): frames per second of PPO training on SIR, SVGD and
+"""What training on a belief costs: frames per second of PPO training on SIR, SVGD and
 ESCORT beliefs at several batch sizes, and the compile warm-up of a compiled ESCORT update, cold and
 from the on-disk cache.
 

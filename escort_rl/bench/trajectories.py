@@ -1,5 +1,5 @@
 """Protocol (a)'s building blocks: seeded shared trajectories, seeded priors, and one method
-filtering them (SPEC §6).
+filtering them.
 
 For each domain and seed one trajectory is drawn with a seeded generator: the true start state from
 ``model.initial_state``, actions from a fixed behaviour policy (uniform random actions, seeded per

@@ -1,4 +1,4 @@
-"""Flickering Atari (SPEC §12): single 84×84 grayscale frames, blanked with probability 0.5.
+"""Flickering Atari: single 84×84 grayscale frames, blanked with probability 0.5.
 
 The preprocessing is DVRL's (Igl et al. 2018), which used OpenAI baselines' ``make_atari`` and
 ``wrap_deepmind`` on ``<Game>NoFrameskip-v0``. Here it is written against ``ale_py`` directly (no

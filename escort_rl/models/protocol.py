@@ -117,7 +117,7 @@ def velocity_dims(model) -> tuple[int, ...]:
 
 
 def position_error(model, estimate: Tensor, truth: Tensor) -> Tensor:
-    """The domain's position error (SPEC §6): ``model.position_error(estimate, truth)`` when the model
+    """The domain's position error: ``model.position_error(estimate, truth)`` when the model
     defines one, else ``‖estimate[pos] − truth[pos]‖₂`` over :func:`position_dims`.
     ``estimate``, ``truth`` ``[*S, d]`` -> ``[*S]``."""
     own = getattr(model, "position_error", None)

@@ -1,4 +1,4 @@
-"""ESCORT-latent: ESCORT's particle evolution over the latent state of DVRL's learned VRNN (SPEC §12).
+"""ESCORT-latent: ESCORT's particle evolution over the latent state of DVRL's learned VRNN.
 
 There is no known model on Atari, so the model is DVRL's: the transition ``p(z_t | h_{t-1}, a_{t-1})``
 (the VRNN prior), the emission ``p(o_t | h_{t-1}, z_t, a_{t-1})`` and the recurrence
@@ -7,7 +7,7 @@ equally weighted particles ``(h_k, z_k)``. One step, given ``a_{t-1}`` and ``o_t
 
 1. **Predict** ``z̃_k ~ p(z | h_k, a_{t-1})`` through the learned transition.
 2. **Target** ``log π_k(z) = log p(o_t | h_k, z, a_{t-1}) + log p̂(z)``, with ``p̂`` the smoothed
-   predicted prior of SPEC §4 (:class:`escort_rl.belief.prior.SmoothedPrior`) over the transition
+   predicted prior (:class:`escort_rl.belief.prior.SmoothedPrior`) over the transition
    means ``μ_k``, its process covariance ``diag(mean_k σ_k²)`` (the transition's variances averaged
    over the particles: the smoothed prior shares one covariance). Each particle's likelihood is read
    at its own ``h_k`` (the deterministic part of its history).
@@ -55,7 +55,7 @@ class ESCORTLatent(DVRL):
     def __init__(self, obs_shape: int | Sequence[int], n_actions: int, latent_dim: int,
                  escort: ESCORTFilter | None = None, **dvrl_kwargs) -> None:
         if dvrl_kwargs.pop("resample", False):
-            raise ValueError("resample: ESCORT-latent does not resample (SPEC §4); leave it out or set it False")
+            raise ValueError("resample: ESCORT-latent does not resample, as ESCORT does not; leave it out or set it False")
         super().__init__(obs_shape, n_actions, latent_dim, resample=False, **dvrl_kwargs)
         if escort is None:
             escort = ESCORTFilter(num_steps=5, jitter=0.0)
