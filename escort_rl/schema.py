@@ -168,6 +168,7 @@ class LightDark10DModelConfig:
     start_low: float = 0.0
     start_high: float = 2.0
     prior_width: Optional[float] = _f(None, gt=0)
+    n_pos: int = _f(5, ge=5)
 
 
 @dataclass

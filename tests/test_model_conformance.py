@@ -37,6 +37,7 @@ from escort_rl.models import (
 
 MODELS = {
     "lightdark10d": LightDark10D,
+    "lightdark-npos12": lambda: LightDark10D(n_pos=12),  # the family in more dimensions
     "lightdark1d": LightDark1D,
     "mtt20d": MultiTargetTracking20D,
     "kidnapped20d": KidnappedRobot20D,

@@ -437,6 +437,38 @@ def test_light_dark_rejects_bad_arguments():
         LightDark10D(confusion_prob=1.0)
     with pytest.raises(ValueError, match="sigma_min"):
         LightDark10D(sigma_min=0.0)
+    for bad in (4, 6.5, True):
+        with pytest.raises(ValueError, match="n_pos"):
+            LightDark10D(n_pos=bad)
+
+
+def test_light_dark_in_more_dimensions_keeps_the_paper_light_and_splits_the_swaps():
+    """n_pos = 12: state 24-D; the light is the paper's field of the first five coordinates; the six
+    pairs (2i, 2i+1) each swap with probability confusion_prob / 6 in the dark, one at a time."""
+    big, paper = LightDark10D(n_pos=12), LightDark10D()
+    assert (big.state_dim, big.obs_dim, big.n_actions) == (24, 12, 24)
+    assert big.position_dims == tuple(range(12)) and big.velocity_dims == tuple(range(12, 24))
+    x = 10 * torch.rand(50, 12, generator=gen(30))
+    torch.testing.assert_close(big.light(x), paper.light(x[:, :5]))
+    assert _is_correlation_matrix(big.correlation)
+    torch.testing.assert_close(big.correlation[:10, :10][:5, :5], big.correlation[:5, :5])
+    n = 120_000
+    pos = torch.tensor([-50.0, 50.0] * 6)
+    assert big.light(pos) < big.dark_threshold
+    o = big.observe(torch.cat([pos, torch.zeros(12)]).expand(n, 24), torch.zeros(n, dtype=torch.long), gen(31))
+    swapped = o[:, 0::2] > 0  # [n, 6]: pair k swapped
+    assert bool((swapped == (o[:, 1::2] < 0)).all())
+    assert int(swapped.sum(1).max()) <= 1  # one event at a time
+    share = big.confusion_prob / 6
+    se = math.sqrt(share * (1 - share) / n)
+    assert (swapped.float().mean(0) - share).abs().max().item() < 5 * se
+    # the log-density is the 7-component mixture: a swapped observation costs log(share), not more
+    s = torch.cat([pos, torch.zeros(12)])
+    o_sw = pos.clone()
+    o_sw[[6, 7]] = o_sw[[7, 6]]
+    sigma = big.observation_std(pos)
+    expected = math.log(share) + torch.distributions.Normal(o_sw, sigma).log_prob(o_sw).sum()
+    assert big.observation_log_prob(o_sw, s, torch.tensor(0)).item() == pytest.approx(expected.item(), abs=1e-3)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -214,7 +214,9 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
 
     Returns per part ``mean`` ``[S, T+1, dp]``, ``cov`` ``[S, T+1, dp, dp]``, ``sample``
     ``[S, T+1, M, dp]``, ``gamma``/``kyy`` ``[S, T+1]``, ``dims`` and ``projections`` ``[L, dp]``;
-    and ``ess`` ``[S, T+1]``. Chunks of seeds (at most ``chunk_rows // particles`` each) filter one
+    ``ess`` ``[S, T+1]`` (after each update's resampling) and ``ess_fraction_before_resampling``
+    ``[S, T]`` (ESS / N of each update's weights before it resamples; the mean over the seeds of a chunk,
+    repeated for each). Chunks of seeds (at most ``chunk_rows // particles`` each) filter one
     after another, each with its own generators seeded by its first seed. ``name`` (the domain's)
     seeds the directions of the sliced W1. A chunk of at least :data:`COMPILE_ROWS` rows runs the
     model compiled.
@@ -235,13 +237,20 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
         g = torch.Generator().manual_seed(derived_seed("reference-filter", base_seed, block[0]))
         gs = torch.Generator().manual_seed(derived_seed("reference-sample", base_seed, block[0]))
         steps = [step_summary(belief.particles, belief.log_weights, parts, sample, gs)]
+        before = []  # the ESS fraction of each update's weights before resampling, mean over the chunk
         for t in range(traj["actions"].shape[1]):
+            seen = filt.importance_diagnostics()
             belief = filt.update(model, belief, traj["actions"][rows, t], traj["observations"][rows, t], g)
+            now = filt.importance_diagnostics()
+            before.append((now["mean_ess_fraction"] * now["count"]
+                           - (seen["mean_ess_fraction"] * seen["count"] if seen else 0.0)) / len(block))
             if not bool(torch.isfinite(belief.particles).all()) or bool(torch.isnan(belief.log_weights).any()):
                 raise ValueError(f"the reference posterior of '{name}' became non-finite at step {t + 1} "
                                  f"(seeds {block}); its particles are not usable")
             steps.append(step_summary(belief.particles, belief.log_weights, parts, sample, gs))
-        chunks.append(_stack(steps))
+        chunk = _stack(steps)
+        chunk["ess_fraction_before_resampling"] = torch.tensor(before, dtype=torch.float64).expand(len(block), -1)
+        chunks.append(chunk)
     out = {k: (torch.cat([c[k] for c in chunks]) if not isinstance(v, dict)
                else {kk: torch.cat([c[k][kk] for c in chunks]) for kk in v}) for k, v in chunks[0].items()}
     for part, dims in parts.items():

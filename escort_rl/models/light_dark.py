@@ -1,7 +1,15 @@
-"""Light-Dark 10D (paper, Appendix "Domains: Light Dark 10D").
+"""Light-Dark 10D (paper, Appendix "Domains: Light Dark 10D"), and its family in more dimensions.
 
 State ``s = (x, v)``: 5-D position ``x`` and 5-D velocity ``v`` (``state_dim = 10``).
 Actions ``a ∈ {0..9}``: ``a = 2i`` pushes dimension ``i`` with force ``+f``, ``a = 2i+1`` with ``-f``.
+
+**More dimensions** (``n_pos > 5``, ``state_dim = 2·n_pos``): the light field is the paper's, a
+function of the first five position coordinates; every coordinate is observed with the noise that
+light sets; the process-noise correlations follow the paper's pattern along the chain; and the dark
+swaps become the ``⌊n_pos/2⌋`` pairs ``(2i, 2i+1)``, each with probability
+``confusion_prob / ⌊n_pos/2⌋``. At ``n_pos = 5`` that is the paper's (1, 2) and (3, 4) with
+``confusion_prob / 2`` each; above, the dark likelihood is a mixture of more components, so the
+belief keeps its multi-modal structure as the dimension grows.
 
 Dynamics (additive correlated Gaussian noise ``η ~ N(0, Σ)``):
 
@@ -35,6 +43,9 @@ from escort_rl.models.gaussian import (
     nearest_correlation_matrix,
 )
 
+LIGHT_DIM = 5
+"""The light field's dimension: it is a function of the first five position coordinates."""
+
 # (centre, radius, intensity); centres in 5-D position space.
 LIGHT_REGIONS: tuple[tuple[tuple[float, ...], float, float], ...] = (
     ((5.0, 0.0, 0.0, 0.0, 0.0), 2.0, 0.9),  # primary corridor
@@ -48,7 +59,7 @@ LIGHT_REGIONS: tuple[tuple[tuple[float, ...], float, float], ...] = (
 
 
 def paper_correlations(n_pos: int = 5) -> Tensor:
-    """The process-noise correlation matrix exactly as the paper lists it (``[10, 10]`` float64).
+    """The process-noise correlation matrix exactly as the paper lists it at ``n_pos = 5`` (``[2·n_pos, 2·n_pos]`` float64; beyond five, the chain pattern continues).
 
     ρ(x_i, v_i) = 0.8, ρ(x_i, x_{i+1}) = 0.5, ρ(v_i, v_{i+1}) = 0.6, ρ(x1, x3) = ρ(x2, x4) = 0.4,
     ρ(v1, v2) = 0.7, ρ(v1, v3) = 0.5 (the later entries override the adjacent-velocity value).
@@ -85,6 +96,8 @@ class LightDark10D(AdditiveGaussianTransition):
         confusion_prob: probability of a dimension swap when ``L < dark_threshold`` (paper: 0.2).
         dark_threshold: light level under which swaps happen (paper: 0.1).
         goal: goal position (paper: (8, 8, 8, 8, 8)); success_radius (paper: 0.5).
+        n_pos: the position dimension (paper: 5; at least 5); ``state_dim = 2·n_pos``,
+            ``obs_dim = n_pos``, ``n_actions = 2·n_pos``.
         start_low, start_high: the start box for positions (paper: [0, 2]^5).
         prior_width: ``None`` (default): the belief's prior is the start distribution. A number
             (exploring starts, where the start box is wider than the paper's): the prior is a box
@@ -115,6 +128,7 @@ class LightDark10D(AdditiveGaussianTransition):
         start_low: float = 0.0,
         start_high: float = 2.0,
         prior_width: float | None = None,
+        n_pos: int = 5,
         device: torch.device | str | None = None,
     ) -> None:
         for name, value in (
@@ -130,6 +144,12 @@ class LightDark10D(AdditiveGaussianTransition):
             raise ValueError(f"LightDark10D.prior_width: must be None or > 0, got {prior_width}")
         if not 0.0 <= confusion_prob < 1.0:
             raise ValueError(f"LightDark10D.confusion_prob: must be in [0, 1), got {confusion_prob}")
+        if isinstance(n_pos, bool) or int(n_pos) != n_pos or n_pos < LIGHT_DIM:
+            raise ValueError(f"LightDark10D.n_pos: must be an integer >= {LIGHT_DIM} (the light field's "
+                             f"dimension), got {n_pos!r}")
+        n = self.n_pos = int(n_pos)
+        self.position_dims, self.velocity_dims = tuple(range(n)), tuple(range(n, 2 * n))
+        self.state_dim, self.obs_dim, self.n_actions = 2 * n, n, 2 * n
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.force, self.damping, self.dt = force, damping, dt
         self.sigma_base, self.sigma_min = sigma_base, sigma_min
@@ -139,8 +159,8 @@ class LightDark10D(AdditiveGaussianTransition):
         self.prior_width = prior_width
         self.goal = torch.full((self.n_pos,), float(goal), device=self.device)
 
-        self.correlation = make_positive_definite(nearest_correlation_matrix(paper_correlations()))
-        stds = torch.tensor([position_noise_std] * 5 + [velocity_noise_std] * 5, dtype=torch.float64)
+        self.correlation = make_positive_definite(nearest_correlation_matrix(paper_correlations(n)))
+        stds = torch.tensor([position_noise_std] * n + [velocity_noise_std] * n, dtype=torch.float64)
         cov = self.correlation * stds[:, None] * stds[None, :]
         self.noise_covariance = cov.to(torch.float32).to(self.device)
         self._process = GaussianNoise(torch.linalg.cholesky(cov).to(torch.float32).to(self.device))
@@ -150,42 +170,53 @@ class LightDark10D(AdditiveGaussianTransition):
         self.light_intensities = torch.tensor([i for _, _, i in LIGHT_REGIONS], device=self.device)
         self._centre_sq = (self.light_centres**2).sum(-1)
         self._radius_sq = self.light_radii**2
-        half = confusion_prob / 2
-        # log-probabilities of {no swap, swap(1,2), swap(3,4)} in the dark
-        self._log_event_probs = torch.log(torch.tensor([1 - confusion_prob, half, half], device=self.device))
+        n_pairs = n // 2
+        share = confusion_prob / n_pairs
+        # log-probabilities of {no swap, swap(1,2), swap(3,4), ...} in the dark
+        self._log_event_probs = torch.log(torch.tensor([1 - confusion_prob] + [share] * n_pairs, device=self.device))
         forces = torch.zeros(self.n_actions, self.state_dim, device=self.device)
         for a in range(self.n_actions):
             forces[a, self.n_pos + a // 2] = force if a % 2 == 0 else -force
         self._velocity_force = forces  # [n_actions, d]: the force added to v' per action
-        swaps = torch.stack([torch.arange(5), torch.tensor([1, 0, 2, 3, 4]), torch.tensor([0, 1, 3, 2, 4])])
-        self._swap_perms = swaps.to(self.device)  # [3, 5]: identity, swap(1,2), swap(3,4)
-        self._no_swap = torch.tensor([1.0, 0.0, 0.0], device=self.device)  # event weights in the light
+        self._swap_i = torch.arange(0, 2 * n_pairs, 2, device=self.device)  # [n_pairs]: pair k swaps
+        self._swap_j = self._swap_i + 1  # coordinates 2k and 2k + 1
+        perms = torch.arange(n).repeat(n_pairs + 1, 1)
+        perms[1 + torch.arange(n_pairs), 2 * torch.arange(n_pairs)] += 1
+        perms[1 + torch.arange(n_pairs), 2 * torch.arange(n_pairs) + 1] -= 1
+        self._swap_perms = perms.to(self.device)  # [1 + n_pairs, n_pos]: identity, then each swap
+        self._no_swap = torch.zeros(n_pairs + 1, device=self.device)  # event weights in the light
+        self._no_swap[0] = 1.0
 
     # ------------------------------------------------------------------ light and noise
     def _light_levels(self, pos: Tensor) -> tuple[Tensor, Tensor]:
         """Squared distances ``d_j²`` to the region centres and the levels ``I_j(1 - (d_j/r_j)²)``.
-        ``pos``: ``[*S, 5]`` -> two ``[*S, 7]`` tensors."""
+        ``pos``: ``[*S, 5]`` (the first five coordinates) -> two ``[*S, 7]`` tensors."""
         # squared distances to the centres by ‖x‖² - 2x·c + ‖c‖² (one matmul, no [*S, 7, 5] tensor)
         sq = (pos * pos).sum(-1, keepdim=True) - 2 * pos @ self.light_centres.T + self._centre_sq
         ratio = sq.clamp_min(0.0) / self._radius_sq  # (d_j / r_j)²
         return sq, self.light_intensities * (1.0 - ratio)  # a level is negative exactly when d_j > r_j
 
     def light(self, pos: Tensor) -> Tensor:
-        """Light intensity ``L(x)`` in [0.05, 1]. ``pos``: ``[*S, 5]`` -> ``[*S]``."""
-        return self._light_levels(pos)[1].amax(-1).clamp_min(0.05)
+        """Light intensity ``L(x)`` in [0.05, 1], of the first five coordinates. ``pos``: ``[*S, n_pos]``
+        -> ``[*S]``."""
+        return self._light_levels(pos[..., :LIGHT_DIM])[1].amax(-1).clamp_min(0.05)
 
     def light_and_gradient(self, pos: Tensor) -> tuple[Tensor, Tensor]:
-        """``L(x)`` ``[*S]`` and the gradient autograd gives it, ``∇L(x)`` ``[*S, 5]``.
+        """``L(x)`` ``[*S]`` and the gradient autograd gives it, ``∇L(x)`` ``[*S, n_pos]``.
 
         ``∇L = Σ_j w_j·(-2 I_j/r_j²)·[d_j² ≥ 0]·(x - c_j)``: ``w`` shares 1 evenly among the regions
         that attain the max (the gradient of ``amax``) and is 0 where the max is clamped up to 0.05
-        (outside every radius, or nearly so), so ``∇L = 0`` there. ``pos``: ``[*S, 5]``."""
+        (outside every radius, or nearly so), so ``∇L = 0`` there. ``pos``: ``[*S, n_pos]``; the gradient
+        is 0 beyond the first five coordinates."""
+        full, pos = pos, pos[..., :LIGHT_DIM]
         sq, level = self._light_levels(pos)
         top = level.amax(-1, keepdim=True)
         at_top = (level == top).to(pos.dtype)
         share = at_top / at_top.sum(-1, keepdim=True) * (top >= 0.05)
         coef = share * (sq >= 0) * (-2.0 * self.light_intensities / self._radius_sq)  # [*S, 7]
         grad = coef.sum(-1, keepdim=True) * pos - coef @ self.light_centres
+        if full.shape[-1] > LIGHT_DIM:
+            grad = torch.cat([grad, grad.new_zeros(*grad.shape[:-1], full.shape[-1] - LIGHT_DIM)], dim=-1)
         return top.squeeze(-1).clamp_min(0.05), grad
 
     def observation_std_from_light(self, light: Tensor) -> Tensor:
@@ -193,12 +224,12 @@ class LightDark10D(AdditiveGaussianTransition):
         return torch.sqrt(self.sigma_base**2 * (1.0 - light) + self.sigma_min**2)
 
     def observation_std(self, pos: Tensor) -> Tensor:
-        """σ(x) for positions ``[*S, 5]`` -> ``[*S]``."""
+        """σ(x) for positions ``[*S, n_pos]`` -> ``[*S]``."""
         return self.observation_std_from_light(self.light(pos))
 
     # ------------------------------------------------------------------ protocol
     def initial_state(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor:
-        """Position uniform in the start box, velocity zero. Returns ``[*shape, 10]``."""
+        """Position uniform in the start box, velocity zero. Returns ``[*shape, 2·n_pos]``."""
         u = torch.rand(*shape, self.n_pos, generator=generator, device=self.device)
         pos = self.start_low + (self.start_high - self.start_low) * u
         return torch.cat([pos, torch.zeros_like(pos)], dim=-1)
@@ -206,7 +237,7 @@ class LightDark10D(AdditiveGaussianTransition):
     def initial_belief(
         self, shape: tuple[int, ...], n: int, generator: torch.Generator | None = None
     ) -> Tensor:
-        """``n`` draws of the start distribution per batch element: ``[*shape, n, 10]``."""
+        """``n`` draws of the start distribution per batch element: ``[*shape, n, 2·n_pos]``."""
         return self.initial_state((*shape, n), generator)
 
     def initial_belief_around(self, state: Tensor, n: int, generator: torch.Generator | None = None) -> Tensor:
@@ -214,7 +245,7 @@ class LightDark10D(AdditiveGaussianTransition):
         the paper's start box, wherever the start. Positions uniform in a box of side
         ``prior_width`` whose corner is ``x₀ − prior_width·u``, ``u ~ U[0, 1]^5``, so that ``x₀`` is
         uniform in the box, as a start is in the paper's; velocity zero, as every start's.
-        ``state`` ``[*S, 10]`` -> ``[*S, n, 10]``."""
+        ``state`` ``[*S, 2·n_pos]`` -> ``[*S, n, 2·n_pos]``."""
         if self.prior_width is None:
             raise ValueError("LightDark10D.prior_width: is None; set it to place the prior around the start")
         pos = state[..., : self.n_pos]
@@ -224,42 +255,40 @@ class LightDark10D(AdditiveGaussianTransition):
         return torch.cat([particles, torch.zeros_like(particles)], dim=-1)
 
     def transition_mean(self, s: Tensor, a: Tensor) -> Tensor:
-        """Noise-free dynamics. ``s``: ``[*S, 10]``, ``a``: ``[*S]`` -> ``[*S, 10]``."""
+        """Noise-free dynamics. ``s``: ``[*S, 2·n_pos]``, ``a``: ``[*S]`` -> ``[*S, 2·n_pos]``."""
         pos, vel = s[..., : self.n_pos], s[..., self.n_pos :]
         new_pos = pos + self.dt * vel
         new_vel = (1.0 - self.damping) * vel
         return torch.cat([new_pos, new_vel], dim=-1) + self._velocity_force[a.long()]
 
     def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """``o = P·x' + σ(x')·ε``. ``s_next``: ``[*S, 10]`` -> ``[*S, 5]``."""
+        """``o = P·x' + σ(x')·ε``. ``s_next``: ``[*S, 2·n_pos]`` -> ``[*S, n_pos]``."""
         pos = s_next[..., : self.n_pos]
         u = torch.rand(pos.shape[:-1], generator=generator, device=pos.device)
-        half = self.confusion_prob / 2
-        event = torch.where(u < half, 1, torch.where(u < 2 * half, 2, 0))
+        n_pairs = len(self._swap_i)
+        pair = (u / (self.confusion_prob / n_pairs)).long().clamp_max(n_pairs - 1) if self.confusion_prob > 0 else 0
+        event = torch.where(u < self.confusion_prob, 1 + pair, 0)
         event = torch.where(self.light(pos) < self.dark_threshold, event, torch.zeros_like(event))
-        perm = self._swap_perms[event]  # [*S, 5]
+        perm = self._swap_perms[event]  # [*S, n_pos]
         seen = torch.gather(pos, -1, perm)
         eps = torch.randn(pos.shape, generator=generator, device=pos.device, dtype=pos.dtype)
         return seen + self.observation_std(pos).unsqueeze(-1) * eps
 
     def _swap_errors(self, o: Tensor, pos: Tensor) -> Tensor:
-        """Squared errors ``‖o - P_k x‖²`` for the events {no swap, swap(1,2), swap(3,4)}: the swapped
-        ones differ from the unswapped one only in the two swapped coordinates.
-        ``o``, ``pos``: ``[*S, 5]`` (broadcast) -> ``[*S, 3]``."""
-        diff = o - pos  # [*S, 5]
+        """Squared errors ``‖o - P_k x‖²`` for the events {no swap, swap(1,2), swap(3,4), ...}: a
+        swapped one differs from the unswapped one only in its two swapped coordinates.
+        ``o``, ``pos``: ``[*S, n_pos]`` (broadcast) -> ``[*S, 1 + n_pairs]``."""
+        diff = o - pos  # [*S, n_pos]
         sq = diff * diff
-        sq_id = sq.sum(-1)
-
-        def swapped(i: int, j: int) -> Tensor:
-            cross = (o[..., i] - pos[..., j]) ** 2 + (o[..., j] - pos[..., i]) ** 2
-            return sq_id - sq[..., i] - sq[..., j] + cross
-
-        return torch.stack([sq_id, swapped(0, 1), swapped(2, 3)], dim=-1)
+        sq_id = sq.sum(-1, keepdim=True)
+        i, j = self._swap_i, self._swap_j
+        cross = (o[..., i] - pos[..., j]) ** 2 + (o[..., j] - pos[..., i]) ** 2  # [*S, n_pairs]
+        return torch.cat([sq_id, sq_id - sq[..., i] - sq[..., j] + cross], dim=-1)
 
     def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
         """``log O(o | s')``: in the dark, the mixture over {no swap, swap(1,2), swap(3,4)}.
 
-        ``o``: ``[*S, 5]``, ``s_next``: ``[*S, 10]`` (broadcast) -> ``[*S]``. With isotropic noise σ,
+        ``o``: ``[*S, n_pos]``, ``s_next``: ``[*S, 2·n_pos]`` (broadcast) -> ``[*S]``. With isotropic noise σ,
         each component is ``-‖o - P x‖²/(2σ²) - 5 log σ - (5/2) log 2π``; the swapped squared errors
         differ from the unswapped one only in the two swapped coordinates.
         """
@@ -275,7 +304,7 @@ class LightDark10D(AdditiveGaussianTransition):
 
     def observation_score(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
         """``∇_{s'} log O(o | s')`` in closed form (the gradient autograd gives
-        :meth:`observation_log_prob`). ``o``: ``[*S, 5]``, ``s_next``: ``[*S, 10]`` (broadcast) -> ``[*S, 10]``.
+        :meth:`observation_log_prob`). ``o``: ``[*S, n_pos]``, ``s_next``: ``[*S, 2·n_pos]`` (broadcast) -> ``[*S, 2·n_pos]``.
 
         With ``v = σ²(x)``, errors ``e_k = ‖o - P_k x‖²`` and event weights ``w_k`` (the posterior
         ``softmax_k(log π_k - e_k/2v)`` in the dark, ``(1, 0, 0)`` in the light):
@@ -293,14 +322,19 @@ class LightDark10D(AdditiveGaussianTransition):
         posterior = torch.exp(logits - logits.amax(-1, keepdim=True))  # softmax by hand: on a CPU,
         posterior = posterior / posterior.sum(-1, keepdim=True)  # faster than ATen's on rows of 3
         w = torch.where(dark, posterior, self._no_swap)  # [*S, 3]
-        seen = (w.unsqueeze(-1) * o[..., self._swap_perms]).sum(-2)  # ō [*S, 5]
+        # ō = Σ_k w_k P_k o: swap k moves w_k·(o_j - o_i) into coordinate i and its opposite into j
+        i, j = self._swap_i, self._swap_j
+        shift = w[..., 1:] * (o[..., j] - o[..., i])  # [*S, n_pairs]
+        seen = o.expand(torch.broadcast_shapes(o.shape, pos.shape)).clone()
+        seen[..., i] += shift
+        seen[..., j] -= shift
         mean_err = (w * errs).sum(-1)
         d_var_coef = 0.5 * mean_err / var**2 - 0.5 * self.n_pos / var  # ∂ log O / ∂v
         grad_pos = (seen - pos) / var.unsqueeze(-1) - (self.sigma_base**2 * d_var_coef).unsqueeze(-1) * d_light
         return torch.cat([grad_pos, torch.zeros_like(grad_pos)], dim=-1)
 
     def distance_to_goal(self, s: Tensor) -> Tensor:
-        """‖x - x_goal‖₂. ``s``: ``[*S, 10]`` -> ``[*S]``."""
+        """‖x - x_goal‖₂. ``s``: ``[*S, 2·n_pos]`` -> ``[*S]``."""
         return torch.linalg.vector_norm(s[..., : self.n_pos] - self.goal, dim=-1)
 
     def reward(self, s: Tensor, a: Tensor, s_next: Tensor) -> Tensor:
@@ -312,7 +346,7 @@ class LightDark10D(AdditiveGaussianTransition):
         return self.distance_to_goal(s) < self.success_radius
 
     def position(self, s: Tensor) -> Tensor:
-        """The position part of a state: ``[*S, 10]`` -> ``[*S, 5]``."""
+        """The position part of a state: ``[*S, 2·n_pos]`` -> ``[*S, n_pos]``."""
         return s[..., : self.n_pos]
 
 

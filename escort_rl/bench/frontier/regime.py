@@ -1,9 +1,10 @@
 """The regime map (``escort-rl bench regime-map``): the frontier over dimension × observation
-sharpness on the linear-Gaussian family, whose exact posterior is Kalman's.
+sharpness of a model family; by default the linear-Gaussian family, whose exact posterior is Kalman's.
 
 Each point ``(D, r)`` is a whole frontier (:func:`~escort_rl.bench.frontier.run.run_frontier`) of
-``env=linear_gaussian env.model.state_dim=D env.model.obs_std=r`` in its own folder, so a killed map
-resumes cell by cell. The map says, per point, which filters are on the Pareto front and which filter
+``env=<env> env.<dim_key>=D env.<sharpness_key>=r`` in its own folder, so a killed map resumes cell
+by cell. Another family is another env and its two keys, e.g. Light-Dark in more dimensions:
+``--env lightdark10d --dim-key model.n_pos --sharpness-key model.sigma_base``. The map says, per point, which filters are on the Pareto front and which filter
 is closest at each time budget; if ESCORT is on no front, it says so.
 """
 
@@ -19,40 +20,49 @@ def point_folder(root: Path, dim: int, obs_std: float) -> Path:
     return Path(root) / f"D{dim}_obs{obs_std:g}"
 
 
-def run_regime_map(dims, obs_stds, root: Path, progress=None, make_backend=None, **frontier) -> dict:
-    """The frontier at every ``(D, obs_std)``; ``make_backend()`` gives each point its backend (a
-    frontier closes its own), ``frontier`` goes to :func:`run_frontier`."""
+def run_regime_map(dims, obs_stds, root: Path, progress=None, make_backend=None, env: str = "linear_gaussian",
+                   dim_key: str = "model.state_dim", sharpness_key: str = "model.obs_std", **frontier) -> dict:
+    """The frontier at every ``(D, r)``: ``env.<dim_key>=D env.<sharpness_key>=r``; ``make_backend()``
+    gives each point its backend (a frontier closes its own), ``frontier`` goes to :func:`run_frontier`."""
     points = []
     for d in dims:
         for r in obs_stds:
-            result = run_frontier("env:linear_gaussian", (f"model.state_dim={int(d)}", f"model.obs_std={float(r)}"),
+            result = run_frontier(f"env:{env}", (f"{dim_key}={int(d)}", f"{sharpness_key}={float(r)}"),
                                   output=point_folder(root, d, r), progress=progress,
                                   backend=make_backend() if make_backend else None, **frontier)
             write_frontier(point_folder(root, d, r), result, echo=False)
-            points.append({"dim": int(d), "obs_std": float(r), "front": result["front"],
-                           "budgets": result["budgets"], "metric": result["metric"],
+            points.append({"dim": int(d), "obs_std": float(r), "state_dim": result["state_dim"],
+                           "front": result["front"], "budgets": result["budgets"], "metric": result["metric"],
+                           "reference": result["reference"], "reference_ess": result.get("reference_ess"),
                            "methods_on_front": sorted({f.split()[0] for f in result["front"]})})
-    return {"dims": [int(d) for d in dims], "obs_stds": [float(r) for r in obs_stds], "points": points,
-            "budgets_ms": list(BUDGETS_MS)}
+    return {"env": env, "dim_key": dim_key, "sharpness_key": sharpness_key, "dims": [int(d) for d in dims],
+            "obs_stds": [float(r) for r in obs_stds], "points": points, "budgets_ms": list(BUDGETS_MS)}
 
 
 def regime_markdown(result: dict) -> str:
     points = result["points"]
     escort_on = [p for p in points if "escort" in p["methods_on_front"]]
-    lines = ["# Regime map: which filter is on the accuracy–time front (linear-Gaussian family)", "",
-             "Each cell: the filters on the Pareto front of "
-             f"{points[0]['metric'] if points else ''} to the exact (Kalman) posterior against ms per update, "
-             "and the closest filter at 1, 10 and 100 ms per update. One frontier per point "
-             "(`escort-rl bench frontier env=linear_gaussian env.model.state_dim=D env.model.obs_std=r`).", ""]
+    env, dk, sk = (result.get("env", "linear_gaussian"), result.get("dim_key", "model.state_dim"),
+                   result.get("sharpness_key", "model.obs_std"))
+    reference = points[0]["reference"] if points else ""
+    lines = [f"# Regime map: which filter is on the accuracy–time front (env={env})", "",
+             "Each row: the filters on the Pareto front of "
+             f"{points[0]['metric'] if points else ''} to the reference posterior ({reference}) against ms per "
+             "update, and the closest filter at 1, 10 and 100 ms per update. One frontier per point "
+             f"(`escort-rl bench frontier env={env} env.{dk}=D env.{sk}=r`).", ""]
     lines.append("**ESCORT is on the front at: " + (", ".join(f"D = {p['dim']}, obs_std = {p['obs_std']:g}"
                                                         for p in escort_on) if escort_on else "no point of this map")
                  + ".**")
-    lines += ["", "| D | obs_std | on the front | best at 1 ms | best at 10 ms | best at 100 ms |",
-              "| --- | --- | --- | --- | --- | --- |"]
+    with_ess = any(p.get("reference_ess") for p in points)
+    lines += ["", f"| {dk} = D | {sk} = r | state dim | on the front | best at 1 ms | best at 10 ms | best at 100 ms |"
+              + (" reference ESS (median) |" if with_ess else ""),
+              "| --- | --- | --- | --- | --- | --- | --- |" + (" --- |" if with_ess else "")]
     for p in points:
         best = {b["ms"]: b["best"] or "—" for b in p["budgets"]}
-        lines.append(f"| {p['dim']} | {p['obs_std']:g} | {', '.join(p['methods_on_front'])} | {best.get(1.0, '—')} | "
-                     f"{best.get(10.0, '—')} | {best.get(100.0, '—')} |")
+        ess = p.get("reference_ess")
+        lines.append(f"| {p['dim']} | {p['obs_std']:g} | {p.get('state_dim', p['dim'])} | {', '.join(p['methods_on_front'])} "
+                     f"| {best.get(1.0, '—')} | {best.get(10.0, '—')} | {best.get(100.0, '—')} |"
+                     + (f" {ess['median']:.0f} |" if with_ess and ess else (" — |" if with_ess else "")))
     return "\n".join(lines) + "\n"
 
 
@@ -61,17 +71,25 @@ def register(subparsers) -> None:
     from escort_rl.bench.runner import add_runner_arguments
 
     p = subparsers.add_parser("regime-map", help="the frontier over dimension x observation sharpness "
-                              "(linear-Gaussian, exact reference)",
-                              description="Run bench frontier at every (state_dim, obs_std) of the linear-Gaussian "
-                              "family and say where each filter is on the accuracy-time front.")
+                              "(default: linear-Gaussian, exact reference)",
+                              description="Run bench frontier at every (dimension, sharpness) of a model family "
+                              "(default: the linear-Gaussian family's state_dim x obs_std) and say where each "
+                              "filter is on the accuracy-time front.")
+    p.add_argument("--env", default="linear_gaussian", help="the family's env (default linear_gaussian)")
+    p.add_argument("--dim-key", default="model.state_dim", help="the env key of the dimension axis "
+                   "(default model.state_dim; Light-Dark: model.n_pos)")
+    p.add_argument("--sharpness-key", default="model.obs_std", help="the env key of the sharpness axis "
+                   "(default model.obs_std; Light-Dark: model.sigma_base)")
     p.add_argument("--dims", type=int, nargs="+", default=[10, 20, 50, 100, 200], help="default 10 20 50 100 200")
-    p.add_argument("--obs-std", type=float, nargs="+", default=[0.1, 1.0], help="default 0.1 1.0")
+    p.add_argument("--obs-std", type=float, nargs="+", default=[0.1, 1.0], help="the sharpness axis (default 0.1 1.0)")
     p.add_argument("--methods", nargs="+", default=list(FILTER_METHODS))
     for m in FILTER_METHODS:
         p.add_argument(f"--{m}-particles", type=int, nargs="+", default=None, metavar="N")
     p.add_argument("--num-steps", type=int, nargs="+", default=None, metavar="K")
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--reference-particles", type=int, default=100_000,
+                   help="N of the SIR reference where the family has no exact posterior (default 100000)")
     p.add_argument("--compile", action="store_true")
     p.add_argument("--output", default="outputs/bench/regime_map")
     add_runner_arguments(p)
@@ -93,10 +111,12 @@ def main(args) -> None:
 
     from escort_rl.reporting.plots import plot_regime_map
 
-    result = run_regime_map(args.dims, args.obs_std, out, progress=show, methods=args.methods, particles=particles,
+    result = run_regime_map(args.dims, args.obs_std, out, progress=show, env=args.env, dim_key=args.dim_key,
+                            sharpness_key=args.sharpness_key, methods=args.methods, particles=particles,
                             iterations=args.num_steps or DEFAULT_ITERATIONS, seeds=args.seeds, steps=args.steps,
                             compile=args.compile, make_backend=lambda: backend_from_args(args),
+                            reference_particles=args.reference_particles,
                             threads=args.threads or 1)
     plot_regime_map(result["points"], out / "regime_map.png",
-                    title="Linear-Gaussian family: the closest filter to the Kalman posterior per time budget")
+                    title=f"env={args.env}: the closest filter to the reference posterior per time budget")
     write_results(out, "regime_map", result, regime_markdown(result))

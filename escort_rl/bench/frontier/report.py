@@ -35,6 +35,11 @@ def frontier_markdown(result: dict) -> str:
         f"update of one belief (the {result['seeds']} seeds' beliefs updated as one batch, the first update "
         f"excluded), {result['threads']} torch thread(s)"
         + (", SVGD/ESCORT compiled" if result["compile"] else ", eager") + ".", "",
+        *([f"The reference's ESS per update (before resampling): median {result['reference_ess']['median']:.0f}, "
+           f"min {result['reference_ess']['min']:.0f} of {result['reference'].split()[2]}."
+           + (" **Below 1% of its particles: the reference is a few points, and distances to it are not a "
+              "posterior's.**" if result['reference_ess']['fraction'] < 0.01 else ""), ""]
+          if result.get("reference_ess") else []),
         "**" + advice(result) + "**", "",
         "## Closest filter at each time budget", "",
         f"| budget (ms per update) | filter | {METRIC_NAMES[metric]} |", "| --- | --- | --- |",

@@ -44,6 +44,18 @@ def frontier_cells(model: str, model_args: tuple, methods, particles: dict, iter
     return cells
 
 
+def reference_ess_summary(path: Path, digest: str, particles: int) -> dict:
+    """How far a SIR reference can be trusted: the effective sample size of its weights at each
+    update (before resampling; the mean over a chunk of seeds), as ``min`` and ``median`` over the
+    updates, and ``fraction`` (the median over ``N``). A reference whose ESS is a handful of particles is a few points, not a
+    posterior."""
+    from escort_rl.bench.reference import Reference
+
+    frac = Reference.load(path, digest).data["ess_fraction_before_resampling"].double()
+    return {"min": float(frac.min()) * particles, "median": float(frac.median()) * particles,
+            "fraction": float(frac.median())}
+
+
 def _row(cell: FrontierCell, result: dict, metric: str, part: str) -> dict:
     row = {"method": cell.method, "particles": cell.particles, "num_steps": cell.num_steps,
            "ms_per_update": 1e3 * result["timing"]["seconds_per_update"], "failed": result.get("failed"),
@@ -79,7 +91,7 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
     part = next(iter(state_parts(built)))
     store = CellStore(Path(output) / "cells") if output is not None else None
     backend = backend or InProcessBackend()
-    reference, folder, reference_kind = (), "", "exact"
+    reference, folder, reference_kind, reference_ess = (), "", "exact", None
     try:
         if not has_exact_posterior(built):
             folder = str((Path(output) if output is not None else Path(".")) / "reference")
@@ -93,6 +105,7 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
                 if store is not None:
                     store.save(ref_cell, ref)
             reference, reference_kind = (ref["file"], ref["hash"]), f"SIR with {reference_particles} particles"
+            reference_ess = reference_ess_summary(Path(folder) / ref["file"], ref["hash"], reference_particles)
         cells = frontier_cells(model, model_args, methods, particles, iterations, seeds, steps, compile, threads,
                                base_seed, reference, folder)
         results = run_cells(cells, backend, store, desc="frontier cells",
@@ -105,6 +118,7 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
     best = best_at_budgets(points, BUDGETS_MS)
     return {"model": model, "model_args": list(model_args), "model_name": type(built).__name__,
             "state_dim": built.state_dim, "obs_dim": built.obs_dim, "reference": reference_kind, "part": part,
+            "reference_ess": reference_ess,
             "metric": metric, "seeds": seeds, "steps": steps, "compile": compile, "threads": threads,
             "rows": rows, "front": [p[0] for p in front],
             "budgets": [{"ms": b, "best": None if p is None else p[0], "error": None if p is None else p[2]}
