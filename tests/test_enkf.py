@@ -104,3 +104,22 @@ def test_enkf_from_config_in_the_belief_transform():
     env = TransformedEnv(POMDPEnv(model, batch_size=(2,), seed=0, max_steps=5), BeliefTransform(model, filt, 16))
     td = env.rollout(4)
     assert td["next", "particles"].shape == (2, 4, 16, 3) and bool(torch.isfinite(td["next", "particles"]).all())
+
+
+def test_enkf_kalman_bench_finds_no_mean_bias_and_names_bad_flags():
+    """``bench enkf-kalman``: on a small model the EnKF's mean is unbiased (|t| with 15 degrees of
+    freedom exceeds 6 with probability < 3e-5 per coordinate) and near the i.i.d. floor."""
+    import argparse
+
+    from escort_rl.bench.frontier.kalman import enkf_against_kalman, kalman_markdown, main
+
+    r = enkf_against_kalman(dim=4, particles=2000, episodes=16, steps=5, seed=int(torch.randint(0, 10**6, (1,))))
+    assert r["mean"]["entries"] == 4 and r["covariance"]["entries"] == 10
+    assert r["mean"]["max_abs_z"] < 6
+    assert 0.3 < r["mean"]["error_over_iid_floor"] < 10
+    assert abs(r["covariance"]["trace_ratio"] - 1.0) < 0.1
+    assert "| mean | 4 |" in kalman_markdown(r)
+    args = argparse.Namespace(dim=4, particles=100, episodes=1, steps=3, obs_std=None, seed=0, inflation=None,
+                              localisation_radius=None, output="unused")
+    with pytest.raises(ValueError, match="--episodes"):
+        main(args)
