@@ -49,7 +49,7 @@ from escort_rl.reporting.plots import plot_curve_panels, plot_curves
 from escort_rl.reporting.stats import format_importance, format_mean_se, mean_se, merge_importance
 from escort_rl.reporting.tables import method_table
 
-PARTICLE_GRID = (50, 100, 200, 500, 1000, 2000)
+PARTICLE_GRID = (50, 100, 200, 500, 1000, 2000, 5000, 10_000, 20_000, 50_000, 100_000)
 
 
 # ---------------------------------------------------------------------------------------- cells
@@ -294,7 +294,7 @@ class _Grid:
 
 # ---------------------------------------------------------------------------------------- protocol (a)
 def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, seeds: int = 30, n: int = 100,
-                steps: int | None = None, backend=None, equal_time: bool = True, max_particles: int = 2000,
+                steps: int | None = None, backend=None, equal_time: bool = True, max_particles: int = 100_000,
                 particle_grid=PARTICLE_GRID, reference: str = "escort", calibration_steps: int = 3,
                 base_seed: int = 0, filter_set=(), threads: int | None = None, seeds_per_cell: int | None = None,
                 progress=None, plot_dir=None, runs_dir=None, cells_dir=None, reference_particles: int = 0,
@@ -652,6 +652,12 @@ def domains_markdown(result: dict) -> str:
             "Budgets (ms per step of the reference): " + ", ".join(
                 f"{d} {1e3 * v['budget_seconds_per_step']:.1f}" for d, v in eq["domains"].items()) + ".",
         ]
+        capped = [f"{m} on {d}" for d, v in eq["domains"].items() for m in v["chosen"]
+                  if m != eq["reference"] and v["chosen"][m] == eq["grid"][-1]
+                  and v["calibration"][m][str(eq["grid"][-1])] <= v["budget_seconds_per_step"]]
+        if capped:
+            lines.append(f"The grid's largest N' ({eq['grid'][-1]}) is still within the budget for: "
+                         + ", ".join(capped) + "; a larger --max-particles would give them more.")
         over = [f"{m} on {d}" for d, v in eq["domains"].items() for m in v["over_budget"]]
         if over:
             lines.append("Even the smallest N' is over the budget for: " + ", ".join(over) + ".")
@@ -708,7 +714,8 @@ def register(subparsers) -> None:
     add_runner_arguments(dom, threads_help="torch threads in each cell and in the equal-time measurement "
                          "(default 1; small updates are often fastest with 1)")
     dom.add_argument("--max-particles", type=int, default=None,
-                     help="largest N' for the equal wall-clock table (default 2000)")
+                     help="largest N' for the equal wall-clock table (default 100000; the timing stops at the first N' "
+                     "over the budget)")
     dom.add_argument("--no-equal-time", action="store_true", help="skip the equal wall-clock table")
     dom.add_argument("--reference-particles", type=int, default=None, metavar="N",
                      help="particles of the reference posterior (an SIR filter, run at N and 2N to check it has "
@@ -743,7 +750,7 @@ def main(args) -> None:
     if args.train_iterations is not None or args.train_envs is not None:
         raise ValueError("--train-iterations/--train-envs: only for --protocol b")
     full = dict(domains=list(registry.DOMAINS), methods=list(registry.PROTOCOL_A_METHODS), seeds=30, particles=100,
-                steps=None, max_particles=2000, filter_set=[], threads=None, reference_particles=100_000,
+                steps=None, max_particles=100_000, filter_set=[], threads=None, reference_particles=100_000,
                 reference_sample=SAMPLE)
     kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
     backend = backend_from_args(args)

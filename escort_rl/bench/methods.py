@@ -23,7 +23,7 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-PROTOCOL_A_METHODS = ("escort", "escort_nocorr", "escort_notemp", "escort_noproj", "svgd", "sir")
+PROTOCOL_A_METHODS = ("escort", "escort_nocorr", "escort_notemp", "escort_noproj", "svgd", "sir", "enkf")
 """Protocol (a)'s default rows (filter configs); protocol (b) adds the named rows of its yaml."""
 QUICK_METHODS = ("escort", "svgd", "sir")
 """The rows of ``bench domains --quick``."""
