@@ -80,6 +80,35 @@ def test_bench_frontier_on_the_linear_gaussian_family(tmp_path):
     assert main(argv) == 0  # a rerun loads every cell
 
 
+def test_a_variant_is_a_row_of_its_own_and_leaves_the_filters_cells_alone(tmp_path, capsys):
+    from escort_rl.bench.frontier.cells import FrontierCell, parse_variant
+
+    assert parse_variant("enkf_loc=enkf:localisation_radius=2,inflation=1.1") == (
+        "enkf_loc", "enkf", ("localisation_radius=2", "inflation=1.1"))
+    for bad in ("x=escort", "x=nope:a=1", "sir=sir:roughening=0.1", "1x=sir:roughening=0.1", "x=sir:roughening"):
+        try:
+            parse_variant(bad)
+        except ValueError as err:
+            assert "--variant" in str(err)
+        else:
+            raise AssertionError(f"{bad!r} was accepted")
+    # a filter's own row keeps its spec: the cells saved before variants existed are still found
+    own = FrontierCell(model="env:linear_gaussian", method="sir", particles=10, seeds=(0,), steps=1)
+    assert "variant" not in own.spec() and "filter_args" not in own.spec()
+    out = tmp_path / "v"
+    argv = ["bench", "frontier", "env=linear_gaussian", "env.model.state_dim=3", "--quick", "--methods", "enkf",
+            "--enkf-particles", "40", "--steps", "3", "--variant", "enkf_loc=enkf:localisation_radius=1",
+            "--output", str(out)]
+    assert main(argv) == 0
+    rows = json.loads((out / "frontier.json").read_text())["rows"]
+    assert [(r["method"], r["base"], r["settings"]) for r in rows] == [
+        ("enkf", "enkf", []), ("enkf_loc", "enkf", ["localisation_radius=1"])]
+    assert rows[0]["per_seed"] != rows[1]["per_seed"]  # the taper changed the belief
+    capsys.readouterr()
+    assert main(argv[:-4] + ["--variant", "x=enkf:no_such_key=1", "--output", str(out)]) == 2
+    assert "--variant: EnKFFilter does not take ['no_such_key']" in capsys.readouterr().err
+
+
 def test_bench_frontier_on_a_users_own_model_class(tmp_path, monkeypatch, capsys):
     (tmp_path / "my_models.py").write_text(USER_MODEL)
     monkeypatch.syspath_prepend(str(tmp_path))
@@ -106,6 +135,6 @@ def test_bench_regime_map_runs_a_frontier_per_point(tmp_path):
     result = json.loads((out / "regime_map.json").read_text())
     assert [(p["dim"], p["obs_std"]) for p in result["points"]] == [(2, 0.2), (3, 0.2)]
     md = (out / "regime_map.md").read_text()
-    assert "ESCORT is on the front at:" in md and md.count("| 0.2 |") == 2
+    assert "is on the front at:" in md and md.count("| 0.2 |") == 2
     assert (out / "D2_obs0.2" / "cells").is_dir() and (out / "D2_obs0.2" / "frontier.md").exists()
     assert (out / "regime_map.png").exists()

@@ -76,19 +76,39 @@ def model_label(model: str, model_args: tuple = ()) -> str:
     return re.sub(r"[^A-Za-z0-9_.=-]+", "_", raw.replace("model.", ""))[:80]
 
 
-def make_filter(method: str, num_steps: int = 0, compile: bool = False):
-    """The filter of a frontier row: SIR, EnKF, SVGD or ESCORT (its defaults), with ``K = num_steps``
-    and ``compile`` for the iterative two."""
+def make_filter(method: str, num_steps: int = 0, compile: bool = False, filter_args: tuple = ()):
+    """The filter of a frontier row: SIR, EnKF, SVGD or ESCORT (its class defaults), with
+    ``K = num_steps`` and ``compile`` for the iterative two, and ``filter_args`` (``key=value``
+    strings, a variant's settings) as keyword arguments."""
     from escort_rl.belief import EnKFFilter, ESCORTFilter, SIRFilter, SVGDFilter
 
-    if method == "sir":
-        return SIRFilter()
-    if method == "enkf":
-        return EnKFFilter()
-    if method in ITERATIVE:
-        cls = ESCORTFilter if method == "escort" else SVGDFilter
-        return cls(num_steps=int(num_steps), compile=bool(compile))
-    raise ValueError(f"--methods: unknown filter '{method}'; choose from {', '.join(FILTER_METHODS)}")
+    classes = {"sir": SIRFilter, "enkf": EnKFFilter, "svgd": SVGDFilter, "escort": ESCORTFilter}
+    if method not in classes:
+        raise ValueError(f"--methods: unknown filter '{method}'; choose from {', '.join(FILTER_METHODS)}")
+    kwargs = dict(num_steps=int(num_steps), compile=bool(compile)) if method in ITERATIVE else {}
+    for item in filter_args:
+        key, _, value = item.partition("=")
+        kwargs[key] = _parse_value(value)
+    try:
+        return classes[method](**kwargs)
+    except TypeError as err:
+        raise ValueError(f"--variant: {classes[method].__name__} does not take {sorted(kwargs)} ({err})") from None
+
+
+def parse_variant(text: str) -> tuple[str, str, tuple]:
+    """``--variant NAME=METHOD:KEY=VALUE,KEY=VALUE`` -> ``(name, method, ("KEY=VALUE", ...))``: a filter
+    of the frontier with its own settings, swept over ``METHOD``'s N (and K), e.g.
+    ``escort_stop=escort:stop_tolerance=0.05`` or ``enkf_loc=enkf:localisation_radius=2``."""
+    name, sep, rest = text.partition("=")
+    method, _, settings = rest.partition(":")
+    items = tuple(x for x in settings.split(",") if x)
+    if not sep or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", name) or method not in FILTER_METHODS \
+            or not items or any("=" not in x for x in items):
+        raise ValueError(f"--variant: expected NAME=METHOD:KEY=VALUE[,KEY=VALUE] with METHOD one of "
+                         f"{', '.join(FILTER_METHODS)}, got {text!r}")
+    if name in FILTER_METHODS:
+        raise ValueError(f"--variant: the name '{name}' is a filter's own; choose another")
+    return name, method, items
 
 
 @dataclass(frozen=True)
@@ -131,15 +151,22 @@ class FrontierCell(Cell):
     reference: tuple = ()
     """``(file, hash)`` of the SIR reference (:class:`FrontierReferenceCell`); empty for an exact one."""
     reference_folder: str = ""
+    variant: str = ""
+    """The row's name when it is a variant of ``method`` (:func:`parse_variant`); empty for the filter itself."""
+    filter_args: tuple = ()
+    """The variant's ``key=value`` settings."""
 
     def key(self) -> str:
         k = f"-K{self.num_steps}" if self.method in ITERATIVE else ""
-        return (f"frontier/{model_label(self.model, self.model_args)}/{self.method}/N{self.particles}{k}-"
-                f"T{self.steps}-seeds{self.seeds[0]}-{self.seeds[-1]}")
+        return (f"frontier/{model_label(self.model, self.model_args)}/{self.variant or self.method}/"
+                f"N{self.particles}{k}-T{self.steps}-seeds{self.seeds[0]}-{self.seeds[-1]}")
 
     def spec(self) -> dict:
         spec = super().spec()
         spec.pop("reference_folder")
+        if not self.variant:  # a filter's own rows keep the spec (and saved cells) they had before variants
+            spec.pop("variant")
+            spec.pop("filter_args")
         return spec
 
     def load_reference(self, model, traj: dict, seeds: list[int]) -> Reference:
@@ -161,7 +188,7 @@ class FrontierCell(Cell):
         seeds = list(self.seeds)
         traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
         ref = self.load_reference(model, traj, seeds)
-        filt = make_filter(self.method, self.num_steps, self.compile)
+        filt = make_filter(self.method, self.num_steps, self.compile, self.filter_args)
         belief, _ = initial_beliefs(filt, model, seeds, self.particles, self.base_seed)
         g = torch.Generator().manual_seed(derived_seed("filter", self.base_seed, seeds[0]))
         series, seconds, failed = [], 0.0, None

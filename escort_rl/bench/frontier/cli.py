@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from escort_rl.bench.frontier.cells import FILTER_METHODS
+from escort_rl.bench.frontier.cells import FILTER_METHODS, parse_variant
 from escort_rl.bench.frontier.run import DEFAULT_ITERATIONS, DEFAULT_PARTICLES, METRICS, run_frontier
 
 QUICK = {"particles": {"sir": (100, 1000, 10_000), "enkf": (100, 1000, 10_000), "svgd": (50, 200),
@@ -34,6 +34,9 @@ def register(subparsers) -> None:
                        help=f"N of {m} (default {' '.join(map(str, DEFAULT_PARTICLES[m]))})")
     p.add_argument("--num-steps", type=int, nargs="+", default=None, metavar="K",
                    help=f"K of SVGD and ESCORT (default {' '.join(map(str, DEFAULT_ITERATIONS))})")
+    p.add_argument("--variant", nargs="+", default=[], metavar="NAME=METHOD:KEY=VALUE[,KEY=VALUE]",
+                   help="more rows: a filter with its own settings, swept over METHOD's N (and K), e.g. "
+                   "escort_stop=escort:stop_tolerance=0.05 enkf_loc=enkf:localisation_radius=2")
     p.add_argument("--seeds", type=int, default=5, help="shared trajectories (default 5)")
     p.add_argument("--steps", type=int, default=20, help="updates per trajectory (default 20)")
     p.add_argument("--metric", choices=METRICS, default="w1", help="the front's distance (default w1: sliced W1)")
@@ -106,8 +109,10 @@ def main(args) -> None:
         err = "diverged" if row.get("failed") else f"{row['error']:.4g}"
         print(f"{label(row):>24}: {row['ms_per_update']:.3g} ms, {args.metric} {err}", flush=True)
 
+    variants = {name: (method, items) for name, method, items in map(parse_variant, args.variant)}
     result = run_frontier(model, model_args, args.methods, particles, iterations, seeds=explicit("seeds", 5),
                           steps=explicit("steps", 20), compile=args.compile, metric=args.metric,
                           reference_particles=explicit("reference_particles", 100_000),
-                          backend=backend_from_args(args), threads=args.threads or 1, output=out, progress=show)
+                          backend=backend_from_args(args), threads=args.threads or 1, output=out, progress=show,
+                          variants=variants)
     write_frontier(out, result)

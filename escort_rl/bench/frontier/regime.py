@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from escort_rl.bench.frontier.cli import write_frontier
-from escort_rl.bench.frontier.run import BUDGETS_MS, run_frontier
+from escort_rl.bench.frontier.run import BUDGETS_MS, label, run_frontier
 
 
 def point_folder(root: Path, dim: int, obs_std: float) -> Path:
@@ -34,14 +34,16 @@ def run_regime_map(dims, obs_stds, root: Path, progress=None, make_backend=None,
             points.append({"dim": int(d), "obs_std": float(r), "state_dim": result["state_dim"],
                            "front": result["front"], "budgets": result["budgets"], "metric": result["metric"],
                            "reference": result["reference"], "reference_ess": result.get("reference_ess"),
-                           "methods_on_front": sorted({f.split()[0] for f in result["front"]})})
+                           "methods_on_front": sorted({f.split()[0] for f in result["front"]}),
+                           "filters_on_front": sorted({r.get("base", r["method"]) for r in result["rows"]
+                                                       if label(r) in result["front"]})})
     return {"env": env, "dim_key": dim_key, "sharpness_key": sharpness_key, "dims": [int(d) for d in dims],
             "obs_stds": [float(r) for r in obs_stds], "points": points, "budgets_ms": list(BUDGETS_MS)}
 
 
 def regime_markdown(result: dict) -> str:
     points = result["points"]
-    escort_on = [p for p in points if "escort" in p["methods_on_front"]]
+    escort_on = [p for p in points if "escort" in p.get("filters_on_front", p["methods_on_front"])]
     env, dk, sk = (result.get("env", "linear_gaussian"), result.get("dim_key", "model.state_dim"),
                    result.get("sharpness_key", "model.obs_std"))
     reference = points[0]["reference"] if points else ""
@@ -50,7 +52,7 @@ def regime_markdown(result: dict) -> str:
              f"{points[0]['metric'] if points else ''} to the reference posterior ({reference}) against ms per "
              "update, and the closest filter at 1, 10 and 100 ms per update. One frontier per point "
              f"(`escort-rl bench frontier env={env} env.{dk}=D env.{sk}=r`).", ""]
-    lines.append("**ESCORT is on the front at: " + (", ".join(f"D = {p['dim']}, obs_std = {p['obs_std']:g}"
+    lines.append("**ESCORT (or a variant of it) is on the front at: " + (", ".join(f"D = {p['dim']}, obs_std = {p['obs_std']:g}"
                                                         for p in escort_on) if escort_on else "no point of this map")
                  + ".**")
     with_ess = any(p.get("reference_ess") for p in points)
@@ -86,6 +88,8 @@ def register(subparsers) -> None:
     for m in FILTER_METHODS:
         p.add_argument(f"--{m}-particles", type=int, nargs="+", default=None, metavar="N")
     p.add_argument("--num-steps", type=int, nargs="+", default=None, metavar="K")
+    p.add_argument("--variant", nargs="+", default=[], metavar="NAME=METHOD:KEY=VALUE[,KEY=VALUE]",
+                   help="more rows, as in bench frontier (e.g. escort_stop=escort:stop_tolerance=0.05)")
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--reference-particles", type=int, default=100_000,
@@ -102,7 +106,10 @@ def main(args) -> None:
     from escort_rl.bench.runner import backend_from_args
     from escort_rl.reporting.paths import write_results
 
+    from escort_rl.bench.frontier.cells import parse_variant
+
     particles = {m: getattr(args, f"{m}_particles") or DEFAULT_PARTICLES[m] for m in FILTER_METHODS}
+    variants = {name: (method, items) for name, method, items in map(parse_variant, args.variant)}
     out = Path(args.output)
 
     def show(row):
@@ -115,7 +122,7 @@ def main(args) -> None:
                             sharpness_key=args.sharpness_key, methods=args.methods, particles=particles,
                             iterations=args.num_steps or DEFAULT_ITERATIONS, seeds=args.seeds, steps=args.steps,
                             compile=args.compile, make_backend=lambda: backend_from_args(args),
-                            reference_particles=args.reference_particles,
+                            reference_particles=args.reference_particles, variants=variants,
                             threads=args.threads or 1)
     plot_regime_map(result["points"], out / "regime_map.png",
                     title=f"env={args.env}: the closest filter to the reference posterior per time budget")

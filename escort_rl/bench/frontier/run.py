@@ -31,16 +31,19 @@ METRICS = ("w1", "mean", "cov", "mmd2")
 
 def frontier_cells(model: str, model_args: tuple, methods, particles: dict, iterations, seeds: int, steps: int,
                    compile: bool, threads: int = 1, base_seed: int = 0, reference: tuple = (),
-                   reference_folder: str = "") -> list[FrontierCell]:
-    """One cell per (filter, N) for SIR and EnKF and per (filter, N, K) for SVGD and ESCORT."""
+                   reference_folder: str = "", variants: dict | None = None) -> list[FrontierCell]:
+    """One cell per (filter, N) for SIR and EnKF and per (filter, N, K) for SVGD and ESCORT; a variant
+    (``name -> (method, settings)``) is swept over its method's N (and K)."""
+    rows = [(m, m, ()) for m in methods] + [(name, m, args) for name, (m, args) in (variants or {}).items()]
     cells = []
-    for method in methods:
+    for name, method, args in rows:
         for n in particles[method]:
             for k in (iterations if method in ITERATIVE else (0,)):
                 cells.append(FrontierCell(model=model, model_args=tuple(model_args), method=method, particles=int(n),
                                           num_steps=int(k), seeds=tuple(range(seeds)), steps=steps,
                                           compile=compile and method in ITERATIVE, base_seed=base_seed,
-                                          reference=reference, reference_folder=reference_folder, threads=threads))
+                                          reference=reference, reference_folder=reference_folder, threads=threads,
+                                          variant="" if name == method else name, filter_args=tuple(args)))
     return cells
 
 
@@ -57,7 +60,8 @@ def reference_ess_summary(path: Path, digest: str, particles: int) -> dict:
 
 
 def _row(cell: FrontierCell, result: dict, metric: str, part: str) -> dict:
-    row = {"method": cell.method, "particles": cell.particles, "num_steps": cell.num_steps,
+    row = {"method": cell.variant or cell.method, "base": cell.method, "settings": list(cell.filter_args),
+           "particles": cell.particles, "num_steps": cell.num_steps,
            "ms_per_update": 1e3 * result["timing"]["seconds_per_update"], "failed": result.get("failed"),
            "importance": result.get("importance") or {}}
     if result.get("failed") is None:
@@ -71,20 +75,24 @@ def _row(cell: FrontierCell, result: dict, metric: str, part: str) -> dict:
 
 def label(row: dict) -> str:
     """``escort N=100 K=15``."""
-    return f"{row['method']} N={row['particles']}" + (f" K={row['num_steps']}" if row["method"] in ITERATIVE else "")
+    iterative = row.get("base", row["method"]) in ITERATIVE
+    return f"{row['method']} N={row['particles']}" + (f" K={row['num_steps']}" if iterative else "")
 
 
 def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, particles: dict | None = None,
                  iterations=DEFAULT_ITERATIONS, seeds: int = 5, steps: int = 20, compile: bool = False,
                  metric: str = "w1", reference_particles: int = 100_000, backend=None, threads: int = 1,
-                 output: Path | None = None, progress=None, base_seed: int = 0) -> dict:
+                 output: Path | None = None, progress=None, base_seed: int = 0, variants: dict | None = None) -> dict:
     """Every filter over its costs on ``model``; each row's distances to the reference (mean ± s.e. over
     seeds, time-averaged over the steps), its ms per update, and the Pareto front on ``metric`` of the
     model's first state part against time. ``output``: where the cells (and the SIR reference) are kept.
+    ``variants``: ``name -> (method, ("key=value", ...))``, more rows (:func:`~.cells.parse_variant`).
     """
     check_choices("--methods", methods, FILTER_METHODS)
     check_choices("--metric", [metric], METRICS, "metric")
-    particles = {m: tuple((particles or {}).get(m, DEFAULT_PARTICLES[m])) for m in methods}
+    variants = dict(variants or {})
+    used = set(methods) | {m for m, _ in variants.values()}
+    particles = {m: tuple((particles or {}).get(m, DEFAULT_PARTICLES[m])) for m in used}
     built = build_model(model, tuple(model_args))
     from escort_rl.bench.reference import state_parts
 
@@ -107,7 +115,7 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
             reference, reference_kind = (ref["file"], ref["hash"]), f"SIR with {reference_particles} particles"
             reference_ess = reference_ess_summary(Path(folder) / ref["file"], ref["hash"], reference_particles)
         cells = frontier_cells(model, model_args, methods, particles, iterations, seeds, steps, compile, threads,
-                               base_seed, reference, folder)
+                               base_seed, reference, folder, variants)
         results = run_cells(cells, backend, store, desc="frontier cells",
                             on_result=(lambda c, r: progress(_row(c, r, metric, part))) if progress else None)
     finally:
@@ -119,7 +127,7 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
     return {"model": model, "model_args": list(model_args), "model_name": type(built).__name__,
             "state_dim": built.state_dim, "obs_dim": built.obs_dim, "reference": reference_kind, "part": part,
             "reference_ess": reference_ess,
-            "metric": metric, "seeds": seeds, "steps": steps, "compile": compile, "threads": threads,
+            "variants": {k: [m, list(a)] for k, (m, a) in variants.items()}, "metric": metric, "seeds": seeds, "steps": steps, "compile": compile, "threads": threads,
             "rows": rows, "front": [p[0] for p in front],
             "budgets": [{"ms": b, "best": None if p is None else p[0], "error": None if p is None else p[2]}
                         for b, p in zip(BUDGETS_MS, best)]}
