@@ -84,3 +84,13 @@ def test_no_private_name_crosses_modules():
 
 
 _imports_cache = _imports()
+
+
+def test_every_package_is_in_the_distribution():
+    """``pyproject.toml`` lists its packages: one left out would be missing from a wheel (an editable
+    install hides it)."""
+    import tomllib
+
+    listed = set(tomllib.loads((ROOT.parent / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {_module(p) for p in ROOT.rglob("__init__.py")}
+    assert found <= listed, sorted(found - listed)
