@@ -161,3 +161,52 @@ def test_content_hash_sees_every_tensor():
     b = {"x": torch.zeros(3), "p": {"y": torch.tensor([1.0, 2.0])}}
     assert content_hash(a) == content_hash({"p": {"y": torch.ones(2)}, "x": torch.zeros(3)})
     assert content_hash(a) != content_hash(b)
+
+
+def test_gaussian_sum_posterior_matches_bayes_on_a_grid():
+    """GMMTracking's exact posterior (a Gaussian sum, nothing pruned: 3³ components) against recursive
+    Bayes on a fine 1-D grid, after three observations through the 3-mode noise."""
+    from escort_rl.bench.synthetic.tracking import GMMTracking
+    from escort_rl.bench.targets import load_target
+
+    model = GMMTracking(load_target("gmm1d"), prior_std=2.0, process_std=0.7)
+    obs = torch.tensor([[1.3], [-0.4], [2.2]], dtype=torch.float64)
+    log_w, means, covs = model.exact_posterior_init(1)
+    x = torch.linspace(-15, 15, 6001, dtype=torch.float64)
+    dx = float(x[1] - x[0])
+    p = torch.exp(-0.5 * (x / 2.0) ** 2)
+    kernel = torch.exp(-0.5 * ((x[:, None] - x[None, :]) / 0.7) ** 2)
+    for o in obs:
+        log_w, means, covs, dropped = model.exact_posterior_step(log_w, means, covs, None, o[None])
+        assert float(dropped) == 0.0
+        p = kernel @ p * dx
+        p = p * model.noise.log_prob((o - x)[:, None]).exp()
+        p = p / (p.sum() * dx)
+    w = log_w.exp()[0]
+    mean = float((w * means[0, :, 0]).sum())
+    var = float((w * (covs[0, :, 0, 0] + means[0, :, 0] ** 2)).sum()) - mean**2
+    grid_mean = float((x * p).sum() * dx)
+    grid_var = float(((x - grid_mean) ** 2 * p).sum() * dx)
+    assert mean == pytest.approx(grid_mean, abs=1e-4) and var == pytest.approx(grid_var, rel=1e-3)
+
+
+def test_gaussian_sum_reference_samples_its_modes_and_counts_what_it_prunes():
+    """The exact reference of a mixture model: its mean and covariance are the mixture's, its draws
+    follow them, and a pruned sum reports the mass it cut."""
+    from escort_rl.bench.reference import exact_reference, has_exact_posterior
+    from escort_rl.bench.synthetic.tracking import gmm_tracking
+
+    model = gmm_tracking(dim=3, max_components=4)
+    assert has_exact_posterior(model)
+    seeds = [0, 1, 2]
+    traj = generate_trajectories(model, 4, seeds, 0)
+    ref = exact_reference(model, traj, seeds, sample=4000, name="gmm")
+    part = ref["position"]
+    assert part["mean"].shape == (3, 5, 3) and part["sample"].shape == (3, 5, 4000, 3)
+    # 4000 draws: their mean is within 5 standard errors of the mixture mean, per coordinate
+    se = torch.diagonal(part["cov"], dim1=-2, dim2=-1).sqrt() / math.sqrt(4000)
+    assert bool(((part["sample"].double().mean(-2) - part["mean"]).abs() < 5 * se + 1e-6).all())
+    assert ref["dropped_mass"].shape == (3, 5) and float(ref["dropped_mass"][:, 0].abs().max()) == 0.0
+    assert float(ref["dropped_mass"].max()) < 1.0
+    with pytest.raises(ValueError, match="max_components"):
+        gmm_tracking(dim=3, max_components=0)

@@ -144,36 +144,74 @@ def part_summary(mean: Tensor, cov: Tensor, y: Tensor) -> dict:
 
 
 def has_exact_posterior(model) -> bool:
-    """Whether ``model`` gives its exact filtering posterior: a Gaussian prior ``m0``, ``P0`` and
-    ``kalman_step(mean, cov, action, observation) -> (mean, cov)`` (``LinearGaussian``; a user's model
-    may define the same three)."""
-    return callable(getattr(model, "kalman_step", None)) and hasattr(model, "m0") and hasattr(model, "P0")
+    """Whether ``model`` gives its exact filtering posterior, in one of two forms:
+
+    - **Kalman**: a Gaussian prior ``m0``, ``P0`` and ``kalman_step(mean, cov, action, observation)
+      -> (mean, cov)`` (``LinearGaussian``);
+    - **Gaussian sum**: ``exact_posterior_init(batch) -> (log_w, means, covs)`` and
+      ``exact_posterior_step(log_w, means, covs, action, observation) -> (log_w, means, covs,
+      dropped)``, ``log_w`` ``[B, M]``, ``means`` ``[B, M, d]``, ``covs`` ``[B, M, d, d]``, ``dropped``
+      ``[B]`` the mass a pruned sum cut away (the synthetic benchmark's ``GMMTracking``).
+
+    A user's model may define either."""
+    kalman = callable(getattr(model, "kalman_step", None)) and hasattr(model, "m0") and hasattr(model, "P0")
+    mixture = callable(getattr(model, "exact_posterior_init", None)) and callable(
+        getattr(model, "exact_posterior_step", None))
+    return kalman or mixture
+
+
+def _exact_steps(model, traj: dict, b: int):
+    """The exact posterior at ``t = 0..T`` as Gaussian sums ``(log_w [B, M], means [B, M, d], covs
+    [B, M, d, d], dropped [B])``, float64, whichever form the model gives (Kalman: ``M = 1``)."""
+    d = model.state_dim
+    if callable(getattr(model, "exact_posterior_init", None)):
+        log_w, means, covs = model.exact_posterior_init(b)
+        step = lambda lw, m, c, a, o: model.exact_posterior_step(lw, m, c, a, o)  # noqa: E731
+    else:
+        log_w = torch.zeros(b, 1, dtype=torch.float64)
+        means, covs = model.m0.double().expand(b, 1, d), model.P0.double().expand(b, 1, d, d)
+
+        def step(lw, m, c, a, o):
+            mean, cov = model.kalman_step(m[:, 0], c[:, 0], a, o)
+            return lw, mean.unsqueeze(1), cov.unsqueeze(1), torch.zeros(b, dtype=torch.float64)
+    dropped = torch.zeros(b, dtype=torch.float64)
+    yield log_w, means, covs, dropped
+    for t in range(traj["actions"].shape[1]):
+        log_w, means, covs, dropped = step(log_w, means, covs, traj["actions"][:, t], traj["observations"][:, t])
+        yield log_w.double(), means.double(), covs.double(), dropped.double()
 
 
 def exact_reference(model, traj: dict, seeds: list[int], sample: int = SAMPLE, base_seed: int = 0,
                     name: str = "") -> dict:
     """The exact posterior of a model with one (:func:`has_exact_posterior`) on the shared trajectories,
     in the format of :func:`reference_posterior`: per part the exact ``mean`` and ``cov`` at every step
-    ``t = 0..T``, and ``sample`` exact draws of ``N(mean, cov)`` for the sample-based distances (seeded
-    by the first seed); ``ess`` is NaN (no weights)."""
+    ``t = 0..T`` (of the Gaussian sum: ``Σ w_j m_j`` and ``Σ w_j (C_j + m_j m_jᵀ) − m mᵀ``), and
+    ``sample`` exact draws (a component by its weight, then its Gaussian; seeded by the first seed);
+    ``ess`` is NaN (no weights) and ``dropped_mass`` ``[S, T+1]`` the mass a pruned sum cut at each step
+    (0 for Kalman)."""
     from escort_rl.bench.trajectories import derived_seed
 
     parts = state_parts(model)
-    b, d = len(seeds), model.state_dim
-    mean = model.m0.double().expand(b, d)
-    cov = model.P0.double().expand(b, d, d)
+    b = len(seeds)
     g = torch.Generator().manual_seed(derived_seed("exact-reference-sample", base_seed, seeds[0]))
     steps = []
-    for t in range(traj["actions"].shape[1] + 1):
-        if t > 0:
-            mean, cov = model.kalman_step(mean, cov, traj["actions"][:, t - 1], traj["observations"][:, t - 1])
-        step = {"ess": torch.full((b,), float("nan"), dtype=torch.float64)}
+    for log_w, means, covs, dropped in _exact_steps(model, traj, b):
+        w = torch.softmax(log_w, -1)  # [B, M]
+        comp = torch.multinomial(w, sample, replacement=True, generator=g) if w.shape[1] > 1 \
+            else torch.zeros(b, sample, dtype=torch.long)
+        step = {"ess": torch.full((b,), float("nan"), dtype=torch.float64), "dropped_mass": dropped}
         for part, dims in parts.items():
             idx = list(dims)
-            m, c = mean[..., idx], cov[..., idx, :][..., idx]
+            mj, cj = means[..., idx], covs[..., idx, :][..., idx]  # [B, M, p], [B, M, p, p]
+            m = (w.unsqueeze(-1) * mj).sum(1)
+            second = (w[..., None, None] * (cj + mj.unsqueeze(-1) * mj.unsqueeze(-2))).sum(1)
+            c = second - m.unsqueeze(-1) * m.unsqueeze(-2)
+            tril = torch.linalg.cholesky(0.5 * (cj + cj.transpose(-1, -2)))  # [B, M, p, p]
+            pick = lambda x: x.gather(1, comp.reshape(b, sample, *([1] * (x.dim() - 2))).expand(  # noqa: E731
+                b, sample, *x.shape[2:]))
             z = torch.randn(b, sample, len(idx), generator=g, dtype=torch.float64)
-            tril = torch.linalg.cholesky(0.5 * (c + c.transpose(-1, -2)))
-            step[part] = part_summary(m, c, (m.unsqueeze(-2) + z @ tril.transpose(-1, -2)).float())
+            draws = pick(mj) + (pick(tril) @ z.unsqueeze(-1)).squeeze(-1)
+            step[part] = part_summary(m, 0.5 * (c + c.transpose(-1, -2)), draws.float())
         steps.append(step)
     out = _stack(steps)
     for part, dims in parts.items():
@@ -292,6 +330,10 @@ class ReferenceCell(Cell):
 
         return build_domain(self.domain)[0]
 
+    def posterior(self, model, traj: dict, seeds: list[int]) -> dict:
+        """The reference's tensors (:func:`reference_posterior`; a subclass may compute another)."""
+        return reference_posterior(model, traj, seeds, self.particles, self.base_seed, self.sample, name=self.domain)
+
     def run(self) -> dict:
         from escort_rl.bench.trajectories import generate_trajectories
 
@@ -299,7 +341,7 @@ class ReferenceCell(Cell):
         seeds = list(self.seeds)
         traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
         t0 = time.perf_counter()
-        data = reference_posterior(model, traj, seeds, self.particles, self.base_seed, self.sample, name=self.domain)
+        data = self.posterior(model, traj, seeds)
         seconds = time.perf_counter() - t0
         data["input_hashes"] = list(traj["hashes"])
         name = f"{self.key()}.pt"

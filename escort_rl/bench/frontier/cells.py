@@ -9,9 +9,11 @@ trajectories, timed per update and compared with the reference posterior at ever
   anything on the model protocol.
 
 **The reference** is the exact posterior where the model has one
-(:func:`~escort_rl.bench.reference.has_exact_posterior`: the linear-Gaussian family's Kalman filter),
-computed in the cell; otherwise a large SIR reference (:class:`FrontierReferenceCell`), computed once
-per seed block and loaded by every cell from its file, its hash checked.
+(:func:`~escort_rl.bench.reference.has_exact_posterior`): the linear-Gaussian family's Kalman filter,
+computed in each cell; a Gaussian sum (the synthetic tracking family), computed once by
+:class:`FrontierReferenceCell` with ``exact=True``. Otherwise a large SIR reference
+(:class:`FrontierReferenceCell`). A reference cell runs once per seed block and every cell loads its
+file, its hash checked.
 """
 
 from __future__ import annotations
@@ -118,9 +120,17 @@ class FrontierReferenceCell(ReferenceCell):
 
     model_spec: str = ""
     model_args: tuple = ()
+    exact: bool = False
+    """The model's exact posterior (a Gaussian sum, :func:`~escort_rl.bench.reference.exact_reference`),
+    computed once and saved, instead of SIR with ``particles``."""
 
     def model(self):
         return build_model(self.model_spec, tuple(self.model_args))
+
+    def posterior(self, model, traj: dict, seeds: list[int]) -> dict:
+        if self.exact:
+            return exact_reference(model, traj, seeds, self.sample, self.base_seed, name=self.domain)
+        return super().posterior(model, traj, seeds)
 
 
 @dataclass(frozen=True)

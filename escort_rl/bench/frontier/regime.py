@@ -21,13 +21,17 @@ def point_folder(root: Path, dim: int, obs_std: float) -> Path:
 
 
 def run_regime_map(dims, obs_stds, root: Path, progress=None, make_backend=None, env: str = "linear_gaussian",
-                   dim_key: str = "model.state_dim", sharpness_key: str = "model.obs_std", **frontier) -> dict:
-    """The frontier at every ``(D, r)``: ``env.<dim_key>=D env.<sharpness_key>=r``; ``make_backend()``
-    gives each point its backend (a frontier closes its own), ``frontier`` goes to :func:`run_frontier`."""
+                   dim_key: str = "model.state_dim", sharpness_key: str = "model.obs_std", model: str | None = None,
+                   **frontier) -> dict:
+    """The frontier at every ``(D, r)``: ``env.<dim_key>=D env.<sharpness_key>=r``, or with ``model``
+    (``pkg.module:Class``, a user's class or factory) its keyword arguments ``<dim_key>=D
+    <sharpness_key>=r``; ``make_backend()`` gives each point its backend (a frontier closes its own),
+    ``frontier`` goes to :func:`run_frontier`."""
+    spec = f"class:{model}" if model else f"env:{env}"
     points = []
     for d in dims:
         for r in obs_stds:
-            result = run_frontier(f"env:{env}", (f"{dim_key}={int(d)}", f"{sharpness_key}={float(r)}"),
+            result = run_frontier(spec, (f"{dim_key}={int(d)}", f"{sharpness_key}={float(r)}"),
                                   output=point_folder(root, d, r), progress=progress,
                                   backend=make_backend() if make_backend else None, **frontier)
             write_frontier(point_folder(root, d, r), result, echo=False)
@@ -37,7 +41,7 @@ def run_regime_map(dims, obs_stds, root: Path, progress=None, make_backend=None,
                            "methods_on_front": sorted({f.split()[0] for f in result["front"]}),
                            "filters_on_front": sorted({r.get("base", r["method"]) for r in result["rows"]
                                                        if label(r) in result["front"]})})
-    return {"env": env, "dim_key": dim_key, "sharpness_key": sharpness_key, "dims": [int(d) for d in dims],
+    return {"env": env, "model": model, "dim_key": dim_key, "sharpness_key": sharpness_key, "dims": [int(d) for d in dims],
             "obs_stds": [float(r) for r in obs_stds], "points": points, "budgets_ms": list(BUDGETS_MS)}
 
 
@@ -46,12 +50,16 @@ def regime_markdown(result: dict) -> str:
     escort_on = [p for p in points if "escort" in p.get("filters_on_front", p["methods_on_front"])]
     env, dk, sk = (result.get("env", "linear_gaussian"), result.get("dim_key", "model.state_dim"),
                    result.get("sharpness_key", "model.obs_std"))
-    reference = points[0]["reference"] if points else ""
-    lines = [f"# Regime map: which filter is on the accuracy–time front (env={env})", "",
+    model = result.get("model")
+    family = f"--model {model}" if model else f"env={env}"
+    command = (f"escort-rl bench frontier --model {model} --model-arg {dk}=D {sk}=r" if model
+               else f"escort-rl bench frontier env={env} env.{dk}=D env.{sk}=r")
+    kinds = sorted({p["reference"].split(" (")[0] for p in points})
+    lines = [f"# Regime map: which filter is on the accuracy–time front ({family})", "",
              "Each row: the filters on the Pareto front of "
-             f"{points[0]['metric'] if points else ''} to the reference posterior ({reference}) against ms per "
-             "update, and the closest filter at 1, 10 and 100 ms per update. One frontier per point "
-             f"(`escort-rl bench frontier env={env} env.{dk}=D env.{sk}=r`).", ""]
+             f"{points[0]['metric'] if points else ''} to the reference posterior ({', '.join(kinds)}; each "
+             "point's `frontier.md` says more) against ms per update, and the closest filter at 1, 10 and "
+             f"100 ms per update. One frontier per point (`{command}`).", ""]
     lines.append("**ESCORT (or a variant of it) is on the front at: " + (", ".join(f"D = {p['dim']}, obs_std = {p['obs_std']:g}"
                                                         for p in escort_on) if escort_on else "no point of this map")
                  + ".**")
@@ -78,6 +86,9 @@ def register(subparsers) -> None:
                               "(default: the linear-Gaussian family's state_dim x obs_std) and say where each "
                               "filter is on the accuracy-time front.")
     p.add_argument("--env", default="linear_gaussian", help="the family's env (default linear_gaussian)")
+    p.add_argument("--model", default=None, metavar="pkg.module:Class", help="a model class or factory of your "
+                   "own instead of --env; --dim-key and --sharpness-key name its keyword arguments (e.g. "
+                   "--model escort_rl.bench.synthetic.tracking:gmm_tracking --dim-key dim --sharpness-key noise_scale)")
     p.add_argument("--dim-key", default="model.state_dim", help="the env key of the dimension axis "
                    "(default model.state_dim; Light-Dark: model.n_pos)")
     p.add_argument("--sharpness-key", default="model.obs_std", help="the env key of the sharpness axis "
@@ -118,12 +129,13 @@ def main(args) -> None:
 
     from escort_rl.reporting.plots import plot_regime_map
 
-    result = run_regime_map(args.dims, args.obs_std, out, progress=show, env=args.env, dim_key=args.dim_key,
+    result = run_regime_map(args.dims, args.obs_std, out, progress=show, env=args.env, model=args.model,
+                            dim_key=args.dim_key,
                             sharpness_key=args.sharpness_key, methods=args.methods, particles=particles,
                             iterations=args.num_steps or DEFAULT_ITERATIONS, seeds=args.seeds, steps=args.steps,
                             compile=args.compile, make_backend=lambda: backend_from_args(args),
                             reference_particles=args.reference_particles, variants=variants,
                             threads=args.threads or 1)
     plot_regime_map(result["points"], out / "regime_map.png",
-                    title=f"env={args.env}: the closest filter to the reference posterior per time budget")
+                    title=f"{args.model or 'env=' + args.env}: the closest filter to the reference per time budget")
     write_results(out, "regime_map", result, regime_markdown(result))

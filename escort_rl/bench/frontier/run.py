@@ -16,7 +16,7 @@ from escort_rl.bench.frontier.cells import (
 )
 from escort_rl.bench.frontier.pareto import best_at_budgets, pareto_front
 from escort_rl.bench.methods import check_choices
-from escort_rl.bench.reference import has_exact_posterior
+from escort_rl.bench.reference import Reference, has_exact_posterior
 from escort_rl.bench.runner import CellStore, InProcessBackend, run_cells
 from escort_rl.reporting.stats import mean_se
 
@@ -52,8 +52,6 @@ def reference_ess_summary(path: Path, digest: str, particles: int) -> dict:
     update (before resampling; the mean over a chunk of seeds), as ``min`` and ``median`` over the
     updates, and ``fraction`` (the median over ``N``). A reference whose ESS is a handful of particles is a few points, not a
     posterior."""
-    from escort_rl.bench.reference import Reference
-
     frac = Reference.load(path, digest).data["ess_fraction_before_resampling"].double()
     return {"min": float(frac.min()) * particles, "median": float(frac.median()) * particles,
             "fraction": float(frac.median())}
@@ -101,19 +99,28 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
     backend = backend or InProcessBackend()
     reference, folder, reference_kind, reference_ess = (), "", "exact", None
     try:
-        if not has_exact_posterior(built):
+        gaussian_sum = callable(getattr(built, "exact_posterior_init", None))
+        if not has_exact_posterior(built) or gaussian_sum:
             folder = str((Path(output) if output is not None else Path(".")) / "reference")
-            ref_cell = FrontierReferenceCell(domain=model_label(model, model_args), particles=int(reference_particles),
+            ref_cell = FrontierReferenceCell(domain=model_label(model, model_args),
+                                             particles=0 if gaussian_sum else int(reference_particles),
                                              steps=steps, seeds=tuple(range(seeds)), base_seed=base_seed,
                                              folder=folder, model_spec=model, model_args=tuple(model_args),
-                                             threads=threads)
+                                             threads=threads, exact=gaussian_sum)
             ref = store.load(ref_cell) if store is not None else None
             if ref is None or not ref_cell.valid(ref):  # a missing or damaged file is computed again
                 [ref] = run_cells([ref_cell], backend, None, desc="frontier reference")
                 if store is not None:
                     store.save(ref_cell, ref)
-            reference, reference_kind = (ref["file"], ref["hash"]), f"SIR with {reference_particles} particles"
-            reference_ess = reference_ess_summary(Path(folder) / ref["file"], ref["hash"], reference_particles)
+            reference = (ref["file"], ref["hash"])
+            if gaussian_sum:
+                dropped = Reference.load(Path(folder) / ref["file"], ref["hash"]).data["dropped_mass"]
+                reference_kind = (f"exact (a Gaussian sum of up to {getattr(built, 'max_components', '?')} components; "
+                                  f"mass pruned per update: max {float(dropped.max()):.2g}, mean "
+                                  f"{float(dropped[:, 1:].mean()):.2g})")
+            else:
+                reference_kind = f"SIR with {reference_particles} particles"
+                reference_ess = reference_ess_summary(Path(folder) / ref["file"], ref["hash"], reference_particles)
         cells = frontier_cells(model, model_args, methods, particles, iterations, seeds, steps, compile, threads,
                                base_seed, reference, folder, variants)
         results = run_cells(cells, backend, store, desc="frontier cells",

@@ -99,6 +99,84 @@ class GMMTracking:
     def is_terminal(self, s: Tensor) -> Tensor:
         return torch.zeros(s.shape[:-1], dtype=torch.bool, device=s.device)
 
+    # -- the exact posterior: a Gaussian sum -----------------------------------------------------
+    max_components: int = 256
+    """Components the exact posterior keeps after each update (the heaviest; see
+    :meth:`exact_posterior_step`)."""
+
+    def exact_posterior_init(self, batch: int) -> tuple[Tensor, Tensor, Tensor]:
+        """The prior as a one-component mixture: ``log_w`` ``[B, 1]``, ``means`` ``[B, 1, d]``,
+        ``covs`` ``[B, 1, d, d]`` (float64)."""
+        d = self.state_dim
+        eye = torch.eye(d, dtype=torch.float64)
+        return (torch.zeros(batch, 1, dtype=torch.float64), torch.zeros(batch, 1, d, dtype=torch.float64),
+                (self.prior_std**2 * eye).expand(batch, 1, d, d).clone())
+
+    def exact_posterior_step(self, log_w: Tensor, means: Tensor, covs: Tensor, a, o: Tensor
+                             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """One exact Bayes update of a Gaussian-sum posterior (Alspach & Sorenson 1972).
+
+        Predict each component ``j``: ``C_j ← C_j + q² I``. Each noise mode ``k`` (weight ``π_k``,
+        mean ``μ_k``, covariance ``Σ_k``) turns it into a Kalman update with ``H = I``, ``R = Σ_k``
+        and the observation ``o − μ_k``:
+
+            S = C_j + Σ_k,   K = C_j S⁻¹,   m' = m_j + K (o − μ_k − m_j),   C' = C_j − K C_j,
+            log w' = log w_j + log π_k + log N(o − μ_k; m_j, S).
+
+        The ``J·K`` components are cut to the :attr:`max_components` heaviest and renormalised.
+        Returns the new ``(log_w, means, covs)`` and ``dropped`` ``[B]``: the posterior mass cut away
+        (0 while nothing is cut; the reference is exact up to it). ``o`` ``[B, d]``."""
+        b, j, d = means.shape
+        noise = self.noise
+        pi = torch.log(noise.weights.double())  # [K]
+        mu, sig = noise.means.double(), noise.covariances.double()  # [K, d], [K, d, d]
+        k = pi.shape[0]
+        c = covs + self.process_std**2 * torch.eye(d, dtype=torch.float64)  # [B, J, d, d]
+        s = c.unsqueeze(2) + sig  # [B, J, K, d, d]
+        lower = torch.linalg.cholesky(s)
+        innov = (o.double()[:, None, None, :] - mu - means.unsqueeze(2))  # [B, J, K, d]
+        z = torch.linalg.solve_triangular(lower, innov.unsqueeze(-1), upper=False).squeeze(-1)
+        half_log_det = torch.log(torch.diagonal(lower, dim1=-2, dim2=-1)).sum(-1)
+        log_lik = -0.5 * (z * z).sum(-1) - half_log_det - 0.5 * d * math.log(2 * math.pi)  # [B, J, K]
+        cj = c.unsqueeze(2).expand(b, j, k, d, d)
+        gain_t = torch.cholesky_solve(cj, lower)  # S⁻¹ C_j = Kᵀ (C_j and S symmetric)
+        gain = gain_t.transpose(-1, -2)
+        new_means = means.unsqueeze(2) + (gain @ innov.unsqueeze(-1)).squeeze(-1)
+        new_covs = cj - gain @ cj
+        new_covs = 0.5 * (new_covs + new_covs.transpose(-1, -2))
+        new_log_w = (log_w.unsqueeze(2) + pi + log_lik).reshape(b, j * k)
+        new_log_w = new_log_w - torch.logsumexp(new_log_w, -1, keepdim=True)
+        keep = min(self.max_components, j * k)
+        top, idx = new_log_w.topk(keep, dim=-1)
+        dropped = (1.0 - top.exp().sum(-1)).clamp_min(0.0)
+        top = top - torch.logsumexp(top, -1, keepdim=True)
+        gather = lambda x: x.reshape(b, j * k, *x.shape[3:]).gather(  # noqa: E731
+            1, idx.reshape(b, keep, *([1] * (x.dim() - 3))).expand(b, keep, *x.shape[3:]))
+        return top, gather(new_means), gather(new_covs), dropped
+
+
+def gmm_tracking(dim: int = 5, correlation: str = "block", noise_scale: float = 1.0, prior_std: float = PRIOR_STD,
+                 process_std: float = PROCESS_STD, target_seed: int = 0, max_components: int = 256) -> GMMTracking:
+    """The tracking model of the synthetic benchmark's scalability mixture in ``dim`` dimensions
+    (:func:`~escort_rl.bench.targets.scalability_target`: 5 modes, correlation structure
+    ``correlation``), each mode's covariance scaled by ``noise_scale²`` (below 1: sharper modes, an
+    observation that tells the hypotheses apart more sharply). A multi-modal family by dimension with
+    an exact (Gaussian-sum) posterior, for the frontier:
+    ``bench frontier --model escort_rl.bench.synthetic.tracking:gmm_tracking --model-arg dim=20``."""
+    from escort_rl.bench.targets import scalability_target
+
+    if not (isinstance(noise_scale, (int, float)) and not isinstance(noise_scale, bool) and 0 < noise_scale < math.inf):
+        raise ValueError(f"noise_scale: expected a positive finite number, got {noise_scale!r}")
+    if isinstance(max_components, bool) or not isinstance(max_components, int) or max_components < 1:
+        raise ValueError(f"max_components: expected an integer >= 1, got {max_components!r}")
+    mix = scalability_target(int(dim), correlation, int(target_seed))
+    if noise_scale != 1.0:
+        mix = GaussianMixture(mix.weights, mix.means, mix.covariances * float(noise_scale) ** 2,
+                              name=f"{mix.name} x{noise_scale:g}")
+    model = GMMTracking(mix, prior_std=prior_std, process_std=process_std)
+    model.max_components = max_components
+    return model
+
 
 def simulate(model: GMMTracking, seeds: list[int], steps: int = STEPS) -> tuple[Tensor, Tensor]:
     """The true states and observations of each seed: ``[S, T, d]`` each (float32). Seed ``s`` draws
