@@ -18,13 +18,14 @@ closed-loop benchmark.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
+
+from escort_rl.reporting.paths import write_results
 
 LIGHTDARK1D = "lightdark1d"
 RANDOM = "random"
@@ -221,13 +222,7 @@ def cli(args) -> dict:
 
     result = run_planner_budget(args.domain, budgets, episodes, steps, particles=quick.get("particles"),
                                 progress=show)
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    md = planner_budget_markdown(result)
-    (out / "planner_budget.json").write_text(json.dumps(result, indent=1))
-    (out / "planner_budget.md").write_text(md)
-    print(md)
-    print(f"results: {out} ({result['seconds']:.1f} s)")
+    write_results(Path(args.output), "planner_budget", result, planner_budget_markdown(result), result["seconds"])
     return result
 
 

@@ -20,11 +20,12 @@ an i.i.d. sample of the posterior; the stochastic EnKF adds the noise of its per
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import torch
+
+from escort_rl.reporting.paths import write_results
 
 
 def enkf_against_kalman(dim: int = 50, particles: int = 1000, episodes: int = 20, steps: int = 20,
@@ -108,10 +109,4 @@ def main(args) -> None:
         raise ValueError(f"--particles: the EnKF needs at least 2 members, got {args.particles}")
     enkf = {k: getattr(args, k) for k in ("inflation", "localisation_radius") if getattr(args, k) is not None}
     result = enkf_against_kalman(args.dim, args.particles, args.episodes, args.steps, args.obs_std, args.seed, **enkf)
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    md = kalman_markdown(result)
-    (out / "enkf_kalman.json").write_text(json.dumps(result, indent=1))
-    (out / "enkf_kalman.md").write_text(md)
-    print(md)
-    print(f"results: {out.resolve()}")
+    write_results(Path(args.output), "enkf_kalman", result, kalman_markdown(result))
