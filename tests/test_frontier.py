@@ -135,6 +135,6 @@ def test_bench_regime_map_runs_a_frontier_per_point(tmp_path):
     result = json.loads((out / "regime_map.json").read_text())
     assert [(p["dim"], p["obs_std"]) for p in result["points"]] == [(2, 0.2), (3, 0.2)]
     md = (out / "regime_map.md").read_text()
-    assert "is on the front at:" in md and md.count("| 0.2 |") == 2
+    assert "front at:" in md and md.count("| 0.2 |") == 2
     assert (out / "D2_obs0.2" / "cells").is_dir() and (out / "D2_obs0.2" / "frontier.md").exists()
     assert (out / "regime_map.png").exists()

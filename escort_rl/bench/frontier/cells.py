@@ -127,6 +127,12 @@ class FrontierReferenceCell(ReferenceCell):
     def model(self):
         return build_model(self.model_spec, tuple(self.model_args))
 
+    def spec(self) -> dict:
+        spec = super().spec()
+        if not self.exact:  # a SIR reference keeps the spec (and saved file) it had before exact ones
+            spec.pop("exact")
+        return spec
+
     def posterior(self, model, traj: dict, seeds: list[int]) -> dict:
         if self.exact:
             return exact_reference(model, traj, seeds, self.sample, self.base_seed, name=self.domain)

@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from escort_rl.bench.frontier.cli import write_frontier
+from escort_rl.bench.frontier.report import METRIC_NAMES
 from escort_rl.bench.frontier.run import BUDGETS_MS, label, run_frontier
 
 
@@ -40,7 +41,9 @@ def run_regime_map(dims, obs_stds, root: Path, progress=None, make_backend=None,
                            "reference": result["reference"], "reference_ess": result.get("reference_ess"),
                            "methods_on_front": sorted({f.split()[0] for f in result["front"]}),
                            "filters_on_front": sorted({r.get("base", r["method"]) for r in result["rows"]
-                                                       if label(r) in result["front"]})})
+                                                       if label(r) in result["front"]}),
+                           "filters_on_fronts": {m: sorted({r.get("base", r["method"]) for r in result["rows"]
+                                                            if label(r) in f}) for m, f in result["fronts"].items()}})
     return {"env": env, "model": model, "dim_key": dim_key, "sharpness_key": sharpness_key, "dims": [int(d) for d in dims],
             "obs_stds": [float(r) for r in obs_stds], "points": points, "budgets_ms": list(BUDGETS_MS)}
 
@@ -60,18 +63,26 @@ def regime_markdown(result: dict) -> str:
              f"{points[0]['metric'] if points else ''} to the reference posterior ({', '.join(kinds)}; each "
              "point's `frontier.md` says more) against ms per update, and the closest filter at 1, 10 and "
              f"100 ms per update. One frontier per point (`{command}`).", ""]
-    lines.append("**ESCORT (or a variant of it) is on the front at: " + (", ".join(f"D = {p['dim']}, obs_std = {p['obs_std']:g}"
+    lines.append(f"**ESCORT (or a variant of it) is on the {METRIC_NAMES.get(points[0]['metric'], '') if points else ''} "
+                 "front at: " + (", ".join(f"D = {p['dim']}, obs_std = {p['obs_std']:g}"
                                                         for p in escort_on) if escort_on else "no point of this map")
                  + ".**")
     with_ess = any(p.get("reference_ess") for p in points)
+    others = [m for m in ("mmd2", "mean", "cov") if all("filters_on_fronts" in p for p in points) and points]
+    escort_other = {m: [p for p in points if "escort" in p["filters_on_fronts"][m]] for m in others}
+    for m, on in escort_other.items():
+        lines.append(f"On the {METRIC_NAMES[m]} front: " + (", ".join(
+            f"D = {p['dim']}, r = {p['obs_std']:g}" for p in on) if on else "no point") + ".")
     lines += ["", f"| {dk} = D | {sk} = r | state dim | on the front | best at 1 ms | best at 10 ms | best at 100 ms |"
+              + "".join(f" on the {METRIC_NAMES[m]} front |" for m in others)
               + (" reference ESS (median) |" if with_ess else ""),
-              "| --- | --- | --- | --- | --- | --- | --- |" + (" --- |" if with_ess else "")]
+              "| --- | --- | --- | --- | --- | --- | --- |" + " --- |" * len(others) + (" --- |" if with_ess else "")]
     for p in points:
         best = {b["ms"]: b["best"] or "—" for b in p["budgets"]}
         ess = p.get("reference_ess")
         lines.append(f"| {p['dim']} | {p['obs_std']:g} | {p.get('state_dim', p['dim'])} | {', '.join(p['methods_on_front'])} "
                      f"| {best.get(1.0, '—')} | {best.get(10.0, '—')} | {best.get(100.0, '—')} |"
+                     + "".join(f" {', '.join(p['filters_on_fronts'][m])} |" for m in others)
                      + (f" {ess['median']:.0f} |" if with_ess and ess else (" — |" if with_ess else "")))
     return "\n".join(lines) + "\n"
 

@@ -48,6 +48,8 @@ def frontier_markdown(result: dict) -> str:
         lines.append(f"| {b['ms']:g} | {b['best'] or '— (none fits)'} | "
                      f"{'—' if b['error'] is None else format(b['error'], '.4g')} |")
     lines += ["", f"Pareto front ({METRIC_NAMES[metric]} against time): " + ", ".join(result["front"]) + ".", "",
+              *[f"On {METRIC_NAMES[m]} instead: " + ", ".join(f) + "." for m, f in result.get("fronts", {}).items()
+                if m != metric], "",
               "## Every row", "",
               "| filter | ms per update | sliced W1 | mean error | covariance error | MMD² | on the front | "
               "ESS of the importance weights |",

@@ -71,6 +71,11 @@ def _row(cell: FrontierCell, result: dict, metric: str, part: str) -> dict:
     return row
 
 
+def _error(row: dict, part: str, metric: str) -> float:
+    """A row's time-averaged ``metric`` to the reference (NaN for a diverged row)."""
+    return row["summary"][f"{part}/{metric}"][0] if row.get("failed") is None else float("nan")
+
+
 def label(row: dict) -> str:
     """``escort N=100 K=15``."""
     iterative = row.get("base", row["method"]) in ITERATIVE
@@ -83,7 +88,7 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
                  output: Path | None = None, progress=None, base_seed: int = 0, variants: dict | None = None) -> dict:
     """Every filter over its costs on ``model``; each row's distances to the reference (mean ± s.e. over
     seeds, time-averaged over the steps), its ms per update, and the Pareto front on ``metric`` of the
-    model's first state part against time. ``output``: where the cells (and the SIR reference) are kept.
+    model's first state part against time (``fronts``: the front on each of :data:`METRICS`). ``output``: where the cells (and the SIR reference) are kept.
     ``variants``: ``name -> (method, ("key=value", ...))``, more rows (:func:`~.cells.parse_variant`).
     """
     check_choices("--methods", methods, FILTER_METHODS)
@@ -130,11 +135,13 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
     rows = [_row(c, r, metric, part) for c, r in zip(cells, results)]
     points = [(label(r), r["ms_per_update"], r["error"]) for r in rows]
     front = pareto_front(points)
+    fronts = {m: [p[0] for p in pareto_front([(label(r), r["ms_per_update"], _error(r, part, m)) for r in rows])]
+              for m in METRICS}
     best = best_at_budgets(points, BUDGETS_MS)
     return {"model": model, "model_args": list(model_args), "model_name": type(built).__name__,
             "state_dim": built.state_dim, "obs_dim": built.obs_dim, "reference": reference_kind, "part": part,
             "reference_ess": reference_ess,
             "variants": {k: [m, list(a)] for k, (m, a) in variants.items()}, "metric": metric, "seeds": seeds, "steps": steps, "compile": compile, "threads": threads,
-            "rows": rows, "front": [p[0] for p in front],
+            "rows": rows, "front": [p[0] for p in front], "fronts": fronts,
             "budgets": [{"ms": b, "best": None if p is None else p[0], "error": None if p is None else p[2]}
                         for b, p in zip(BUDGETS_MS, best)]}
