@@ -483,3 +483,24 @@ def test_jitter_at_start_is_evolved_away_and_at_end_stays_in_the_belief():
     assert start[0] < 0.6 and 0.6 < start[1] < 1.6
     with pytest.raises(ValueError, match="jitter_at: must be 'end' or 'start'"):
         ESCORTFilter(jitter_at="middle")
+
+
+def test_an_update_flushes_subnormals_and_leaves_the_mode_as_it_was():
+    from escort_rl.belief.denormals import flush_denormals, flushing_denormals
+    from escort_rl.models import LinearGaussian
+
+    model = LinearGaussian(state_dim=3)
+    filt = SVGDFilter(num_steps=2)
+    b = filt.init(model, (2,), 20, torch.Generator().manual_seed(0))
+    a = torch.zeros(2, dtype=torch.long)
+    assert not flushing_denormals()
+    filt.update(model, b, a, torch.zeros(2, 3))
+    assert not flushing_denormals()  # restored
+    supported = torch.set_flush_denormal(True)  # False on a CPU without flushing
+    torch.set_flush_denormal(False)
+    with flush_denormals():
+        assert flushing_denormals() == supported
+        with flush_denormals():
+            pass
+        assert flushing_denormals() == supported  # the inner block left the outer one's mode
+    assert not flushing_denormals()

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from escort_rl.belief.checks import FiniteGuard
+from escort_rl.belief.denormals import flush_denormals
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.models.protocol import check_model
 
@@ -123,8 +124,8 @@ class BeliefFilter(ABC):
             observation = observation.to(belief.particles.dtype)
         guard = FiniteGuard(type(self).__name__, belief.batch_shape, enabled=self.check_finite)
         guard.input_belief(belief)
-        try:
-            with guard.diagnosing():  # a NaN that makes a factorisation fail is named, not a deep traceback
+        try:  # a NaN that makes a factorisation fail is named, not a deep traceback
+            with guard.diagnosing(), flush_denormals():  # subnormals: slow, and zero to the result
                 posterior = self._update(model, belief, action, observation, generator, guard=guard)
         except (RuntimeError, TypeError, IndexError):  # a model output that does not fit, named
             message = diagnose_model_outputs(model, belief, action, observation)

@@ -32,6 +32,7 @@ from escort_rl.belief.checks import (
     value_channels,
     value_flags,
 )
+from escort_rl.belief.denormals import flush_denormals
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists, svgd_direction
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.prior import SmoothedPrior
@@ -607,7 +608,7 @@ class ESCORTFilter(BeliefFilter):
                           "the starting particles lie")
         log_w = log_p - log_q
         log_w = torch.where(torch.isfinite(log_w), log_w, torch.full_like(log_w, -1e30))
-        with guard.diagnosing():
+        with guard.diagnosing(), flush_denormals():
             x, counts = self.evolve(particles.detach(), score, target_samples=particles.detach(),
                                     target_log_weights=log_w, reference=None, generator=generator, num_steps=num_steps)
         guard.counts(channels, counts, "while fitting")
