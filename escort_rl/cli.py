@@ -49,6 +49,7 @@ BENCHMARKS = (
     "escort_rl.bench.frontier",
     "escort_rl.bench.frontier.regime",
     "escort_rl.bench.frontier.kalman",
+    "escort_rl.bench.frontier.decisions",
     "escort_rl.bench.atari",
 )
 """The modules whose ``register(subparsers)`` adds a ``bench`` subcommand, in the order of the help."""

@@ -5,6 +5,8 @@ import json
 import math
 import textwrap
 
+import pytest
+import torch
 
 from escort_rl.bench.frontier import best_at_budgets, pareto_front
 from escort_rl.cli import main
@@ -138,3 +140,29 @@ def test_bench_regime_map_runs_a_frontier_per_point(tmp_path):
     assert "front at:" in md and md.count("| 0.2 |") == 2
     assert (out / "D2_obs0.2" / "cells").is_dir() and (out / "D2_obs0.2" / "frontier.md").exists()
     assert (out / "regime_map.png").exists()
+
+
+def test_frontier_decisions_pairs_the_episodes_and_names_bad_rows(tmp_path, capsys):
+    """The greedy regulator on a controlled tracking model: rows meet the same starts and noise, so a
+    row run twice gives the same returns, and the exact posterior's row runs beside the filters."""
+    from escort_rl.bench.frontier.decisions import greedy_action, parse_row, run_decisions
+    from escort_rl.bench.synthetic.tracking import gmm_tracking
+
+    model = gmm_tracking(dim=2, control=1.0)
+    assert model.n_actions == 5
+    mean = torch.tensor([[3.0, 0.2], [-0.1, -2.0], [0.1, 0.1]])
+    assert greedy_action(model, mean).tolist() == [2, 3, 0]  # -x, +y, stay
+    assert parse_row("escort:100:15") == ("escort", 100, 15) and parse_row("exact") == ("exact", 0, 0)
+    for bad in ("sir", "sir:x", "escort:100", "sir:10:3", "nope:10"):
+        with pytest.raises(ValueError, match="--rows"):
+            parse_row(bad)
+    spec = "class:escort_rl.bench.synthetic.tracking:gmm_tracking"
+    args = ("dim=2", "control=1.0")
+    r = run_decisions(spec, args, [("sir", 200, 0), ("exact", 0, 0), ("sir", 200, 0)], episodes=6, steps=4)
+    first, exact, again = r["rows"]
+    assert first["return"] == again["return"] and first["difference"][0] == 0.0
+    assert exact["row"] == "exact posterior" and exact["mean_error"][0] > 0
+    capsys.readouterr()
+    assert main(["bench", "frontier-decisions", "--model", "escort_rl.bench.synthetic.tracking:gmm_tracking",
+                 "--model-arg", "dim=2", "--rows", "sir:10", "--output", str(tmp_path)]) == 2
+    assert "control=1" in capsys.readouterr().err

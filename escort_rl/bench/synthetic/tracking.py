@@ -35,7 +35,11 @@ class GMMTracking:
     """A random walk observed through additive Gaussian-mixture noise (see the module docstring).
 
     ``noise``: the mixture ``η`` is drawn from (centred to mean 0 here); ``prior_std`` ``σ_0``,
-    ``process_std`` ``q``. One action (``n_actions = 1``), no reward, never terminal.
+    ``process_std`` ``q``. Never terminal. With ``control = 0`` (default) one action
+    (``n_actions = 1``) and reward 0. With ``control = c > 0`` a regulation task: ``2d + 1`` actions,
+    action 0 does nothing and actions ``2i + 1`` / ``2i + 2`` push coordinate ``i`` by ``+c`` / ``−c``
+    (``s_{t+1} = s_t + u_a + N(0, q² I)``), and the reward is ``−‖s_{t+1}‖``: keep the state at the
+    origin while the observations say only up to which mode of the noise where it is.
 
     Example:
         >>> from escort_rl.bench.targets import load_target
@@ -45,17 +49,24 @@ class GMMTracking:
         torch.Size([3])
     """
 
-    n_actions = 1
-
-    def __init__(self, noise: GaussianMixture, prior_std: float = PRIOR_STD, process_std: float = PROCESS_STD):
+    def __init__(self, noise: GaussianMixture, prior_std: float = PRIOR_STD, process_std: float = PROCESS_STD,
+                 control: float = 0.0):
         for name, value in (("prior_std", prior_std), ("process_std", process_std)):
             if not (isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < math.inf):
                 raise ValueError(f"{name}: expected a positive finite number, got {value!r}")
+        if not (isinstance(control, (int, float)) and not isinstance(control, bool) and 0 <= control < math.inf):
+            raise ValueError(f"control: expected a finite number >= 0 (0: no actions), got {control!r}")
         mean = noise.mean()
         self.noise = GaussianMixture(noise.weights, noise.means - mean, noise.covariances,
                                      name=f"{noise.name or 'mixture'} (centred)")
-        self.state_dim = self.obs_dim = noise.dim
-        self.prior_std, self.process_std = float(prior_std), float(process_std)
+        self.state_dim = self.obs_dim = d = noise.dim
+        self.prior_std, self.process_std, self.control = float(prior_std), float(process_std), float(control)
+        self.n_actions = 2 * d + 1 if control > 0 else 1
+        offsets = torch.zeros(self.n_actions, d)
+        if control > 0:
+            offsets[1 + 2 * torch.arange(d), torch.arange(d)] = float(control)
+            offsets[2 + 2 * torch.arange(d), torch.arange(d)] = -float(control)
+        self.controls = offsets  # [n_actions, d]: u_a
 
     def _randn(self, shape, like: Tensor | None, generator) -> Tensor:
         dtype = like.dtype if like is not None else torch.float32
@@ -68,17 +79,22 @@ class GMMTracking:
     def initial_belief(self, shape, n, generator=None) -> Tensor:
         return self.prior_std * self._randn((*shape, n, self.state_dim), None, generator)
 
+    def _offset(self, s: Tensor, a) -> Tensor:
+        if self.control == 0 or a is None:
+            return torch.zeros((), dtype=s.dtype, device=s.device)
+        return self.controls.to(s.dtype).to(s.device)[torch.as_tensor(a).long()]
+
     def transition(self, s: Tensor, a, generator=None) -> Tensor:
-        return s + self.process_std * self._randn(s.shape, s, generator)
+        return s + self._offset(s, a) + self.process_std * self._randn(s.shape, s, generator)
 
     def transition_mean(self, s: Tensor, a) -> Tensor:
-        return s
+        return s + self._offset(s, a)
 
     def transition_scale_tril(self) -> Tensor:
         return self.process_std * torch.eye(self.state_dim)
 
     def transition_log_prob(self, s_next: Tensor, s: Tensor, a) -> Tensor:
-        z = (s_next - s) / self.process_std
+        z = (s_next - self.transition_mean(s, a)) / self.process_std
         return -0.5 * (z * z).sum(-1) - self.state_dim * (math.log(self.process_std) + 0.5 * math.log(2 * math.pi))
 
     def observe(self, s_next: Tensor, a, generator=None) -> Tensor:
@@ -94,7 +110,9 @@ class GMMTracking:
         return -self.noise.score(o - s_next)
 
     def reward(self, s: Tensor, a, s_next: Tensor) -> Tensor:
-        return torch.zeros(s.shape[:-1], dtype=s.dtype, device=s.device)
+        if self.control == 0:
+            return torch.zeros(s.shape[:-1], dtype=s.dtype, device=s.device)
+        return -torch.linalg.vector_norm(s_next, dim=-1)
 
     def is_terminal(self, s: Tensor) -> Tensor:
         return torch.zeros(s.shape[:-1], dtype=torch.bool, device=s.device)
@@ -116,7 +134,7 @@ class GMMTracking:
                              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """One exact Bayes update of a Gaussian-sum posterior (Alspach & Sorenson 1972).
 
-        Predict each component ``j``: ``C_j ← C_j + q² I``. Each noise mode ``k`` (weight ``π_k``,
+        Predict each component ``j``: ``m_j ← m_j + u_a``, ``C_j ← C_j + q² I``. Each noise mode ``k`` (weight ``π_k``,
         mean ``μ_k``, covariance ``Σ_k``) turns it into a Kalman update with ``H = I``, ``R = Σ_k``
         and the observation ``o − μ_k``:
 
@@ -132,6 +150,8 @@ class GMMTracking:
         mu, sig = noise.means.double(), noise.covariances.double()  # [K, d], [K, d, d]
         k = pi.shape[0]
         c = covs + self.process_std**2 * torch.eye(d, dtype=torch.float64)  # [B, J, d, d]
+        means = means + self._offset(means, a).double().reshape(b, 1, d) if self.control > 0 and a is not None \
+            else means
         s = c.unsqueeze(2) + sig  # [B, J, K, d, d]
         lower = torch.linalg.cholesky(s)
         innov = (o.double()[:, None, None, :] - mu - means.unsqueeze(2))  # [B, J, K, d]
@@ -156,13 +176,15 @@ class GMMTracking:
 
 
 def gmm_tracking(dim: int = 5, correlation: str = "block", noise_scale: float = 1.0, prior_std: float = PRIOR_STD,
-                 process_std: float = PROCESS_STD, target_seed: int = 0, max_components: int = 256) -> GMMTracking:
+                 process_std: float = PROCESS_STD, target_seed: int = 0, max_components: int = 256,
+                 control: float = 0.0) -> GMMTracking:
     """The tracking model of the synthetic benchmark's scalability mixture in ``dim`` dimensions
     (:func:`~escort_rl.bench.targets.scalability_target`: 5 modes, correlation structure
     ``correlation``), each mode's covariance scaled by ``noise_scale²`` (below 1: sharper modes, an
     observation that tells the hypotheses apart more sharply). A multi-modal family by dimension with
     an exact (Gaussian-sum) posterior, for the frontier:
-    ``bench frontier --model escort_rl.bench.synthetic.tracking:gmm_tracking --model-arg dim=20``."""
+    ``bench frontier --model escort_rl.bench.synthetic.tracking:gmm_tracking --model-arg dim=20``.
+    ``control > 0`` makes it a regulation task (:class:`GMMTracking`)."""
     from escort_rl.bench.targets import scalability_target
 
     if not (isinstance(noise_scale, (int, float)) and not isinstance(noise_scale, bool) and 0 < noise_scale < math.inf):
@@ -173,7 +195,7 @@ def gmm_tracking(dim: int = 5, correlation: str = "block", noise_scale: float = 
     if noise_scale != 1.0:
         mix = GaussianMixture(mix.weights, mix.means, mix.covariances * float(noise_scale) ** 2,
                               name=f"{mix.name} x{noise_scale:g}")
-    model = GMMTracking(mix, prior_std=prior_std, process_std=process_std)
+    model = GMMTracking(mix, prior_std=prior_std, process_std=process_std, control=control)
     model.max_components = max_components
     return model
 

@@ -1,0 +1,205 @@
+"""``escort-rl bench frontier-decisions``: what a belief at a given cost is worth to a controller.
+
+A frontier row (a filter at its N and K) drives the **greedy regulator** in closed loop: at each step
+the action that brings the belief mean closest to the origin after the noise-free move,
+
+    a_t = argmin_a ‖transition_mean(m̂_t, a)‖²,    m̂_t the belief mean,
+
+which, for a reward ``−‖s_{t+1}‖`` and additive noise, is the myopic choice on the belief's first
+moment: the expected squared distance ``E‖s + u_a‖² = ‖m̂ + u_a‖² + tr Σ`` depends on the belief
+only through its mean. The rows differ by their beliefs alone. Where the model has an exact
+posterior (:func:`~escort_rl.bench.reference.has_exact_posterior`), an ``exact`` row acts on its mean:
+the best any filter can do with this rule.
+
+The ``E`` episodes of a row run as one batch, their starts and noise drawn from one generator seeded
+the same for every row; the number of draws per step does not depend on the actions, so every row
+meets the same starts and the same noise draws, and the difference of two rows' returns is paired
+by episode. The table gives the
+mean return ± s.e. over episodes, each row's paired difference to the first, the ms per update (one
+belief; the batch's time over ``E``, the first update excluded) and the error of the mean.
+
+Meant for the action-taking models of the frontier, e.g. the regulation form of the synthetic tracking
+family: ``--model escort_rl.bench.synthetic.tracking:gmm_tracking --model-arg dim=10 control=1``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from escort_rl.bench.frontier.cells import FILTER_METHODS, ITERATIVE, build_model, make_filter, model_label
+from escort_rl.bench.runner import Cell, CellStore, InProcessBackend, run_cells
+from escort_rl.reporting.paths import write_results
+from escort_rl.reporting.stats import format_mean_se, mean_se
+
+
+def greedy_action(model, mean: torch.Tensor) -> torch.Tensor:
+    """``argmin_a ‖transition_mean(mean, a)‖²`` for ``mean`` ``[B, d]`` -> actions int64 ``[B]``."""
+    b, d = mean.shape
+    actions = torch.arange(model.n_actions).expand(b, -1)  # [B, A]
+    nxt = model.transition_mean(mean.unsqueeze(1).expand(b, model.n_actions, d), actions)
+    return (nxt * nxt).sum(-1).argmin(-1)
+
+
+def parse_row(text: str) -> tuple[str, int, int]:
+    """``METHOD:N`` or ``METHOD:N:K`` (SVGD, ESCORT), or ``exact`` -> ``(method, N, K)``."""
+    parts = text.split(":")
+    if parts == ["exact"]:
+        return "exact", 0, 0
+    try:
+        method, n, k = parts[0], int(parts[1]), (int(parts[2]) if len(parts) > 2 else 0)
+    except (IndexError, ValueError):
+        raise ValueError(f"--rows: expected METHOD:N[:K] or exact, got {text!r}") from None
+    if method not in FILTER_METHODS:
+        raise ValueError(f"--rows: unknown filter '{method}' in {text!r}; choose from {', '.join(FILTER_METHODS)}")
+    if n < 1 or (method in ITERATIVE) != (len(parts) == 3) or (method in ITERATIVE and k < 1):
+        raise ValueError(f"--rows: {text!r}: give N >= 1, and K >= 1 exactly for svgd and escort")
+    return method, n, k
+
+
+@dataclass(frozen=True)
+class DecisionCell(Cell):
+    """One row: ``method`` at ``particles`` (and ``num_steps``), ``episodes`` closed-loop episodes of
+    ``steps`` steps on ``model``; returns per-episode ``return`` and ``mean_error`` and the timing."""
+
+    model: str
+    method: str
+    particles: int
+    episodes: int
+    steps: int
+    num_steps: int = 0
+    model_args: tuple = ()
+
+    def key(self) -> str:
+        k = f"-K{self.num_steps}" if self.method in ITERATIVE else ""
+        return (f"decisions/{model_label(self.model, self.model_args)}/{self.method}/N{self.particles}{k}-"
+                f"E{self.episodes}-T{self.steps}")
+
+    def run(self) -> dict:
+        model = build_model(self.model, tuple(self.model_args))
+        e, exact = self.episodes, self.method == "exact"
+        env = torch.Generator().manual_seed(10_007)  # the same starts and noise draws for every row
+        s = model.initial_state((e,), env)
+        if exact:
+            log_w, means, covs = _exact_init(model, e)
+            mean = _mixture_mean(log_w, means)
+        else:
+            filt = make_filter(self.method, self.num_steps)
+            g = torch.Generator().manual_seed(54_321)
+            belief = filt.init(model, (e,), self.particles, g)
+            mean = belief.mean()
+        returns, errors, seconds = torch.zeros(e, dtype=torch.float64), [], 0.0
+        for t in range(self.steps):
+            a = greedy_action(model, mean)
+            s = model.transition(s, a, env)
+            o = model.observe(s, a, env)
+            returns += model.reward(s, a, s).double()
+            t0 = time.perf_counter()
+            if exact:
+                log_w, means, covs = _exact_update(model, log_w, means, covs, a, o)
+                mean = _mixture_mean(log_w, means)
+            else:
+                belief = filt.update(model, belief, a, o, g)
+                mean = belief.mean()
+            if t > 0:
+                seconds += time.perf_counter() - t0
+            errors.append(torch.linalg.vector_norm(mean - s, dim=-1).double())
+        return {"return": returns.tolist(), "mean_error": torch.stack(errors, 1).mean(1).tolist(),
+                "timing": {"seconds_per_update": seconds / max(self.steps - 1, 1) / e}}
+
+
+def _mixture_mean(log_w: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
+    return (torch.softmax(log_w, -1).unsqueeze(-1) * means).sum(1).float()
+
+
+def _exact_init(model, e: int):
+    """The exact posterior's prior as a Gaussian sum ``(log_w [E, M], means [E, M, d], covs [E, M, d, d])``."""
+    if hasattr(model, "exact_posterior_init"):
+        return model.exact_posterior_init(e)
+    d = model.state_dim
+    return (torch.zeros(e, 1, dtype=torch.float64), model.m0.double().expand(e, 1, d),
+            model.P0.double().expand(e, 1, d, d))
+
+
+def _exact_update(model, log_w, means, covs, a, o):
+    """One step of the exact posterior, either form (:func:`~escort_rl.bench.reference.has_exact_posterior`)."""
+    if hasattr(model, "exact_posterior_step"):
+        log_w, means, covs, _ = model.exact_posterior_step(log_w, means, covs, a, o)
+        return log_w, means, covs
+    mean, cov = model.kalman_step(means[:, 0], covs[:, 0], a, o)
+    return log_w, mean.unsqueeze(1), cov.unsqueeze(1)
+
+
+def run_decisions(model: str, model_args: tuple, rows: list[tuple[str, int, int]], episodes: int = 50,
+                  steps: int = 20, output: Path | None = None, backend=None, threads: int = 1) -> dict:
+    cells = [DecisionCell(model=model, model_args=tuple(model_args), method=m, particles=n, num_steps=k,
+                          episodes=episodes, steps=steps, threads=threads) for m, n, k in rows]
+    store = CellStore(Path(output) / "cells") if output is not None else None
+    backend = backend or InProcessBackend()
+    try:
+        results = run_cells(cells, backend, store, desc="decision cells")
+    finally:
+        backend.close()
+    base = results[0]["return"]
+    out_rows = []
+    for c, r in zip(cells, results):
+        name = "exact posterior" if c.method == "exact" else (
+            f"{c.method} N={c.particles}" + (f" K={c.num_steps}" if c.method in ITERATIVE else ""))
+        out_rows.append({"row": name, "method": c.method, "particles": c.particles, "num_steps": c.num_steps,
+                         "return": mean_se(r["return"]), "mean_error": mean_se(r["mean_error"]),
+                         "difference": mean_se([x - y for x, y in zip(r["return"], base)]),
+                         "ms_per_update": 1e3 * r["timing"]["seconds_per_update"]})
+    return {"model": model, "model_args": list(model_args), "episodes": episodes, "steps": steps, "rows": out_rows}
+
+
+def decisions_markdown(result: dict) -> str:
+    first = result["rows"][0]["row"]
+    lines = [f"# Decisions on beliefs: the greedy regulator ({result['model']} {' '.join(result['model_args'])})", "",
+             f"{result['episodes']} closed-loop episodes of {result['steps']} steps per row, the same starts and noise "
+             "draws for every row; return = Σ_t −‖s_t‖ (higher is better), mean ± s.e. over episodes; the "
+             f"difference to `{first}` is paired by episode; error = ‖m̂ − s‖ averaged over the steps.", "",
+             f"| row | ms per update | return | difference to {first} | error of the mean |",
+             "| --- | --- | --- | --- | --- |"]
+    for r in result["rows"]:
+        ms = "—" if r["method"] == "exact" else f"{r['ms_per_update']:.3g}"
+        lines.append(f"| {r['row']} | {ms} | {format_mean_se(r['return'], 2)} | {format_mean_se(r['difference'], 2)} "
+                     f"| {format_mean_se(r['mean_error'], 3)} |")
+    return "\n".join(lines) + "\n"
+
+
+def register(subparsers) -> None:
+    from escort_rl.bench.runner import add_runner_arguments
+
+    p = subparsers.add_parser("frontier-decisions", help="the greedy regulator, closed loop, on chosen frontier rows",
+                              description="Drive the greedy regulator (argmin_a |transition_mean(belief mean, a)|^2) "
+                              "on each row's belief in closed loop, on the same seeded episodes, and report the "
+                              "returns with paired differences.")
+    p.add_argument("--model", required=True, metavar="pkg.module:Class", help="a model with actions and reward -|s|, "
+                   "e.g. escort_rl.bench.synthetic.tracking:gmm_tracking")
+    p.add_argument("--model-arg", nargs="+", default=[], metavar="KEY=VALUE", help="e.g. dim=10 control=1")
+    p.add_argument("--rows", nargs="+", required=True, metavar="METHOD:N[:K] | exact",
+                   help="the rows, the first the baseline of the differences, e.g. sir:10000 enkf:1000 escort:300:50")
+    p.add_argument("--episodes", type=int, default=50, help="default 50")
+    p.add_argument("--steps", type=int, default=20, help="default 20")
+    p.add_argument("--output", default="outputs/bench/frontier_decisions", help="folder")
+    add_runner_arguments(p)
+    p.set_defaults(handler=main)
+
+
+def main(args) -> None:
+    from escort_rl.bench.runner import backend_from_args
+
+    if args.episodes < 2 or args.steps < 2:
+        raise ValueError(f"--episodes and --steps: need at least 2 each, got {args.episodes} and {args.steps}")
+    rows = [parse_row(r) for r in args.rows]
+    model = f"class:{args.model}"
+    built = build_model(model, tuple(args.model_arg))
+    if getattr(built, "n_actions", 1) < 2:
+        raise ValueError(f"--model: {type(built).__name__} has {getattr(built, 'n_actions', 1)} action; the regulator "
+                         "needs a choice (gmm_tracking: pass --model-arg control=1)")
+    result = run_decisions(model, tuple(args.model_arg), rows, args.episodes, args.steps, Path(args.output),
+                           backend_from_args(args), args.threads or 1)
+    write_results(Path(args.output), "frontier_decisions", result, decisions_markdown(result))
