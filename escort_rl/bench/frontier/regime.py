@@ -64,7 +64,7 @@ def regime_markdown(result: dict) -> str:
              "point's `frontier.md` says more) against ms per update, and the closest filter at 1, 10 and "
              f"100 ms per update. One frontier per point (`{command}`).", ""]
     lines.append(f"**ESCORT (or a variant of it) is on the {METRIC_NAMES.get(points[0]['metric'], '') if points else ''} "
-                 "front at: " + (", ".join(f"D = {p['dim']}, obs_std = {p['obs_std']:g}"
+                 "front at: " + (", ".join(f"D = {p['dim']}, r = {p['obs_std']:g}"
                                                         for p in escort_on) if escort_on else "no point of this map")
                  + ".**")
     with_ess = any(p.get("reference_ess") for p in points)
