@@ -166,3 +166,18 @@ def test_frontier_decisions_pairs_the_episodes_and_names_bad_rows(tmp_path, caps
     assert main(["bench", "frontier-decisions", "--model", "escort_rl.bench.synthetic.tracking:gmm_tracking",
                  "--model-arg", "dim=2", "--rows", "sir:10", "--output", str(tmp_path)]) == 2
     assert "control=1" in capsys.readouterr().err
+
+
+def test_escort_against_svgd_is_paired_by_seed():
+    from escort_rl.bench.frontier.report import paired_lines
+
+    def row(method, w1):
+        return {"method": method, "particles": 10, "num_steps": 5, "failed": None,
+                "per_seed": {f"s/{m}": list(w1) for m in ("w1", "mmd2", "mean", "cov")}}
+
+    result = {"part": "s", "rows": [row("escort", [1.0, 2.0, 4.0]), row("svgd", [1.5, 2.5, 4.25]),
+                                    row("sir", [9.0, 9.0, 9.0])]}
+    lines = paired_lines(result)
+    # differences -0.5, -0.5, -0.25: mean -0.4167, s.e. 0.0833 (the seeds' spread cancels in the pairing)
+    assert lines[-1].startswith("| 10 | 5 | -0.4167 ± 0.0833")
+    assert paired_lines({"part": "s", "rows": [row("sir", [1.0])]}) == []

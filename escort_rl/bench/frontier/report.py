@@ -4,7 +4,7 @@ one line of advice."""
 from __future__ import annotations
 
 from escort_rl.bench.frontier.run import label
-from escort_rl.reporting.stats import format_importance, format_mean_se
+from escort_rl.reporting.stats import format_importance, format_mean_se, mean_se
 
 METRIC_NAMES = {"w1": "sliced W1", "mean": "‖mean − mean_ref‖₂", "cov": "‖cov − cov_ref‖_F", "mmd2": "MMD²"}
 
@@ -22,6 +22,27 @@ def advice(result: dict, budget_ms: float = 10.0) -> str:
     cheapest = min(rows, key=lambda r: r["ms_per_update"])
     return (f"No filter fits {budget_ms:g} ms per update here; the cheapest is {label(cheapest)} at "
             f"{cheapest['ms_per_update']:.3g} ms.")
+
+
+def paired_lines(result: dict, a: str = "escort", b: str = "svgd") -> list[str]:
+    """``a`` against ``b`` at the same N and K, paired by seed (the same trajectories and prior draws):
+    the mean ± s.e. of the per-seed difference of each distance; the lines of a Markdown table (empty
+    when the two share no (N, K))."""
+    part = result["part"]
+    rows = {(r["method"], r["particles"], r["num_steps"]): r for r in result["rows"] if r.get("failed") is None}
+    shared = sorted(k[1:] for k in rows if k[0] == a and (b, *k[1:]) in rows)
+    if not shared:
+        return []
+    lines = ["", f"## {a} − {b} at the same N and K, paired by seed (negative: {a} closer)", "",
+             "| N | K | " + " | ".join(METRIC_NAMES[m] for m in ("w1", "mmd2", "mean", "cov")) + " |",
+             "| --- | --- | --- | --- | --- | --- |"]
+    for n, k in shared:
+        cells = []
+        for m in ("w1", "mmd2", "mean", "cov"):
+            x, y = rows[(a, n, k)]["per_seed"][f"{part}/{m}"], rows[(b, n, k)]["per_seed"][f"{part}/{m}"]
+            cells.append(format_mean_se(mean_se([p - q for p, q in zip(x, y)]), 4))
+        lines.append(f"| {n} | {k} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def frontier_markdown(result: dict) -> str:
@@ -49,7 +70,7 @@ def frontier_markdown(result: dict) -> str:
                      f"{'—' if b['error'] is None else format(b['error'], '.4g')} |")
     lines += ["", f"Pareto front ({METRIC_NAMES[metric]} against time): " + ", ".join(result["front"]) + ".", "",
               *[f"On {METRIC_NAMES[m]} instead: " + ", ".join(f) + "." for m, f in result.get("fronts", {}).items()
-                if m != metric], "",
+                if m != metric], *paired_lines(result), "",
               "## Every row", "",
               "| filter | ms per update | sliced W1 | mean error | covariance error | MMD² | on the front | "
               "ESS of the importance weights |",
