@@ -106,11 +106,13 @@ class LightDark10D(AdditiveGaussianTransition):
     """
 
     n_pos = 5
-    position_dims = (0, 1, 2, 3, 4)
-    velocity_dims = (5, 6, 7, 8, 9)
-    state_dim = 10
-    obs_dim = 5
-    n_actions = 10
+
+    # the sizes follow n_pos (properties, so that a subclass may still fix one as a class attribute)
+    position_dims = property(lambda self: tuple(range(self.n_pos)))
+    velocity_dims = property(lambda self: tuple(range(self.n_pos, 2 * self.n_pos)))
+    state_dim = property(lambda self: 2 * self.n_pos)
+    obs_dim = property(lambda self: self.n_pos)
+    n_actions = property(lambda self: 2 * self.n_pos)
 
     def __init__(
         self,
@@ -148,8 +150,6 @@ class LightDark10D(AdditiveGaussianTransition):
             raise ValueError(f"LightDark10D.n_pos: must be an integer >= {LIGHT_DIM} (the light field's "
                              f"dimension), got {n_pos!r}")
         n = self.n_pos = int(n_pos)
-        self.position_dims, self.velocity_dims = tuple(range(n)), tuple(range(n, 2 * n))
-        self.state_dim, self.obs_dim, self.n_actions = 2 * n, n, 2 * n
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.force, self.damping, self.dt = force, damping, dt
         self.sigma_base, self.sigma_min = sigma_base, sigma_min
