@@ -105,14 +105,14 @@ class LightDark10D(AdditiveGaussianTransition):
         device: where the model's constant tensors live.
     """
 
+    # the paper's sizes; another n_pos sets its own on the instance (so that at n_pos = 5 a subclass
+    # or a caller may still change one)
     n_pos = 5
-
-    # the sizes follow n_pos (properties, so that a subclass may still fix one as a class attribute)
-    position_dims = property(lambda self: tuple(range(self.n_pos)))
-    velocity_dims = property(lambda self: tuple(range(self.n_pos, 2 * self.n_pos)))
-    state_dim = property(lambda self: 2 * self.n_pos)
-    obs_dim = property(lambda self: self.n_pos)
-    n_actions = property(lambda self: 2 * self.n_pos)
+    position_dims = (0, 1, 2, 3, 4)
+    velocity_dims = (5, 6, 7, 8, 9)
+    state_dim = 10
+    obs_dim = 5
+    n_actions = 10
 
     def __init__(
         self,
@@ -149,7 +149,10 @@ class LightDark10D(AdditiveGaussianTransition):
         if isinstance(n_pos, bool) or int(n_pos) != n_pos or n_pos < LIGHT_DIM:
             raise ValueError(f"LightDark10D.n_pos: must be an integer >= {LIGHT_DIM} (the light field's "
                              f"dimension), got {n_pos!r}")
-        n = self.n_pos = int(n_pos)
+        n = int(n_pos)
+        if n != type(self).n_pos:
+            self.n_pos, self.position_dims, self.velocity_dims = n, tuple(range(n)), tuple(range(n, 2 * n))
+            self.state_dim, self.obs_dim, self.n_actions = 2 * n, n, 2 * n
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.force, self.damping, self.dt = force, damping, dt
         self.sigma_base, self.sigma_min = sigma_base, sigma_min
