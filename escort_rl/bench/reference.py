@@ -160,25 +160,34 @@ def has_exact_posterior(model) -> bool:
     return kalman or mixture
 
 
-def _exact_steps(model, traj: dict, b: int):
-    """The exact posterior at ``t = 0..T`` as Gaussian sums ``(log_w [B, M], means [B, M, d], covs
-    [B, M, d, d], dropped [B])``, float64, whichever form the model gives (Kalman: ``M = 1``)."""
-    d = model.state_dim
+def exact_posterior_start(model, b: int):
+    """The exact posterior's prior as a Gaussian sum ``(log_w [B, M], means [B, M, d], covs [B, M, d, d])``,
+    float64, whichever form the model gives (:func:`has_exact_posterior`; Kalman: ``M = 1``)."""
     if callable(getattr(model, "exact_posterior_init", None)):
-        log_w, means, covs = model.exact_posterior_init(b)
-        step = lambda lw, m, c, a, o: model.exact_posterior_step(lw, m, c, a, o)  # noqa: E731
-    else:
-        log_w = torch.zeros(b, 1, dtype=torch.float64)
-        means, covs = model.m0.double().expand(b, 1, d), model.P0.double().expand(b, 1, d, d)
+        return model.exact_posterior_init(b)
+    d = model.state_dim
+    return (torch.zeros(b, 1, dtype=torch.float64), model.m0.double().expand(b, 1, d),
+            model.P0.double().expand(b, 1, d, d))
 
-        def step(lw, m, c, a, o):
-            mean, cov = model.kalman_step(m[:, 0], c[:, 0], a, o)
-            return lw, mean.unsqueeze(1), cov.unsqueeze(1), torch.zeros(b, dtype=torch.float64)
-    dropped = torch.zeros(b, dtype=torch.float64)
-    yield log_w, means, covs, dropped
+
+def exact_posterior_update(model, log_w, means, covs, a, o):
+    """One exact update of a Gaussian sum ``(log_w, means, covs)`` -> the same and ``dropped`` ``[B]``,
+    the mass a pruned sum cut (0 for Kalman)."""
+    if callable(getattr(model, "exact_posterior_step", None)):
+        log_w, means, covs, dropped = model.exact_posterior_step(log_w, means, covs, a, o)
+        return log_w.double(), means.double(), covs.double(), dropped.double()
+    mean, cov = model.kalman_step(means[:, 0], covs[:, 0], a, o)
+    return log_w, mean.unsqueeze(1), cov.unsqueeze(1), torch.zeros(log_w.shape[0], dtype=torch.float64)
+
+
+def _exact_steps(model, traj: dict, b: int):
+    """The exact posterior at ``t = 0..T`` as Gaussian sums ``(log_w, means, covs, dropped)``."""
+    log_w, means, covs = exact_posterior_start(model, b)
+    yield log_w, means, covs, torch.zeros(b, dtype=torch.float64)
     for t in range(traj["actions"].shape[1]):
-        log_w, means, covs, dropped = step(log_w, means, covs, traj["actions"][:, t], traj["observations"][:, t])
-        yield log_w.double(), means.double(), covs.double(), dropped.double()
+        log_w, means, covs, dropped = exact_posterior_update(model, log_w, means, covs, traj["actions"][:, t],
+                                                             traj["observations"][:, t])
+        yield log_w, means, covs, dropped
 
 
 def exact_reference(model, traj: dict, seeds: list[int], sample: int = SAMPLE, base_seed: int = 0,

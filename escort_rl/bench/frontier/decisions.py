@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench.frontier.cells import FILTER_METHODS, ITERATIVE, build_model, make_filter, model_label
+from escort_rl.bench.reference import exact_posterior_start, exact_posterior_update
 from escort_rl.bench.runner import Cell, CellStore, InProcessBackend, run_cells
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
@@ -84,7 +85,7 @@ class DecisionCell(Cell):
         env = torch.Generator().manual_seed(10_007)  # the same starts and noise draws for every row
         s = model.initial_state((e,), env)
         if exact:
-            log_w, means, covs = _exact_init(model, e)
+            log_w, means, covs = exact_posterior_start(model, e)
             mean = _mixture_mean(log_w, means)
         else:
             filt = make_filter(self.method, self.num_steps)
@@ -99,7 +100,7 @@ class DecisionCell(Cell):
             returns += model.reward(s, a, s).double()
             t0 = time.perf_counter()
             if exact:
-                log_w, means, covs = _exact_update(model, log_w, means, covs, a, o)
+                log_w, means, covs, _ = exact_posterior_update(model, log_w, means, covs, a, o)
                 mean = _mixture_mean(log_w, means)
             else:
                 belief = filt.update(model, belief, a, o, g)
@@ -113,24 +114,6 @@ class DecisionCell(Cell):
 
 def _mixture_mean(log_w: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
     return (torch.softmax(log_w, -1).unsqueeze(-1) * means).sum(1).float()
-
-
-def _exact_init(model, e: int):
-    """The exact posterior's prior as a Gaussian sum ``(log_w [E, M], means [E, M, d], covs [E, M, d, d])``."""
-    if hasattr(model, "exact_posterior_init"):
-        return model.exact_posterior_init(e)
-    d = model.state_dim
-    return (torch.zeros(e, 1, dtype=torch.float64), model.m0.double().expand(e, 1, d),
-            model.P0.double().expand(e, 1, d, d))
-
-
-def _exact_update(model, log_w, means, covs, a, o):
-    """One step of the exact posterior, either form (:func:`~escort_rl.bench.reference.has_exact_posterior`)."""
-    if hasattr(model, "exact_posterior_step"):
-        log_w, means, covs, _ = model.exact_posterior_step(log_w, means, covs, a, o)
-        return log_w, means, covs
-    mean, cov = model.kalman_step(means[:, 0], covs[:, 0], a, o)
-    return log_w, mean.unsqueeze(1), cov.unsqueeze(1)
 
 
 def run_decisions(model: str, model_args: tuple, rows: list[tuple[str, int, int]], episodes: int = 50,
