@@ -196,7 +196,7 @@ def check_output_argument(args) -> None:
     value = getattr(args, "output", None)
     if value is None:
         return
-    from escort_rl.schema import check_output_dir
+    from escort_rl.config.schema import check_output_dir
 
     is_file = getattr(args, "output_is_file", False)  # e.g. bench throughput: --output names a JSON file
     path = Path(value).expanduser()

@@ -194,7 +194,7 @@ def test_an_empty_output_dir_is_refused_instead_of_writing_into_the_working_dire
 
 
 def test_an_output_dir_inside_a_folder_that_cannot_be_written_is_named(tmp_path, monkeypatch):
-    import escort_rl.schema as schema
+    from escort_rl.config import schema
 
     monkeypatch.setattr(schema.os, "access", lambda path, mode: False)
     message = _config_error([f"output_dir={tmp_path / 'run'}"])

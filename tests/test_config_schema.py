@@ -1,4 +1,4 @@
-"""Typed configs: the schemas of escort_rl.schema, the range checks, one-line errors, resuming by
+"""Typed configs: the schemas of escort_rl.config.schema, the range checks, one-line errors, resuming by
 recomposition, and building filters and models with hydra.utils.instantiate."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import torch
 import yaml
 from omegaconf import MISSING, OmegaConf
 
-from escort_rl import schema
+from escort_rl.config import schema
 from escort_rl.cli import main
 from escort_rl.config import ConfigError, compose, config_dir, merge_override_lists, recompose, saved_config_drift
 from escort_rl.trainers.builders import build_filter, build_model
@@ -178,11 +178,11 @@ def test_output_dir_that_is_a_file(tmp_path):
 @pytest.fixture
 def config_copy(tmp_path, monkeypatch):
     """A copy of configs/ that compose reads instead."""
-    import escort_rl.config
+    import escort_rl.config.schema
 
     copy = tmp_path / "configs"
     shutil.copytree(config_dir(), copy)
-    monkeypatch.setattr(escort_rl.config, "config_dir", lambda: copy)
+    monkeypatch.setattr(escort_rl.config.schema, "config_dir", lambda: copy)
     return copy
 
 

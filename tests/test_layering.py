@@ -13,7 +13,7 @@ ROOT = Path(escort_rl.__file__).parent
 # a layer may import only the layers listed for it (besides itself)
 BELOW = {
     "reporting": set(),
-    "trainers": {"reporting", "models", "envs", "belief", "transforms", "modules", "planners", "config", "schema"},
+    "trainers": {"reporting", "models", "envs", "belief", "transforms", "modules", "planners", "config"},
 }
 
 

@@ -28,7 +28,7 @@ HIDDEN = 8
 
 def tiny_cfg(*overrides: str, hidden: int = HIDDEN):
     """The tiny recurrent-PPO config, as a plain (untyped) config. ``trainer=recurrent_ppo`` needs its
-    schema in escort_rl/schema.py; until it is there, the PPO config with the recurrent keys added."""
+    schema in escort_rl/config/schema.py; until it is there, the PPO config with the recurrent keys added."""
     try:
         cfg = compose(["trainer=recurrent_ppo", *TINY, *overrides])
     except ConfigError:

@@ -222,7 +222,7 @@ def main(args) -> None:
     from pathlib import Path
 
     from escort_rl.reporting.paths import write_results
-    from escort_rl.schema import check_device
+    from escort_rl.config.schema import check_device
 
     problem = check_device(args.device)
     if problem is not None:

@@ -20,7 +20,7 @@ import sys
 from omegaconf import DictConfig
 from torchrl.collectors.distributed import RayCollector
 
-from escort_rl.schema import check_ray_installed
+from escort_rl.config.schema import check_ray_installed
 
 
 def ray_init_kwargs(address: str | None = None) -> dict:

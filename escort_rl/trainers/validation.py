@@ -1,5 +1,5 @@
 """The checks of a training config before training: the schema's types and ranges
-(:mod:`escort_rl.schema`, including those marked ``stage="train"``) and what involves two keys."""
+(:mod:`escort_rl.config.schema`, including those marked ``stage="train"``) and what involves two keys."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from escort_rl.config import ConfigError
-from escort_rl.schema import ENV_SCHEMAS, check_config, describe_error, find_problem
+from escort_rl.config.schema import ENV_SCHEMAS, check_config, describe_error, find_problem
 
 
 def validate_train_config(cfg: DictConfig) -> None:

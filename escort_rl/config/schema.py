@@ -41,12 +41,9 @@ from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from escort_rl.config.errors import ConfigError
 from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException,
                               ValidationError)
-
-
-class ConfigError(ValueError):
-    """A bad configuration value or key; the message names the key and the fix."""
 
 
 def config_dir() -> Path:
