@@ -2,7 +2,7 @@
 
     escort-rl run [KEY=VALUE ...]        train, then evaluate (the default job)
     escort-rl train [KEY=VALUE ...]      train; resume with resume=RUN_DIR
-    escort-rl evaluate --checkpoint PATH evaluate a checkpoint against a random policy
+    escort-rl evaluate --checkpoint PATH evaluate a checkpoint beside the scripted controller and a random policy
     escort-rl config [KEY=VALUE ...]     print the composed config
     escort-rl describe                   print the Light-Dark process-noise correlations
     escort-rl bench NAME ...             the benchmarks (``escort-rl bench --help`` lists them)
@@ -13,13 +13,19 @@ Benchmarks register their own subcommands. Each module named in :data:`BENCHMARK
 status). To add a benchmark, write ``register`` in its module and append the module's name to
 :data:`BENCHMARKS`::
 
+    from escort_rl.bench.core.options import add_output_option, add_quick_option
+
     def register(subparsers):
         p = subparsers.add_parser("mine", help="...")
-        p.add_argument("--output", default="outputs/bench/mine")
+        add_output_option(p, "outputs/bench/mine", "mine.md and mine.json")
+        add_quick_option(p, "2 seeds, 5 steps")
         p.set_defaults(handler=main)   # main(args) runs it; raise ValueError("--flag: ...") for bad input
 
-``set_defaults(output_is_file=True)`` says that ``--output`` names a file, not a folder. The grid
-benchmarks add the runner's flags with :func:`escort_rl.bench.runner.add_runner_arguments`.
+The options every benchmark shares (``--output DIR``, ``--seeds N``, ``--quick``, the runner's
+``--backend``/``--workers``/``--ray-address``/``--threads``, positional Hydra overrides, labelled
+rows) are defined once, in :mod:`escort_rl.bench.core.options`; use those functions rather than
+``add_argument`` for them. Every parser is a :class:`~escort_rl.bench.core.options.BenchParser`,
+whose help shows each option's default; give every option a help string.
 """
 
 from __future__ import annotations
@@ -31,7 +37,7 @@ from pathlib import Path
 
 OVERRIDES_HELP = (
     "Hydra-style overrides, e.g. trainer.iterations=100 num_particles=200 filter=sir "
-    "collector.workers=2 output_dir=outputs/mine resume=outputs/mine"
+    "collector.workers=2 output_dir=outputs/mine resume=outputs/mine (default: none)"
 )
 
 BENCHMARKS = (
@@ -56,7 +62,9 @@ BENCHMARKS = (
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    from escort_rl.bench.core.options import BenchParser
+
+    parser = BenchParser(
         prog="escort-rl",
         description="ESCORT-RL: particle belief tracking for POMDPs and policies trained on those beliefs.",
     )
@@ -64,22 +72,27 @@ def _parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="train a policy, then evaluate it (the default job)",
                          description="Train with the given overrides, then evaluate the final checkpoint.")
     run.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
-    train = sub.add_parser("train", help="train a DeepSets policy with REINFORCE on particle beliefs",
+    train = sub.add_parser("train", help="train a policy on particle beliefs (trainer=ppo by default)",
                            description="Train; a killed run continues with resume=RUN_DIR.")
     train.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     train.add_argument("--quiet", action="store_true", help="no progress bar")
-    ev = sub.add_parser("evaluate", help="evaluate a checkpoint against a uniform-random policy",
-                        description="Writes summary.md, metrics.json and PNG plots.")
+    ev = sub.add_parser("evaluate", help="evaluate a checkpoint beside the scripted controller and a random policy",
+                        description="Evaluates the trained policy, the domain's scripted controller on the same "
+                        "filter's belief (where the domain has one) and a uniform-random policy on the same seeded "
+                        "episodes; writes summary.md, metrics.json and PNG plots.")
     ev.add_argument("--checkpoint", required=True, help="a run directory, its checkpoints/ folder or a checkpoint")
-    ev.add_argument("--episodes", type=int, default=None, help="number of episodes (default: evaluate.episodes)")
+    ev.add_argument("--episodes", type=int, default=None, help="number of episodes (default: the config's evaluate.episodes)")
     ev.add_argument("--output", default=None, help="output folder (default: RUN_DIR/evaluation)")
     ev.add_argument("--greedy", action=argparse.BooleanOptionalAction, default=None,
                     help="--greedy: the most probable action; --no-greedy: sample from the policy "
-                    "(default: evaluate.greedy, true)")
+                    "(default: the config's evaluate.greedy, true)")
     sub.add_parser("describe", help="print the Light-Dark 10D process-noise correlations (paper vs used)",
                    description="The paper's correlations are not PSD; this prints the nearest correlation "
                    "matrix that the model uses.")
-    bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints what it measured.")
+    bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks; each prints what it measured. They "
+                           "share their options: --output DIR (a folder), --seeds N (a count), --quick (a smoke run), "
+                           "--backend/--workers/--threads/--ray-address (where the cells run) and positional Hydra "
+                           "overrides (filter.lambda_corr=0.3 filter.compile=true).")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     for name in BENCHMARKS:
         importlib.import_module(name).register(bench_sub)
@@ -176,7 +189,8 @@ def _quiet_compiler_notices() -> None:
 
 
 # Count arguments of the subcommands: each must be a positive int (or a list of them).
-POSITIVE_ARGUMENTS = ("episodes", "repeats", "dims", "particles", "batches", "workers", "num_envs", "steps",
+POSITIVE_ARGUMENTS = ("episodes", "repeats", "dims", "particles", "batches", "batch_sizes", "workers",
+                      "collector_workers", "num_envs", "steps",
                       "seeds", "threads", "num_steps", "training", "training_steps", "seeds_per_cell")
 
 
@@ -190,19 +204,15 @@ def check_positive_arguments(args) -> None:
 
 
 def check_output_argument(args) -> None:
-    """Raise ``ValueError`` naming ``--output`` when it cannot hold the results: an existing file
-    where a folder is wanted, a path under a file, or a folder that cannot be created. The folder
-    (for ``bench throughput``, the JSON file's folder) is created here, before any work is done."""
+    """Raise ``ValueError`` naming ``--output`` (always a folder) when it cannot hold the results: an
+    existing file, a path under a file, or a folder that cannot be created. The folder is created
+    here, before any work is done."""
     value = getattr(args, "output", None)
     if value is None:
         return
     from escort_rl.config.schema import check_output_dir
 
-    is_file = getattr(args, "output_is_file", False)  # e.g. bench throughput: --output names a JSON file
-    path = Path(value).expanduser()
-    if is_file and path.is_dir():
-        raise ValueError(f"--output: '{value}' is a folder; pass a file name, e.g. {Path(value) / 'throughput.json'}")
-    folder = path.parent if is_file else path
+    folder = Path(value).expanduser()
     problem = check_output_dir(str(folder))
     if problem is not None:
         raise ValueError(f"--output: {problem}")

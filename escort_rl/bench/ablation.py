@@ -1,6 +1,6 @@
 """Paired ablation tables across benchmark runs (``escort-rl bench ablation``).
 
-An ablation compares one method's rows in several runs (a sweep of ``--filter-set lambda_corr=…``
+An ablation compares one method's rows in several runs (a sweep of ``filter.lambda_corr=…``
 writes one run per value) or several methods of one run, against a reference row, seed by seed. The
 runs must share their seeds and inputs (the same benchmark with the same seeds, particles, starts and
 trajectories): each seed's difference is then paired, and a difference counts when it exceeds
@@ -87,21 +87,24 @@ def ablation_markdown(reference: str, runs: list[str], metric: str, lower_is_bet
 
 def register(subparsers) -> None:
     """Add ``bench ablation`` to the ``bench`` subparsers."""
+    from escort_rl.bench.core.options import add_output_option
+
     p = subparsers.add_parser("ablation", help="paired differences of rows across runs (e.g. a lambda_corr sweep)",
                               description="Compare one method's rows in several runs, or several methods, with a "
                               "reference row seed by seed (the runs must share seeds and inputs). Each run is "
                               "[LABEL=]DIR[:METHOD], METHOD defaulting to escort.")
     p.add_argument("reference", help="the reference row: [LABEL=]DIR[:METHOD]")
     p.add_argument("runs", nargs="+", help="the rows to compare with it: [LABEL=]DIR[:METHOD] ...")
-    p.add_argument("--metric", default="rmse", help="per-seed metric (default rmse; domains: final_error, mean_error)")
+    p.add_argument("--metric", default="rmse", help="per-seed metric (domains: final_error, mean_error)")
     p.add_argument("--higher-is-better", action="store_true", help="for coverage-like metrics")
-    p.add_argument("--output", default=None, help="also write the table to this file")
-    p.set_defaults(handler=main, output_is_file=True)
+    add_output_option(p, None, "ablation.md, the table also printed (default: print only)")
+    p.set_defaults(handler=main)
 
 
 def main(args) -> None:
     md = ablation_markdown(args.reference, args.runs, args.metric, lower_is_better=not args.higher_is_better)
     print(md)
     if args.output:
-        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.output).write_text(md)
+        out = Path(args.output)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "ablation.md").write_text(md)

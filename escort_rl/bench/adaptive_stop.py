@@ -75,29 +75,44 @@ def adaptive_stop_markdown(rows: list[dict], method: str = "escort") -> str:
 
 def register(subparsers) -> None:
     """Add ``bench adaptive-stop`` to the ``bench`` subparsers."""
+    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_seeds_option, add_threads_option
     from escort_rl.bench.methods import DOMAINS
 
     stop = subparsers.add_parser("adaptive-stop", help="ESCORT's adaptive stop: iterations used, error, calibration",
                                  description="ESCORT (K = 50 the cap) with each --tolerances value of "
                                  "filter.stop_tolerance on protocol (a)'s trajectories of each domain, and on the "
                                  "Kalman calibration episode; writes adaptive_stop.md and adaptive_stop.json.")
-    stop.add_argument("--domains", nargs="+", default=list(DOMAINS))
-    stop.add_argument("--tolerances", type=float, nargs="+", default=[0.0, 0.05, 0.1])
-    stop.add_argument("--seeds", type=int, default=8)
-    stop.add_argument("--steps", type=int, default=30)
-    stop.add_argument("--output", default="outputs/bench/adaptive_stop")
+    stop.add_argument("--domains", nargs="+", default=None,
+                      help=f"env configs (default: {' '.join(DOMAINS)}; --quick: {QUICK['domains'][0]})")
+    stop.add_argument("--tolerances", type=float, nargs="+", default=None,
+                      help="values of filter.stop_tolerance; 0: no stop (default: 0 0.05 0.1; --quick: 0 0.1)")
+    add_seeds_option(stop, None, "seeds 0..N-1 of the shared trajectories", f"8; --quick: {QUICK['seeds']}")
+    stop.add_argument("--steps", type=int, default=None,
+                      help=f"steps per trajectory (default: 30; --quick: {QUICK['steps']})")
+    add_quick_option(stop, "lightdark10d, tolerances 0 0.1, 2 seeds, 5 steps")
+    add_threads_option(stop)
+    add_output_option(stop, "outputs/bench/adaptive_stop", "adaptive_stop.md and adaptive_stop.json")
     stop.set_defaults(handler=main)
+
+
+QUICK = dict(domains=["lightdark10d"], tolerances=[0.0, 0.1], seeds=2, steps=5)
+"""``--quick``: one domain, two tolerances, 2 seeds of 5 steps."""
 
 
 def main(args) -> None:
     import math
     from pathlib import Path
 
+    from escort_rl.bench.core.options import set_threads
+    from escort_rl.bench.methods import DOMAINS
     from escort_rl.reporting.paths import write_results
 
-    if any(not (t >= 0 and math.isfinite(t)) for t in args.tolerances):
-        raise ValueError(f"--tolerances: each must be a finite number >= 0, got {args.tolerances}")
-    rows = adaptive_stop_rows(args.domains, args.tolerances, seeds=args.seeds, steps=args.steps,
+    full = dict(domains=list(DOMAINS), tolerances=[0.0, 0.05, 0.1], seeds=8, steps=30)
+    kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
+    if any(not (t >= 0 and math.isfinite(t)) for t in kw["tolerances"]):
+        raise ValueError(f"--tolerances: each must be a finite number >= 0, got {kw['tolerances']}")
+    set_threads(args)
+    rows = adaptive_stop_rows(kw["domains"], kw["tolerances"], seeds=kw["seeds"], steps=kw["steps"],
                               progress=lambda r: print(f"{r['domain']:>12} tol={r['tolerance']:g}: "
                                                        f"{r['iterations']:.1f} iterations", flush=True))
     write_results(Path(args.output), "adaptive_stop", rows, adaptive_stop_markdown(rows))

@@ -23,7 +23,9 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from escort_rl.bench.runner import Cell, CellStore, add_runner_arguments, backend_from_args, run_cells
+from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option, add_runner_options,
+                                          add_seeds_option)
+from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
 
@@ -203,6 +205,10 @@ def plot_curves(results: list[dict], path: Path, window: int = 20) -> Path:
 
 
 # ------------------------------------------------------------------------------------ the command
+QUICK_FRAMES = 256
+"""``--quick``: frames per run."""
+
+
 def check_names(flag: str, given: list[str], known) -> None:
     for name in given:
         if name not in known:
@@ -213,27 +219,29 @@ def main(args) -> None:
     from escort_rl.envs.atari import GAMES
     from escort_rl.trainers.atari_a2c import AGENTS
 
-    check_names("--games", args.games, list(GAMES))
+    check_names("--games", args.games or [], list(GAMES))
     check_names("--agents", args.agents, list(AGENTS))
     from escort_rl.config.schema import check_device
 
     problem = check_device(args.device)
     if problem is not None:
         raise ValueError(f"--device: {problem}")
-    if args.seeds_per_cell not in (None, 1):
-        raise ValueError(f"--seeds-per-cell: bench atari runs one seed per cell (a training run), got {args.seeds_per_cell}")
-    settings = load_settings(tuple(args.set))
+    frames = args.frames if args.frames is not None else QUICK_FRAMES if args.quick else None
+    if frames is None:
+        raise ValueError("--frames: give the frames (agent steps) per run, e.g. --frames 10000000, or --quick")
+    games = args.games if args.games is not None else ["pong"]
+    settings = load_settings(tuple(args.overrides))
     out = Path(args.output).expanduser()
-    for game in args.games:  # checks --frames before any run starts
-        cell_config(settings, game, args.agents[0], 0, args.frames, out, args.device)
-    cells = [AtariCell(game=g, agent=a, seed=s, frames=args.frames, runs=str(out / "runs"), overrides=tuple(args.set),
+    for game in games:  # checks --frames before any run starts
+        cell_config(settings, game, args.agents[0], 0, frames, out, args.device)
+    cells = [AtariCell(game=g, agent=a, seed=s, frames=frames, runs=str(out / "runs"), overrides=tuple(args.overrides),
                        threads=args.threads or 1, device=args.device)
-             for g in args.games for a in args.agents for s in range(args.seeds)]
+             for g in games for a in args.agents for s in range(args.seeds)]
     t0 = time.perf_counter()
     results = run_cells(cells, backend_from_args(args), CellStore(out / "cells"), desc="atari cells")
     rows = summarise(results)
     curves = plot_curves(results, out / "learning_curves.png")
-    markdown = (f"# Flickering Atari (Table 4): {args.frames:,} frames per run\n\n"
+    markdown = (f"# Flickering Atari (Table 4): {frames:,} frames per run\n\n"
                 + markdown_table(rows, settings.paper)
                 + f"\nFrames are agent steps (4 emulator frames each), as DVRL counted them. The paper's rows ran "
                 f"{int(settings.paper.frames):,} frames. Learning curves: {curves.name}.\n")
@@ -247,14 +255,15 @@ def register(subparsers) -> None:
                               "(A2C, DVRL's Atari settings in configs/bench/atari.yaml), then reports the last 100 "
                               "games' returns (mean ± s.e.) and frames/s beside the paper's Table 4, and learning "
                               "curves. Rerunning the same command resumes unfinished runs from their checkpoints.")
-    p.add_argument("--games", nargs="+", default=["pong"], help="pong icehockey mspacman asteroids (default: pong)")
-    p.add_argument("--agents", nargs="+", default=["dvrl", "escort_latent", "gru"],
-                   help="dvrl escort_latent gru (default: all three)")
-    p.add_argument("--frames", type=int, required=True, help="frames (agent steps) per run")
-    p.add_argument("--seeds", type=int, default=1, help="seeds 0..S-1 per game and agent (default 1)")
-    p.add_argument("--device", default="cpu", help="torch device of the networks (default cpu)")
-    p.add_argument("--output", default="outputs/bench/atari", help="folder for the runs and the report")
-    p.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE",
-                   help="override configs/bench/atari.yaml, e.g. escort.num_steps=10 trainer.parallel_envs=true")
-    add_runner_arguments(p)
+    add_overrides_argument(p, "overrides of configs/bench/atari.yaml, e.g. escort.num_steps=10 "
+                           "trainer.parallel_envs=true")
+    p.add_argument("--games", nargs="+", default=None, help="of pong icehockey mspacman asteroids (default: pong)")
+    p.add_argument("--agents", nargs="+", default=["dvrl", "escort_latent", "gru"], help="of dvrl escort_latent gru")
+    p.add_argument("--frames", type=int, default=None,
+                   help=f"frames (agent steps) per run; required but for --quick (default: none; --quick: {QUICK_FRAMES})")
+    add_seeds_option(p, 1, "seeds 0..N-1 per game and agent")
+    p.add_argument("--device", default="cpu", help="torch device of the networks")
+    add_quick_option(p, f"pong, every agent, {QUICK_FRAMES} frames per run")
+    add_output_option(p, "outputs/bench/atari", "the runs, atari.md, atari.json and the learning curves")
+    add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)

@@ -85,18 +85,28 @@ def fixed_point_check(filt, d: int = 5, n: int = 300, batch: int = 8, rho: float
 
 def register(subparsers) -> None:
     """Add ``bench calibration`` to the ``bench`` subparsers."""
+    from escort_rl.bench.core.options import add_quick_option, add_threads_option
+
     cal = subparsers.add_parser("calibration", help="SVGD/ESCORT variants against the Kalman filter",
                                 description="Linear-Gaussian model (d=4), N=300, 12 steps, 4 episodes: mean "
                                 "Mahalanobis error and variance ratio against the exact Kalman posterior.")
-    cal.add_argument("--particles", type=int, default=300)
-    cal.add_argument("--steps", type=int, default=12)
+    cal.add_argument("--particles", type=int, default=None, metavar="N",
+                     help=f"particles of every filter (default: 300; --quick: {QUICK['particles']})")
+    cal.add_argument("--steps", type=int, default=None,
+                     help=f"steps of each episode (default: 12; --quick: {QUICK['steps']})")
+    add_quick_option(cal, f"N={QUICK['particles']}, {QUICK['steps']} steps (--fixed-point: K = 10)")
+    add_threads_option(cal)
     cal.add_argument("--fixed-point", action="store_true",
                      help="instead: where the correlation term's two forms bring a static fit to rest "
                      "(N(0, AR(1) 0.6) in 5D, N = 300, 8 fits, K = 100 and 1000, lambda_corr 0, 0.1, 0.3, 1)")
     cal.set_defaults(handler=main)
 
 
-def fixed_point_table() -> None:
+QUICK = dict(particles=50, steps=3)
+"""``--quick``: a smoke run."""
+
+
+def fixed_point_table(iterations=(100, 1000)) -> None:
     """Print :func:`fixed_point_check` for both forms of the correlation term over λ and K."""
     from escort_rl.belief import ESCORTFilter
 
@@ -104,7 +114,7 @@ def fixed_point_table() -> None:
     print("| --- | --- | --- | --- | --- | --- |")
     for form in ("velocity", "position"):
         for lam in (0.0, 0.1, 0.3, 1.0) if form == "velocity" else (0.1, 0.3, 1.0):
-            for k in (100, 1000):
+            for k in iterations:
                 r, c, m = fixed_point_check(ESCORTFilter(lambda_corr=lam, corr_form=form), num_steps=k)
                 print(f"| {form} | {lam} | {k} | {r:.3f} | {c:.3f} | {m:.3f} |", flush=True)
 
@@ -116,9 +126,15 @@ def main(args) -> None:
 
     # the default training job's filter exactly as configs/filter/escort_train.yaml sets it (eager:
     # compiling changes nothing but the speed)
+    from escort_rl.bench.core.options import set_threads
+
+    set_threads(args)
     if args.fixed_point:
-        fixed_point_table()
+        fixed_point_table((10,) if args.quick else (100, 1000))
         return
+    pick = QUICK if args.quick else dict(particles=300, steps=12)
+    particles = args.particles if args.particles is not None else pick["particles"]
+    steps = args.steps if args.steps is not None else pick["steps"]
     train_filter = build_filter(compose(["filter=escort_train", "filter.compile=false"]).filter)
     variants = [("sir", SIRFilter()), ("svgd", SVGDFilter()), ("escort", ESCORTFilter()),
                 ("escort lambda_corr=0.3", ESCORTFilter(lambda_corr=0.3)),
@@ -142,5 +158,5 @@ def main(args) -> None:
     print("| filter | mean Mahalanobis error | variance ratio |")
     print("| --- | --- | --- |")
     for name, filt in variants:
-        m, r = kalman_calibration(filt, steps=args.steps, n=args.particles)
+        m, r = kalman_calibration(filt, steps=steps, n=particles)
         print(f"| {name} | {m:.3f} | {r:.3f} |", flush=True)

@@ -23,7 +23,7 @@ Learned and recurrent rows are both of the ``learned`` policy kind (their own tr
 :func:`escort_rl.trainers.evaluate.trained_policy`); only the ``learned`` section is a learned
 *belief* (protocol (a) reads it, see :func:`escort_rl.bench.methods.learned_methods`).
 
-Each (domain, method) row is one cell (:class:`ClosedLoopCell`) of :mod:`escort_rl.bench.runner`, so
+Each (domain, method) row is one cell (:class:`ClosedLoopCell`) of :mod:`escort_rl.bench.core.runner`, so
 the rows run on any backend (``--backend process --workers K``, ``--backend ray``).
 
 Equal frames: every trainer's iteration is ``num_envs`` episodes of ``env.max_steps`` steps, so the
@@ -59,7 +59,7 @@ from omegaconf import OmegaConf
 
 from escort_rl.bench import methods as registry
 from escort_rl.bench.methods import RANDOM, SECTIONS, applied_filter_set, check_at_least_one, check_names
-from escort_rl.bench.runner import Cell, backend_from_args, run_cells
+from escort_rl.bench.core.runner import Cell, backend_from_args, run_cells
 from escort_rl.bench.trajectories import belief_failures
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.plots import plot_curves
@@ -339,7 +339,7 @@ def run_closed_loop(domains, methods, output, episodes: int | None = None, n: in
     settings). A row that fails (a diverged belief) or does not apply (a scripted row on a domain
     without a controller) has ``failed = {"message": ...}`` (with ``"not_applicable": True`` for the
     latter) and no metrics."""
-    from escort_rl.bench.runner import InProcessBackend
+    from escort_rl.bench.core.runner import InProcessBackend
 
     domains, methods = list(domains), list(methods)
     filter_set = tuple(tuple(kv) for kv in filter_set)
@@ -529,16 +529,16 @@ def plot_closed_loop_error(result: dict, domain: str, path: Path) -> Path:
 
 
 QUICK = dict(domains=list(registry.DOMAINS), methods=list(registry.QUICK_METHODS), seeds=2, particles=20, steps=10,
-             filter_set=[], threads=1, train_iterations=1, train_envs=2)
+             threads=1, train_iterations=1, train_envs=2)
 """``bench domains --protocol b --quick`` (flags given explicitly win)."""
 
 
 def main(args) -> None:
     """``bench domains --protocol b`` (the flags of :func:`escort_rl.bench.domains.register`)."""
-    from escort_rl.bench.methods import parse_filter_set
+    from escort_rl.bench.core.options import filter_overrides
 
     full = dict(domains=list(registry.DOMAINS), methods=registry.protocol_b_methods(), seeds=None, particles=None,
-                steps=None, filter_set=[], threads=None, train_iterations=None, train_envs=None)
+                steps=None, threads=None, train_iterations=None, train_envs=None)
     kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
     train = {k: v for k, v in (("iterations", kw["train_iterations"]), ("num_envs", kw["train_envs"])) if v is not None}
     if args.seeds_per_cell is not None:
@@ -562,7 +562,7 @@ def main(args) -> None:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     result = run_closed_loop(kw["domains"], kw["methods"], out, episodes=kw["seeds"], n=kw["particles"],
-                             steps=kw["steps"], train_overrides=train, filter_set=parse_filter_set(kw["filter_set"]),
+                             steps=kw["steps"], train_overrides=train, filter_set=filter_overrides(args.overrides),
                              threads=kw["threads"], progress=show, backend=backend)
     for d in result["domains"]:
         plot_closed_loop_error(result, d, out / f"closed_loop_error_{d}.png")

@@ -1,6 +1,6 @@
 """Compare two benchmark runs cell by cell (``escort-rl bench compare A B``).
 
-Each run's ``cells/`` folder (:class:`escort_rl.bench.runner.CellStore`) holds one JSON file per cell,
+Each run's ``cells/`` folder (:class:`escort_rl.bench.core.runner.CellStore`) holds one JSON file per cell,
 named by the cell's key and the hash of its spec, so the same cell has the same relative path in
 both runs. Two cells agree when every value outside ``timing`` (the wall-clock figures) is equal:
 numbers within ``tolerance`` (0: bit for bit; NaN equals NaN), everything else exactly. Used to
@@ -87,7 +87,7 @@ def register(subparsers) -> None:
                                 "out; exits with status 1 on any difference.")
     cmp.add_argument("first", help="a benchmark's --output folder (or its cells/ folder)")
     cmp.add_argument("second", help="the other run's folder")
-    cmp.add_argument("--tolerance", type=float, default=0.0, help="largest absolute difference allowed (default 0)")
+    cmp.add_argument("--tolerance", type=float, default=0.0, help="largest absolute difference allowed")
     cmp.add_argument("--common-only", action="store_true",
                      help="compare the cells both runs hold, and allow cells in one run only (equal-time grids)")
     cmp.set_defaults(handler=main)

@@ -106,11 +106,13 @@ def write_curves(run_dirs: list[str], output: str | Path) -> list[dict]:
 
 def register(subparsers) -> None:
     """Add ``bench curves`` to the ``bench`` subparsers."""
+    from escort_rl.bench.core.options import add_output_option
+
     cur = subparsers.add_parser("curves", help="learning curves of training runs side by side",
                                 description="Return, final distance to goal and (DVRL) ELBO against frames for "
                                 "each run directory; writes learning_curves.png, .md and .json.")
     cur.add_argument("runs", nargs="+", help="run directories (or checkpoints), e.g. outputs/lightdark10d")
-    cur.add_argument("--output", default="outputs/bench/curves", help="folder for the figure and tables")
+    add_output_option(cur, "outputs/bench/curves", "learning_curves.png, .md and .json")
     cur.set_defaults(handler=main)
 
 

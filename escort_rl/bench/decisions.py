@@ -19,7 +19,7 @@ row records what the controller reads from the belief:
 Every figure is a mean ± standard error over episodes; the success difference of each row to the
 baseline row (``--baseline``, default the first) is paired by episode (same start state), with its
 own standard error.
-Each row is a cell of :mod:`escort_rl.bench.runner`: saved as it finishes, skipped on a rerun.
+Each row is a cell of :mod:`escort_rl.bench.core.runner`: saved as it finishes, skipped on a rerun.
 """
 
 from __future__ import annotations
@@ -30,7 +30,9 @@ from pathlib import Path
 
 import torch
 
-from escort_rl.bench.runner import Cell, CellStore, add_runner_arguments, backend_from_args, run_cells
+from escort_rl.bench.core.options import (add_labelled_option, add_output_option, add_overrides_argument,
+                                          add_quick_option, add_runner_options, labelled)
+from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.plots import plot_curves
 from escort_rl.reporting.stats import format_mean_se, mean_se
@@ -53,16 +55,13 @@ QUICK = dict(episodes=4, steps=30, rows=("sir", "escort_train"), particles=30)
 """``--quick``: a smoke run."""
 
 
-def parse_row(text: str) -> tuple[str, tuple[str, ...]]:
-    """``"LABEL: override override ..."`` -> ``(label, overrides)``; a known label alone gives its row."""
-    if ":" not in text:
-        if text not in ROWS:
-            raise ValueError(f"--rows: unknown row '{text}'; known: {', '.join(ROWS)}, or give 'LABEL: OVERRIDES'")
-        return text, ROWS[text]
-    label, overrides = (part.strip() for part in text.split(":", 1))
-    if not label or not overrides.split():
-        raise ValueError(f"--rows: '{text}' needs a label and at least one override, as 'LABEL: filter=sir'")
-    return label, tuple(overrides.split())
+def parse_row(name: str) -> tuple[str, tuple[str, ...]]:
+    """A named row (:data:`ROWS`) -> ``(label, overrides)``; a row of your own is ``--add-row LABEL
+    OVERRIDE ...``."""
+    if name not in ROWS:
+        raise ValueError(f"--rows: unknown row '{name}'; known: {', '.join(ROWS)}; for a row of your own give "
+                         "--add-row LABEL OVERRIDE ...")
+    return name, ROWS[name]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -205,7 +204,7 @@ def run_decisions(domain: str = "lightdark10d", rows=DEFAULT_ROWS, episodes: int
                   backend=None, threads: int = 1, baseline: str | None = None) -> dict:
     """Run the rows (labels of :data:`ROWS` or ``(label, overrides)`` pairs) and write
     ``decisions.md``, ``decisions.json`` and the error-over-time plots into ``output``."""
-    from escort_rl.bench.runner import make_backend
+    from escort_rl.bench.core.runner import make_backend
     from escort_rl.config import compose
 
     specs = [parse_row(r) if isinstance(r, str) else (r[0], tuple(r[1])) for r in rows]
@@ -248,37 +247,48 @@ def register(subparsers) -> None:
         description="The domain's scripted PD controller acts on each row's belief mean, closed loop, on the same "
         "seeded episodes: success, final distance, the belief mean's position and velocity error (overall and "
         "near the goal), the belief's spread, and how often the action on the belief equals the rule's action on "
-        "the true state. Rows are named rows or 'LABEL: OVERRIDES' (config overrides).")
-    p.add_argument("--domain", default="lightdark10d", help="env config with a scripted controller (default "
-                   "lightdark10d)")
-    p.add_argument("--rows", nargs="+", default=None,
-                   help=f"named rows ({', '.join(ROWS)}) or 'LABEL: OVERRIDES', e.g. 'mine: filter=escort_train "
-                   "filter.jitter=0.05' (default: every named row)")
-    p.add_argument("--episodes", type=int, default=None, help="episodes per row (default 100)")
-    p.add_argument("--particles", type=int, default=None, help="N where a row does not set num_particles "
-                   "(default 100)")
+        "the true state. Rows are named rows (--rows) or rows of your own (--add-row LABEL OVERRIDE ...).")
+    add_overrides_argument(p, "Hydra overrides applied to every row before its own, e.g. filter.compile=true")
+    p.add_argument("--domains", nargs="+", default=["lightdark10d"],
+                   help="env configs with a scripted controller; with more than one, each domain's results go to "
+                   "<output>/<domain>")
+    p.add_argument("--rows", nargs="+", default=None, metavar="NAME",
+                   help=f"named rows: {', '.join(ROWS)} (default: every named row, or none with --add-row)")
+    add_labelled_option(p, "--add-row", "a row of your own", "mine filter=escort_train filter.jitter=0.05")
+    p.add_argument("--episodes", type=int, default=None, help="episodes per row (default: 100)")
+    p.add_argument("--particles", type=int, default=None, metavar="N",
+                   help="N where a row does not set num_particles (default: 100)")
     p.add_argument("--seed", type=int, default=None, help="first env seed (default: the config's evaluate.seed)")
     p.add_argument("--steps", type=int, default=None, help="episode length (default: env.max_steps)")
     p.add_argument("--baseline", default=None, metavar="LABEL",
                    help="the row each row's success is compared with, paired by episode (default: the first row)")
-    p.add_argument("--near", type=float, default=1.0, help="distance to goal that counts as near (default 1.0)")
-    p.add_argument("--quick", action="store_true",
-                   help=f"smoke run (flags given explicitly win): rows {' '.join(QUICK['rows'])}, "
-                   f"{QUICK['episodes']} episodes of {QUICK['steps']} steps, N={QUICK['particles']}")
-    add_runner_arguments(p)
-    p.add_argument("--output", default="outputs/bench/decisions",
-                   help="folder for decisions.md, decisions.json, the plots and cells/")
+    p.add_argument("--near", type=float, default=1.0, help="distance to goal that counts as near")
+    add_quick_option(p, f"rows {' '.join(QUICK['rows'])}, {QUICK['episodes']} episodes of {QUICK['steps']} steps, "
+                     f"N={QUICK['particles']}")
+    add_runner_options(p, seeds_per_cell=False)
+    add_output_option(p, "outputs/bench/decisions", "decisions.md, decisions.json, the plots and cells/")
     p.set_defaults(handler=main)
 
 
+def decision_rows(args) -> list[tuple[str, tuple[str, ...]]]:
+    """The rows of ``--rows`` and ``--add-row``, each with the positional overrides before its own."""
+    own = labelled(args.add_row, "--add-row")
+    names = args.rows if args.rows is not None else (QUICK["rows"] if args.quick else () if own else DEFAULT_ROWS)
+    rows = [parse_row(name) for name in names] + own
+    if not rows:
+        raise ValueError("--rows: give at least one row (a named row, or --add-row LABEL OVERRIDE ...)")
+    return [(label, (*args.overrides, *overrides)) for label, overrides in rows]
+
+
 def main(args) -> None:
-    if args.seeds_per_cell is not None:
-        raise ValueError("--seeds-per-cell: not used by bench decisions (one cell per row)")
-    full = dict(episodes=100, steps=None, rows=DEFAULT_ROWS, particles=100)
+    full = dict(episodes=100, steps=None, particles=100)
     pick = QUICK if args.quick else full
     kw = {k: getattr(args, k) if getattr(args, k) is not None else pick[k] for k in full}
-    run_decisions(domain=args.domain, near=args.near, seed=args.seed, output=args.output, baseline=args.baseline,
-                  backend=backend_from_args(args), threads=args.threads or 1, **kw)
+    rows = decision_rows(args)
+    for domain in args.domains:
+        output = args.output if len(args.domains) == 1 else str(Path(args.output) / domain)
+        run_decisions(domain=domain, rows=rows, near=args.near, seed=args.seed, output=output,
+                      baseline=args.baseline, backend=backend_from_args(args), threads=args.threads or 1, **kw)
 
 
 __all__ = ["DEFAULT_ROWS", "DecisionCell", "ROWS", "decisions_markdown", "paired_difference", "parse_row",

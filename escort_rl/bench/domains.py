@@ -6,7 +6,7 @@ same seeded action/observation sequences from the same seeded priors
 (:class:`FilterCell`, :class:`LearnedCell`): a cell regenerates its seeds' trajectories (the hashes
 prove they are the driver's) and filters them as one batch ``[S, N, d]``. ``seeds_per_cell``
 (default: all seeds of a row in one cell) is part of the cell, so the numbers do not depend on the
-backend or the number of workers (:mod:`escort_rl.bench.runner`); each finished cell is saved under
+backend or the number of workers (:mod:`escort_rl.bench.core.runner`); each finished cell is saved under
 ``<output>/cells/`` and a rerun skips it.
 
 Metrics, each mean ± standard error over seeds: the position error ``‖E_b[pos] − pos_true‖₂`` of the
@@ -36,11 +36,12 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench import methods as registry
-from escort_rl.bench.methods import (applied_filter_set, build_domain, check_at_least_one, check_names,
-                                     parse_filter_set)
+from escort_rl.bench.methods import applied_filter_set, build_domain, check_at_least_one, check_names
 from escort_rl.bench.reference import (METRIC_LABELS, METRICS, SAMPLE, Reference, ReferenceCell, state_parts,
                                       summarize_series)
-from escort_rl.bench.runner import Cell, CellStore, add_runner_arguments, backend_from_args, run_groups, seed_blocks
+from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option, add_runner_options,
+                                          add_seeds_option, filter_overrides)
+from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_groups, seed_blocks
 from escort_rl.bench.trajectories import (BEHAVIOUR_POLICY, NonFiniteBeliefError, filter_trajectories,
                                           generate_trajectories, learned_trajectories, position_error_label,
                                           time_per_step)
@@ -302,7 +303,7 @@ def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, s
     """Protocol (a) for every method on every domain; per-seed values and mean ± s.e.
 
     ``steps``: the horizon (default: each domain's ``env.max_steps``). ``backend``: a runner backend
-    (:func:`escort_rl.bench.runner.make_backend`; default in-process). ``threads``: torch threads in
+    (:func:`escort_rl.bench.core.runner.make_backend`; default in-process). ``threads``: torch threads in
     every cell and in the equal-time measurement (default 1: small batched updates are often fastest
     on one thread). ``seeds_per_cell``: seeds per cell (default all). ``filter_set``: (key, value)
     pairs set on every method's filter config that has the key (e.g. ``("num_steps", "10")``).
@@ -324,7 +325,7 @@ def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, s
         >>> r["rows"][0]["per_seed"]["final_error"]  # doctest: +SKIP
         [1.93..., 2.41...]
     """
-    from escort_rl.bench.runner import InProcessBackend
+    from escort_rl.bench.core.runner import InProcessBackend
 
     domains, methods = list(domains), list(methods)
     filter_set = tuple(tuple(kv) for kv in filter_set)
@@ -692,7 +693,7 @@ def domains_markdown(result: dict) -> str:
 
 # ---------------------------------------------------------------------------------------- command line
 QUICK = dict(domains=list(registry.DOMAINS), methods=list(registry.QUICK_METHODS), seeds=2, particles=30, steps=20,
-             max_particles=60, filter_set=[], threads=1, reference_particles=2000, reference_sample=200)
+             max_particles=60, threads=1, reference_particles=2000, reference_sample=200)
 """``bench domains --quick`` (flags given explicitly win)."""
 
 
@@ -705,39 +706,38 @@ def register(subparsers) -> None:
         "error (mean ± s.e. over seeds), ms per step, and a table at equal wall-clock per step. Methods are "
         "filter config names. The grid's cells (domain × method × seeds) run on --backend; each is saved in "
         "<output>/cells as it finishes and a rerun skips it.")
+    add_overrides_argument(dom, "filter overrides, each set on every method whose config has the key, e.g. "
+                           "filter.num_steps=10 filter.compile=true")
     dom.add_argument("--domains", nargs="+", default=None,
                      help=f"env configs (default: {' '.join(registry.DOMAINS)})")
     dom.add_argument("--methods", nargs="+", default=None, help=registry.methods_help())
-    dom.add_argument("--seeds", type=int, default=None, help="seeds 0..S-1 (default 30)")
-    dom.add_argument("--particles", type=int, default=None, help="N for every method (default 100)")
+    add_seeds_option(dom, None, "seeds 0..N-1 (protocol b: evaluation episodes)", "30")
+    dom.add_argument("--particles", type=int, default=None, metavar="N", help="N for every method (default: 100)")
     dom.add_argument("--steps", type=int, default=None, help="steps per trajectory (default: env.max_steps)")
-    add_runner_arguments(dom, threads_help="torch threads in each cell and in the equal-time measurement "
-                         "(default 1; small updates are often fastest with 1)")
+    add_runner_options(dom, threads_help="torch threads in each cell and in the equal-time measurement; small "
+                       "updates are often fastest with 1 (default: 1)")
     dom.add_argument("--max-particles", type=int, default=None,
-                     help="largest N' for the equal wall-clock table (default 100000; the timing stops at the first N' "
-                     "over the budget)")
+                     help="largest N' for the equal wall-clock table; the timing stops at the first N' over the "
+                     "budget (default: 100000)")
     dom.add_argument("--no-equal-time", action="store_true", help="skip the equal wall-clock table")
     dom.add_argument("--reference-particles", type=int, default=None, metavar="N",
                      help="particles of the reference posterior (an SIR filter, run at N and 2N to check it has "
-                     "converged) that every belief is compared with at every step (default 100000; 0: none)")
+                     "converged) that every belief is compared with at every step; 0: none (default: 100000)")
     dom.add_argument("--reference-sample", type=int, default=None, metavar="M",
-                     help=f"reference particles kept per step for sliced W1 and MMD² (default {SAMPLE})")
-    dom.add_argument("--filter-set", nargs="+", default=None, metavar="KEY=VALUE",
-                     help="set a filter key on every method that has it, e.g. num_steps=10 or compile=true")
-    dom.add_argument("--quick", action="store_true",
-                     help="smoke run (flags given explicitly win): all three domains, "
-                     f"{' '.join(registry.QUICK_METHODS)}, 2 seeds, 20 steps, N=30, 1 torch thread, equal-time grid "
-                     "up to N'=60 with 1 timed step, a reference of 2000 particles (200 kept per step); protocol b: 10 steps, N=20, 1 training iteration of 2 envs")
+                     help=f"reference particles kept per step for sliced W1 and MMD² (default: {SAMPLE})")
+    add_quick_option(dom, f"all three domains, {' '.join(registry.QUICK_METHODS)}, 2 seeds, 20 steps, N=30, 1 torch "
+                     "thread, equal-time grid up to N'=60 with 1 timed step, a reference of 2000 particles (200 kept "
+                     "per step); protocol b: 10 steps, N=20, 1 training iteration of 2 envs")
     dom.add_argument("--protocol", choices=("a", "b"), default="a",
-                     help="a: shared trajectories (default); b: closed loop, each method trains its own DeepSets "
+                     help="a: shared trajectories; b: closed loop, each method trains its own DeepSets "
                      "policy (budget per domain in configs/bench/closed_loop.yaml) and drives it on --seeds "
                      "evaluation episodes; a rerun with the same --output resumes from the checkpoints")
     dom.add_argument("--train-iterations", type=int, default=None,
                      help="protocol b: trainer.iterations for every domain (default: the yaml's)")
     dom.add_argument("--train-envs", type=int, default=None,
                      help="protocol b: trainer.num_envs for every domain (default: the yaml's)")
-    dom.add_argument("--output", default="outputs/bench/domains", help="folder for domains.json, domains.md, PNGs "
-                     "and cells/ (protocol b: closed_loop.json, closed_loop.md, PNGs and runs/)")
+    add_output_option(dom, "outputs/bench/domains", "domains.json, domains.md, PNGs and cells/ (protocol b: "
+                      "closed_loop.json, closed_loop.md, PNGs and runs/)")
     dom.set_defaults(handler=main)
 
 
@@ -750,7 +750,7 @@ def main(args) -> None:
     if args.train_iterations is not None or args.train_envs is not None:
         raise ValueError("--train-iterations/--train-envs: only for --protocol b")
     full = dict(domains=list(registry.DOMAINS), methods=list(registry.PROTOCOL_A_METHODS), seeds=30, particles=100,
-                steps=None, max_particles=100_000, filter_set=[], threads=None, reference_particles=100_000,
+                steps=None, max_particles=100_000, threads=None, reference_particles=100_000,
                 reference_sample=SAMPLE)
     kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
     backend = backend_from_args(args)
@@ -782,7 +782,7 @@ def main(args) -> None:
     t0 = time.perf_counter()
     result = run_domains(kw["domains"], kw["methods"], seeds=kw["seeds"], n=kw["particles"], steps=kw["steps"],
                          backend=backend, equal_time=not args.no_equal_time, max_particles=kw["max_particles"],
-                         calibration_steps=1 if args.quick else 3, filter_set=parse_filter_set(kw["filter_set"]),
+                         calibration_steps=1 if args.quick else 3, filter_set=filter_overrides(args.overrides),
                          threads=kw["threads"], seeds_per_cell=args.seeds_per_cell, progress=show, plot_dir=out,
                          runs_dir=out / "runs", cells_dir=out / "cells", reference_particles=kw["reference_particles"],
                          reference_sample=kw["reference_sample"])

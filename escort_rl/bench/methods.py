@@ -111,7 +111,7 @@ def methods_help() -> str:
 
 
 def check_names(domains, methods, filter_set: tuple = ()) -> None:
-    """Raise ``ValueError`` naming ``--domains``, ``--methods`` or ``--filter-set`` for a bad name."""
+    """Raise ``ValueError`` naming ``--domains``, ``--methods`` or the filter overrides for a bad name."""
     if not domains:
         raise ValueError("--domains: give at least one domain")
     if not methods:
@@ -129,7 +129,7 @@ def check_names(domains, methods, filter_set: tuple = ()) -> None:
     filters = [m for m in methods if m not in learned]
     for key, _ in filter_set:
         if not any(key in applied_filter_set(m, ((key, ""),)) for m in filters):
-            raise ValueError(f"--filter-set: no method in --methods has the filter key '{key}'")
+            raise ValueError(f"overrides: no method in --methods has the filter key '{key}' (filter.{key}=...)")
 
 
 def check_choices(flag: str, given, known, what: str = "name") -> None:
@@ -147,20 +147,6 @@ def check_at_least_one(**flags) -> None:
             raise ValueError(f"--{name.replace('_', '-')}: must be >= 1, got {value}")
 
 
-def parse_filter_set(items) -> tuple[tuple[str, str], ...]:
-    """``["num_steps=10", ...]`` -> ``(("num_steps", "10"), ...)``; the ``filter.`` prefix is optional."""
-    out = []
-    for item in items or ():
-        if "=" not in item:
-            raise ValueError(f"--filter-set: '{item}' is not of the form KEY=VALUE (e.g. num_steps=10)")
-        key, value = item.split("=", 1)
-        key = key.removeprefix("filter.")
-        if key in ("name", "kind") or not key:
-            raise ValueError(f"--filter-set: cannot set '{key}'; pick the filter with --methods")
-        out.append((key, value))
-    return tuple(out)
-
-
 @lru_cache(maxsize=None)
 def method_config(domain: str, method: str, filter_set: tuple = ()):
     """The composed config for ``filter=method env=domain``, with each ``filter_set`` (key, value)
@@ -176,7 +162,7 @@ def method_config(domain: str, method: str, filter_set: tuple = ()):
 
 ABLATION_KEYS = ("lambda_corr", "lambda_temp", "projection")
 """The keys an ablation is defined by: a filter config that sets one of them itself (``escort_nocorr``
-sets ``lambda_corr: 0``) keeps its value whatever ``--filter-set`` says, so that a sweep of
+sets ``lambda_corr: 0``) keeps its value whatever a ``filter.lambda_corr=`` override says, so that a sweep of
 ``lambda_corr`` moves ESCORT and leaves ESCORT-NoCorr what its name says."""
 
 

@@ -59,7 +59,7 @@ def _check_int(flag: str, value, minimum: int = 1) -> int:
 def check_inputs(domain: str, budgets, episodes: int, steps: int, particles: int) -> list[int]:
     """Raise ``ValueError`` naming the flag for a bad input; return the budgets as a list."""
     if domain not in budget_domains():
-        raise ValueError(f"--domain: unknown domain '{domain}'; choose one of {budget_domains()}")
+        raise ValueError(f"--domains: unknown domain '{domain}'; choose from {', '.join(budget_domains())}")
     budgets = list(budgets)
     if not budgets:
         raise ValueError("--budgets: give at least one simulation budget (n_sim per decision)")
@@ -210,34 +210,51 @@ def planner_budget_markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
-def cli(args) -> dict:
-    """``escort-rl bench planner-budget``: flags given explicitly win over ``--quick``."""
+def cli(args) -> list[dict]:
+    """``escort-rl bench planner-budget``: flags given explicitly win over ``--quick``; with more than
+    one domain, each domain's results go to ``<output>/<domain>``."""
+    from escort_rl.bench.core.options import set_threads
+
     quick = QUICK if args.quick else {}
     budgets = args.budgets if args.budgets is not None else quick.get("budgets")
     episodes = args.episodes if args.episodes is not None else quick.get("episodes")
     steps = args.steps if args.steps is not None else quick.get("steps")
+    for domain in args.domains:  # every name is checked before any runs
+        if domain not in budget_domains():
+            raise ValueError(f"--domains: unknown domain '{domain}'; choose from {', '.join(budget_domains())}")
+    set_threads(args)
 
     def show(row):
         print(" | ".join(row_cells(row, True)), flush=True)
 
-    result = run_planner_budget(args.domain, budgets, episodes, steps, particles=quick.get("particles"),
-                                progress=show)
-    write_results(Path(args.output), "planner_budget", result, planner_budget_markdown(result), result["seconds"])
-    return result
+    results = []
+    for domain in args.domains:
+        result = run_planner_budget(domain, budgets, episodes, steps, particles=quick.get("particles"),
+                                    progress=show)
+        out = Path(args.output) if len(args.domains) == 1 else Path(args.output) / domain
+        write_results(out, "planner_budget", result, planner_budget_markdown(result), result["seconds"])
+        results.append(result)
+    return results
 
 
 def register(subparsers) -> None:
     """Add ``bench planner-budget`` to the ``bench`` subparsers."""
+    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_threads_option
+
     pb = subparsers.add_parser("planner-budget", help="POMCPOW return against simulations per decision",
                                description="POMCPOW on an SIR belief with each n_sim in --budgets, plus a "
                                "uniform-random policy, on the same seeded episodes: return, final distance to goal "
                                "and ms per decision (mean ± s.e.); writes planner_budget.json and planner_budget.md.")
-    pb.add_argument("--domain", default="lightdark1d", help="lightdark1d (default) or a configs/planner domain")
+    pb.add_argument("--domains", nargs="+", default=[LIGHTDARK1D],
+                    help="lightdark1d or configs/planner domains; with more than one, each domain's results go to "
+                    "<output>/<domain>")
     pb.add_argument("--budgets", type=int, nargs="+", default=None,
                     help="n_sim values (default: lightdark1d 10 30 100 300, others 10 50 200)")
-    pb.add_argument("--episodes", type=int, default=None, help="episodes, one seeded batch (default 30 / 10)")
-    pb.add_argument("--steps", type=int, default=None, help="steps per episode (default 15 / 100)")
-    pb.add_argument("--output", default="outputs/bench/planner_budget", help="folder for the JSON and markdown")
-    pb.add_argument("--quick", action="store_true", help="smoke run (flags given win): budgets 2 5, 2 episodes, "
-                    "3 steps, 20 particles")
+    pb.add_argument("--episodes", type=int, default=None,
+                    help="episodes, one seeded batch (default: 30 on lightdark1d, 10 on others)")
+    pb.add_argument("--steps", type=int, default=None,
+                    help="steps per episode (default: 15 on lightdark1d, 100 on others)")
+    add_quick_option(pb, "budgets 2 5, 2 episodes, 3 steps, 20 particles")
+    add_threads_option(pb)
+    add_output_option(pb, "outputs/bench/planner_budget", "planner_budget.json and planner_budget.md")
     pb.set_defaults(handler=cli)

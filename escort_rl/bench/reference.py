@@ -44,7 +44,7 @@ import torch
 from torch import Tensor
 
 from escort_rl.bench.metrics import kernel_mean, random_projections, weighted_sliced_wasserstein
-from escort_rl.bench.runner import Cell
+from escort_rl.bench.core.runner import Cell
 
 CHUNK_ROWS = 400_000
 """Particle rows (seeds × N) a reference filters at once: 10⁵ particles go 4 seeds at a time. Multi-Target

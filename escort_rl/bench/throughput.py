@@ -45,39 +45,56 @@ def collection_throughput(cfg: DictConfig, workers: int, num_envs: int, steps_pe
             "torch_threads": torch.get_num_threads()}
 
 
+QUICK = dict(collector_workers=[1], num_envs=4, steps=10, batches=1)
+"""``--quick``: one worker, 4 envs, 10 steps per batch, one timed batch."""
+
+
 def register(subparsers) -> None:
     """Add ``bench throughput`` to the ``bench`` subparsers."""
+    from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option,
+                                              add_threads_option)
+
     thr = subparsers.add_parser("throughput", help="collector frames/s with the belief transform",
                                 description="Env frames per second through the training's collector: Collector "
                                 "(1 worker), MultiSyncCollector (K workers), or RayCollector with K remote collectors "
                                 "(overrides collector.backend=ray [collector.ray_address=auto]); belief transform and "
-                                "DeepSets policy in the loop.")
-    thr.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to time")
-    thr.add_argument("--num-envs", type=int, default=32, help="environments in all (B)")
-    thr.add_argument("--steps", type=int, default=100, help="steps per env per batch")
-    thr.add_argument("--batches", type=int, default=3, help="timed batches (after one warm-up batch)")
-    thr.add_argument("--output", default=None, help="write the results as JSON here")
-    thr.add_argument("overrides", nargs="*", help="Hydra-style overrides of the training config, e.g. filter=sir")
-    thr.set_defaults(handler=main, output_is_file=True)
+                                "DeepSets policy in the loop. Writes throughput.json into --output.")
+    add_overrides_argument(thr, "Hydra overrides of the training config, e.g. filter=sir num_particles=200")
+    thr.add_argument("--collector-workers", type=int, nargs="+", default=None, metavar="K",
+                     help="the collector worker counts to time, one row each (default: 1 2)")
+    thr.add_argument("--num-envs", type=int, default=None, metavar="B",
+                     help="environments in all, split over the workers (default: 32)")
+    thr.add_argument("--steps", type=int, default=None, help="steps per env per batch (default: 100)")
+    thr.add_argument("--batches", type=int, default=None,
+                     help="timed batches, a count, after one warm-up batch (default: 3)")
+    add_quick_option(thr, "1 worker, 4 envs, 10 steps per batch, 1 timed batch")
+    add_threads_option(thr)
+    add_output_option(thr, "outputs/bench/throughput", "throughput.json")
+    thr.set_defaults(handler=main)
 
 
 def main(args) -> None:
     import json
     from pathlib import Path
 
+    from escort_rl.bench.core.options import set_threads
     from escort_rl.config import compose
 
-    bad = [k for k in args.workers if args.num_envs % k]
+    full = dict(collector_workers=[1, 2], num_envs=32, steps=100, batches=3)
+    kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
+    bad = [k for k in kw["collector_workers"] if kw["num_envs"] % k]
     if bad:
-        raise ValueError(f"--workers: {bad[0]} does not divide --num-envs {args.num_envs}; each worker runs "
-                         "num_envs / workers environments")
+        raise ValueError(f"--collector-workers: {bad[0]} does not divide --num-envs {kw['num_envs']}; each worker "
+                         "runs num_envs / workers environments")
+    set_threads(args)
     cfg = compose(args.overrides)
     rows = []
-    for k in args.workers:
-        row = collection_throughput(cfg, k, args.num_envs, args.steps, args.batches)
+    for k in kw["collector_workers"]:
+        row = collection_throughput(cfg, k, kw["num_envs"], kw["steps"], kw["batches"])
         rows.append(row)
         print(f"backend={row['backend']} workers={k} B={row['num_envs']} N={row['num_particles']} filter={row['filter']}: "
               f"{row['frames_per_second']:.0f} frames/s ({row['frames']} frames in {row['seconds']:.2f} s)")
-    if args.output:
-        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.output).write_text(json.dumps(rows, indent=1))
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "throughput.json").write_text(json.dumps(rows, indent=1))
+    print(f"results: {(out / 'throughput.json').resolve()}")

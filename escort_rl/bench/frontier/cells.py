@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench.reference import Reference, ReferenceCell, exact_reference, has_exact_posterior
-from escort_rl.bench.runner import Cell
+from escort_rl.bench.core.runner import Cell
 
 FILTER_METHODS = ("sir", "enkf", "svgd", "escort")
 """The frontier's filters: SIR and EnKF cost N; SVGD and ESCORT cost N × K."""
@@ -97,20 +97,24 @@ def make_filter(method: str, num_steps: int = 0, compile: bool = False, filter_a
         raise ValueError(f"--variant: {classes[method].__name__} does not take {sorted(kwargs)} ({err})") from None
 
 
-def parse_variant(text: str) -> tuple[str, str, tuple]:
-    """``--variant NAME=METHOD:KEY=VALUE,KEY=VALUE`` -> ``(name, method, ("KEY=VALUE", ...))``: a filter
-    of the frontier with its own settings, swept over ``METHOD``'s N (and K), e.g.
-    ``escort_stop=escort:stop_tolerance=0.05`` or ``enkf_loc=enkf:localisation_radius=2``."""
-    name, sep, rest = text.partition("=")
-    method, _, settings = rest.partition(":")
-    items = tuple(x for x in settings.split(",") if x)
-    if not sep or not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", name) or method not in FILTER_METHODS \
-            or not items or any("=" not in x for x in items):
-        raise ValueError(f"--variant: expected NAME=METHOD:KEY=VALUE[,KEY=VALUE] with METHOD one of "
-                         f"{', '.join(FILTER_METHODS)}, got {text!r}")
+VARIANT_SYNTAX = "--variant NAME filter=METHOD filter.KEY=VALUE [filter.KEY=VALUE ...]"
+
+
+def parse_variant(item) -> tuple[str, str, tuple]:
+    """``--variant NAME filter=METHOD filter.KEY=VALUE ...`` (the option's words, a list) ->
+    ``(name, method, ("KEY=VALUE", ...))``: a filter of the frontier with its own settings, swept over
+    ``METHOD``'s N (and K), e.g. ``escort_stop filter=escort filter.stop_tolerance=0.05`` or
+    ``enkf_loc filter=enkf filter.localisation_radius=2``."""
+    name, overrides = item[0], list(item[1:])
+    methods = [o.split("=", 1)[1] for o in overrides if o.startswith("filter=")]
+    items = tuple(o[len("filter."):] for o in overrides if o.startswith("filter.") and "=" in o)
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", name) or len(methods) != 1 or methods[0] not in FILTER_METHODS \
+            or not items or len(items) + 1 != len(overrides):
+        raise ValueError(f"--variant: expected {VARIANT_SYNTAX} with METHOD one of {', '.join(FILTER_METHODS)}, "
+                         f"got {' '.join(item)!r}")
     if name in FILTER_METHODS:
         raise ValueError(f"--variant: the name '{name}' is a filter's own; choose another")
-    return name, method, items
+    return name, methods[0], items
 
 
 @dataclass(frozen=True)

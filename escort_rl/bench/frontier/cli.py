@@ -15,7 +15,7 @@ QUICK = {"particles": {"sir": (100, 1000, 10_000), "enkf": (100, 1000, 10_000), 
 
 
 def register(subparsers) -> None:
-    from escort_rl.bench.runner import add_runner_arguments
+    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_runner_options, add_seeds_option
 
     p = subparsers.add_parser(
         "frontier", help="accuracy against time per update of SIR, EnKF, SVGD and ESCORT on any model",
@@ -24,31 +24,47 @@ def register(subparsers) -> None:
         "(exact where the model has one, else a large SIR); write the Pareto plot, the closest filter at each "
         "time budget and one line of advice. The model: a package env (env=NAME and env.model.KEY=VALUE "
         "overrides; default env=linear_gaussian) or your own class (--model pkg.module:Class --model-arg KEY=VALUE).")
-    p.add_argument("overrides", nargs="*", metavar="env=NAME | env.KEY=VALUE",
-                   help="the env and its overrides, e.g. env=linear_gaussian env.model.state_dim=100")
+    p.add_argument("overrides", nargs="*", default=[], metavar="OVERRIDE",
+                   help="Hydra overrides: the env and its keys, e.g. env=linear_gaussian env.model.state_dim=100, "
+                   "and filter.compile=true (SVGD and ESCORT compiled; the first update, which compiles, is not "
+                   "timed) (default: none)")
     p.add_argument("--model", default=None, metavar="pkg.module:Class", help="a model class of your own")
     p.add_argument("--model-arg", nargs="+", default=[], metavar="KEY=VALUE", help="keyword arguments of --model")
-    p.add_argument("--methods", nargs="+", default=list(FILTER_METHODS), help="default: sir enkf svgd escort")
+    add_method_options(p)
+    add_seeds_option(p, 5, "shared trajectories")
+    p.add_argument("--steps", type=int, default=20, help="updates per trajectory")
+    p.add_argument("--metric", choices=METRICS, default="w1", help="the front's distance (w1: sliced W1)")
+    p.add_argument("--reference-particles", type=int, default=100_000, metavar="N",
+                   help="N of the SIR reference for a model without an exact posterior")
+    add_quick_option(p, "N of SIR/EnKF 100 1000 10000, of SVGD/ESCORT 50 200, K 5 15, 2 seeds, 5 steps, a "
+                     "2000-particle reference")
+    add_output_option(p, "outputs/bench/frontier", "frontier.json, frontier.md, frontier.png and cells/")
+    add_runner_options(p, seeds_per_cell=False)
+    p.set_defaults(handler=main)
+
+
+def add_method_options(p) -> None:
+    """``--methods``, ``--<method>-particles``, ``--num-steps`` and ``--variant``, shared with
+    ``bench regime-map``."""
+    from escort_rl.bench.core.options import add_labelled_option
+
+    p.add_argument("--methods", nargs="+", default=list(FILTER_METHODS), help="the filters swept")
     for m in FILTER_METHODS:
         p.add_argument(f"--{m}-particles", type=int, nargs="+", default=None, metavar="N",
-                       help=f"N of {m} (default {' '.join(map(str, DEFAULT_PARTICLES[m]))})")
+                       help=f"N of {m} (default: {' '.join(map(str, DEFAULT_PARTICLES[m]))})")
     p.add_argument("--num-steps", type=int, nargs="+", default=None, metavar="K",
-                   help=f"K of SVGD and ESCORT (default {' '.join(map(str, DEFAULT_ITERATIONS))})")
-    p.add_argument("--variant", nargs="+", default=[], metavar="NAME=METHOD:KEY=VALUE[,KEY=VALUE]",
-                   help="more rows: a filter with its own settings, swept over METHOD's N (and K), e.g. "
-                   "escort_stop=escort:stop_tolerance=0.05 enkf_loc=enkf:localisation_radius=2")
-    p.add_argument("--seeds", type=int, default=5, help="shared trajectories (default 5)")
-    p.add_argument("--steps", type=int, default=20, help="updates per trajectory (default 20)")
-    p.add_argument("--metric", choices=METRICS, default="w1", help="the front's distance (default w1: sliced W1)")
-    p.add_argument("--compile", action="store_true", help="SVGD and ESCORT compiled (the first update, which "
-                   "compiles, is not timed)")
-    p.add_argument("--reference-particles", type=int, default=100_000,
-                   help="N of the SIR reference for a model without an exact posterior (default 100000)")
-    p.add_argument("--quick", action="store_true", help="smoke run: N of SIR/EnKF 100 1000 10000, of SVGD/ESCORT "
-                   "50 200, K 5 15, 2 seeds, 5 steps, a 2000-particle reference (flags given explicitly win)")
-    p.add_argument("--output", default="outputs/bench/frontier", help="folder (default outputs/bench/frontier)")
-    add_runner_arguments(p)
-    p.set_defaults(handler=main)
+                   help=f"K of SVGD and ESCORT (default: {' '.join(map(str, DEFAULT_ITERATIONS))})")
+    add_labelled_option(p, "--variant", "one more row, a filter with its own settings swept over its method's N "
+                        "(and K); the overrides are filter=METHOD and filter.KEY=VALUE",
+                        "escort_stop filter=escort filter.stop_tolerance=0.05")
+
+
+def frontier_variants(items) -> dict:
+    """``--variant`` as ``name -> (method, ("KEY=VALUE", ...))``, names unique."""
+    from escort_rl.bench.core.options import labelled
+
+    labelled(items, "--variant")
+    return {name: (method, settings) for name, method, settings in map(parse_variant, items)}
 
 
 def model_spec(args) -> tuple[str, tuple]:
@@ -59,8 +75,8 @@ def model_spec(args) -> tuple[str, tuple]:
             env = item.split("=", 1)[1]
         elif item.startswith("env.") and "=" in item:
             env_args.append(item[len("env."):])
-        else:
-            raise ValueError(f"overrides: '{item}' is neither env=NAME nor env.KEY=VALUE")
+        elif not item.startswith("filter."):
+            raise ValueError(f"overrides: '{item}' is neither env=NAME, env.KEY=VALUE nor filter.compile=true|false")
     if args.model is not None:
         if env is not None or env_args:
             raise ValueError("--model: give either your own class or env=NAME overrides, not both")
@@ -91,9 +107,11 @@ def write_frontier(out: Path, result: dict, echo: bool = True) -> None:
 
 def main(args) -> None:
     from escort_rl.bench.frontier.run import label
-    from escort_rl.bench.runner import backend_from_args
+    from escort_rl.bench.core.options import compile_override
+    from escort_rl.bench.core.runner import backend_from_args
 
     model, model_args = model_spec(args)
+    compile = compile_override([o for o in args.overrides if o.startswith("filter.")])
     quick = QUICK if args.quick else {}
     particles = {m: getattr(args, f"{m}_particles") or quick.get("particles", DEFAULT_PARTICLES)[m]
                  for m in FILTER_METHODS}
@@ -109,9 +127,9 @@ def main(args) -> None:
         err = "diverged" if row.get("failed") else f"{row['error']:.4g}"
         print(f"{label(row):>24}: {row['ms_per_update']:.3g} ms, {args.metric} {err}", flush=True)
 
-    variants = {name: (method, items) for name, method, items in map(parse_variant, args.variant)}
+    variants = frontier_variants(args.variant)
     result = run_frontier(model, model_args, args.methods, particles, iterations, seeds=explicit("seeds", 5),
-                          steps=explicit("steps", 20), compile=args.compile, metric=args.metric,
+                          steps=explicit("steps", 20), compile=compile, metric=args.metric,
                           reference_particles=explicit("reference_particles", 100_000),
                           backend=backend_from_args(args), threads=args.threads or 1, output=out, progress=show,
                           variants=variants)

@@ -32,7 +32,7 @@ import torch
 
 from escort_rl.bench.frontier.cells import FILTER_METHODS, ITERATIVE, build_model, make_filter, model_label
 from escort_rl.bench.reference import exact_posterior_start, exact_posterior_update
-from escort_rl.bench.runner import Cell, CellStore, InProcessBackend, run_cells
+from escort_rl.bench.core.runner import Cell, CellStore, InProcessBackend, run_cells
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
 
@@ -153,8 +153,12 @@ def decisions_markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+QUICK = dict(episodes=4, steps=5)
+"""``--quick``: 4 episodes of 5 steps."""
+
+
 def register(subparsers) -> None:
-    from escort_rl.bench.runner import add_runner_arguments
+    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_runner_options
 
     p = subparsers.add_parser("frontier-decisions", help="the greedy regulator, closed loop, on chosen frontier rows",
                               description="Drive the greedy regulator (argmin_a |transition_mean(belief mean, a)|^2) "
@@ -165,24 +169,29 @@ def register(subparsers) -> None:
     p.add_argument("--model-arg", nargs="+", default=[], metavar="KEY=VALUE", help="e.g. dim=10 control=1")
     p.add_argument("--rows", nargs="+", required=True, metavar="METHOD:N[:K] | exact",
                    help="the rows, the first the baseline of the differences, e.g. sir:10000 enkf:1000 escort:300:50")
-    p.add_argument("--episodes", type=int, default=50, help="default 50")
-    p.add_argument("--steps", type=int, default=20, help="default 20")
-    p.add_argument("--output", default="outputs/bench/frontier_decisions", help="folder")
-    add_runner_arguments(p)
+    p.add_argument("--episodes", type=int, default=None,
+                   help=f"closed-loop episodes per row (default: 50; --quick: {QUICK['episodes']})")
+    p.add_argument("--steps", type=int, default=None, help=f"steps per episode (default: 20; --quick: {QUICK['steps']})")
+    add_quick_option(p, f"{QUICK['episodes']} episodes of {QUICK['steps']} steps")
+    add_output_option(p, "outputs/bench/frontier_decisions", "frontier_decisions.md and frontier_decisions.json")
+    add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
 
 
 def main(args) -> None:
-    from escort_rl.bench.runner import backend_from_args
+    from escort_rl.bench.core.runner import backend_from_args
 
-    if args.episodes < 2 or args.steps < 2:
-        raise ValueError(f"--episodes and --steps: need at least 2 each, got {args.episodes} and {args.steps}")
+    pick = QUICK if args.quick else dict(episodes=50, steps=20)
+    episodes = args.episodes if args.episodes is not None else pick["episodes"]
+    steps = args.steps if args.steps is not None else pick["steps"]
+    if episodes < 2 or steps < 2:
+        raise ValueError(f"--episodes and --steps: need at least 2 each, got {episodes} and {steps}")
     rows = [parse_row(r) for r in args.rows]
     model = f"class:{args.model}"
     built = build_model(model, tuple(args.model_arg))
     if getattr(built, "n_actions", 1) < 2:
         raise ValueError(f"--model: {type(built).__name__} has {getattr(built, 'n_actions', 1)} action; the regulator "
                          "needs a choice (gmm_tracking: pass --model-arg control=1)")
-    result = run_decisions(model, tuple(args.model_arg), rows, args.episodes, args.steps, Path(args.output),
+    result = run_decisions(model, tuple(args.model_arg), rows, episodes, steps, Path(args.output),
                            backend_from_args(args), args.threads or 1)
     write_results(Path(args.output), "frontier_decisions", result, decisions_markdown(result))

@@ -82,31 +82,45 @@ def kalman_markdown(r: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+QUICK = dict(dim=5, particles=50, episodes=4, steps=5)
+"""``--quick``: D = 5, N = 50, 4 episodes of 5 steps."""
+
+
 def register(subparsers) -> None:
+    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_threads_option
+
     p = subparsers.add_parser("enkf-kalman", help="the EnKF's bias against the Kalman posterior (z-scores)",
                               description="Run the EnKF and the Kalman filter on independent linear-Gaussian "
                               "episodes and report the z-scores of the ensemble mean's and covariance's bias.")
-    p.add_argument("--dim", type=int, default=50, help="state dimension (default 50)")
-    p.add_argument("--particles", type=int, default=1000, help="ensemble size N (default 1000)")
-    p.add_argument("--episodes", type=int, default=20, help="independent episodes (default 20)")
-    p.add_argument("--steps", type=int, default=20, help="updates per episode (default 20)")
+    for flag, full, what in (("dim", 50, "state dimension"), ("particles", 1000, "ensemble size N"),
+                             ("episodes", 20, "independent episodes"), ("steps", 20, "updates per episode")):
+        p.add_argument(f"--{flag}", type=int, default=None, help=f"{what} (default: {full}; --quick: {QUICK[flag]})")
     p.add_argument("--obs-std", type=float, default=None, help="observation noise std (default: the config's)")
-    p.add_argument("--seed", type=int, default=0, help="default 0")
+    p.add_argument("--seed", type=int, default=0, help="the first episode's seed")
     p.add_argument("--inflation", type=float, default=None, help="EnKF covariance inflation (default: off)")
     p.add_argument("--localisation-radius", type=float, default=None, help="EnKF Gaspari-Cohn radius, in "
                    "state-index units for this family (default: off)")
-    p.add_argument("--output", default="outputs/bench/enkf_kalman", help="folder (default outputs/bench/enkf_kalman)")
+    add_quick_option(p, f"D = {QUICK['dim']}, N = {QUICK['particles']}, {QUICK['episodes']} episodes of "
+                     f"{QUICK['steps']} steps")
+    add_threads_option(p)
+    add_output_option(p, "outputs/bench/enkf_kalman", "enkf_kalman.md and enkf_kalman.json")
     p.set_defaults(handler=main)
 
 
 def main(args) -> None:
+    from escort_rl.bench.core.options import set_threads
+
+    full = dict(dim=50, particles=1000, episodes=20, steps=20)
+    kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
     for flag in ("dim", "particles", "steps"):
-        if getattr(args, flag) < 1:
-            raise ValueError(f"--{flag}: must be >= 1, got {getattr(args, flag)}")
-    if args.episodes < 2:
-        raise ValueError(f"--episodes: needs at least 2 for a standard error, got {args.episodes}")
-    if args.particles < 2:
-        raise ValueError(f"--particles: the EnKF needs at least 2 members, got {args.particles}")
+        if kw[flag] < 1:
+            raise ValueError(f"--{flag}: must be >= 1, got {kw[flag]}")
+    if kw["episodes"] < 2:
+        raise ValueError(f"--episodes: needs at least 2 for a standard error, got {kw['episodes']}")
+    if kw["particles"] < 2:
+        raise ValueError(f"--particles: the EnKF needs at least 2 members, got {kw['particles']}")
+    set_threads(args)
     enkf = {k: getattr(args, k) for k in ("inflation", "localisation_radius") if getattr(args, k) is not None}
-    result = enkf_against_kalman(args.dim, args.particles, args.episodes, args.steps, args.obs_std, args.seed, **enkf)
+    result = enkf_against_kalman(kw["dim"], kw["particles"], kw["episodes"], kw["steps"], args.obs_std, args.seed,
+                                 **enkf)
     write_results(Path(args.output), "enkf_kalman", result, kalman_markdown(result))

@@ -87,51 +87,64 @@ def regime_markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+QUICK = dict(dims=[2, 4], obs_std=[1.0])
+"""``--quick``: two dimensions, one sharpness, and ``bench frontier --quick``'s points at each."""
+
+
 def register(subparsers) -> None:
-    from escort_rl.bench.frontier.cells import FILTER_METHODS
-    from escort_rl.bench.runner import add_runner_arguments
+    from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option,
+                                              add_runner_options, add_seeds_option)
+    from escort_rl.bench.frontier.cli import QUICK as FRONTIER_QUICK, add_method_options
+
+    quick = {**FRONTIER_QUICK, **QUICK}
 
     p = subparsers.add_parser("regime-map", help="the frontier over dimension x observation sharpness "
                               "(default: linear-Gaussian, exact reference)",
                               description="Run bench frontier at every (dimension, sharpness) of a model family "
                               "(default: the linear-Gaussian family's state_dim x obs_std) and say where each "
                               "filter is on the accuracy-time front.")
-    p.add_argument("--env", default="linear_gaussian", help="the family's env (default linear_gaussian)")
+    add_overrides_argument(p, "filter.compile=true: SVGD and ESCORT compiled (the first update is not timed)")
+    p.add_argument("--env", default="linear_gaussian", help="the family's env config")
     p.add_argument("--model", default=None, metavar="pkg.module:Class", help="a model class or factory of your "
                    "own instead of --env; --dim-key and --sharpness-key name its keyword arguments (e.g. "
                    "--model escort_rl.bench.synthetic.tracking:gmm_tracking --dim-key dim --sharpness-key noise_scale)")
     p.add_argument("--dim-key", default="model.state_dim", help="the env key of the dimension axis "
-                   "(default model.state_dim; Light-Dark: model.n_pos)")
+                   "(Light-Dark: model.n_pos)")
     p.add_argument("--sharpness-key", default="model.obs_std", help="the env key of the sharpness axis "
-                   "(default model.obs_std; Light-Dark: model.sigma_base)")
-    p.add_argument("--dims", type=int, nargs="+", default=[10, 20, 50, 100, 200], help="default 10 20 50 100 200")
-    p.add_argument("--obs-std", type=float, nargs="+", default=[0.1, 1.0], help="the sharpness axis (default 0.1 1.0)")
-    p.add_argument("--methods", nargs="+", default=list(FILTER_METHODS))
-    for m in FILTER_METHODS:
-        p.add_argument(f"--{m}-particles", type=int, nargs="+", default=None, metavar="N")
-    p.add_argument("--num-steps", type=int, nargs="+", default=None, metavar="K")
-    p.add_argument("--variant", nargs="+", default=[], metavar="NAME=METHOD:KEY=VALUE[,KEY=VALUE]",
-                   help="more rows, as in bench frontier (e.g. escort_stop=escort:stop_tolerance=0.05)")
-    p.add_argument("--seeds", type=int, default=5)
-    p.add_argument("--steps", type=int, default=20)
-    p.add_argument("--reference-particles", type=int, default=100_000,
-                   help="N of the SIR reference where the family has no exact posterior (default 100000)")
-    p.add_argument("--compile", action="store_true")
-    p.add_argument("--output", default="outputs/bench/regime_map")
-    add_runner_arguments(p)
+                   "(Light-Dark: model.sigma_base)")
+    p.add_argument("--dims", type=int, nargs="+", default=None, metavar="D",
+                   help=f"the dimension axis (default: 10 20 50 100 200; --quick: {' '.join(map(str, QUICK['dims']))})")
+    p.add_argument("--obs-std", type=float, nargs="+", default=None,
+                   help=f"the sharpness axis (default: 0.1 1.0; --quick: {' '.join(map(str, QUICK['obs_std']))})")
+    add_method_options(p)
+    add_seeds_option(p, None, "shared trajectories per point", f"5; --quick: {quick['seeds']}")
+    p.add_argument("--steps", type=int, default=None,
+                   help=f"updates per trajectory (default: 20; --quick: {quick['steps']})")
+    p.add_argument("--reference-particles", type=int, default=None, metavar="N",
+                   help="N of the SIR reference where the family has no exact posterior (default: 100000; --quick: "
+                   f"{quick['reference_particles']})")
+    add_quick_option(p, "dimensions 2 4, obs_std 1.0, and bench frontier's --quick points at each")
+    add_output_option(p, "outputs/bench/regime_map", "regime_map.md, regime_map.json, regime_map.png and a folder "
+                      "per point")
+    add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
 
 
 def main(args) -> None:
     from escort_rl.bench.frontier.cells import FILTER_METHODS
     from escort_rl.bench.frontier.run import DEFAULT_ITERATIONS, DEFAULT_PARTICLES
-    from escort_rl.bench.runner import backend_from_args
+    from escort_rl.bench.core.runner import backend_from_args
     from escort_rl.reporting.paths import write_results
 
-    from escort_rl.bench.frontier.cells import parse_variant
+    from escort_rl.bench.core.options import compile_override
+    from escort_rl.bench.frontier.cli import QUICK as FRONTIER_QUICK, frontier_variants
 
-    particles = {m: getattr(args, f"{m}_particles") or DEFAULT_PARTICLES[m] for m in FILTER_METHODS}
-    variants = {name: (method, items) for name, method, items in map(parse_variant, args.variant)}
+    quick = {**FRONTIER_QUICK, **QUICK} if args.quick else {}
+    full = dict(dims=[10, 20, 50, 100, 200], obs_std=[0.1, 1.0], seeds=5, steps=20, reference_particles=100_000)
+    kw = {k: getattr(args, k) if getattr(args, k) is not None else quick.get(k, full[k]) for k in full}
+    particles = {m: getattr(args, f"{m}_particles") or quick.get("particles", DEFAULT_PARTICLES)[m]
+                 for m in FILTER_METHODS}
+    variants = frontier_variants(args.variant)
     out = Path(args.output)
 
     def show(row):
@@ -140,12 +153,13 @@ def main(args) -> None:
 
     from escort_rl.reporting.plots import plot_regime_map
 
-    result = run_regime_map(args.dims, args.obs_std, out, progress=show, env=args.env, model=args.model,
+    result = run_regime_map(kw["dims"], kw["obs_std"], out, progress=show, env=args.env, model=args.model,
                             dim_key=args.dim_key,
                             sharpness_key=args.sharpness_key, methods=args.methods, particles=particles,
-                            iterations=args.num_steps or DEFAULT_ITERATIONS, seeds=args.seeds, steps=args.steps,
-                            compile=args.compile, make_backend=lambda: backend_from_args(args),
-                            reference_particles=args.reference_particles, variants=variants,
+                            iterations=args.num_steps or quick.get("iterations", DEFAULT_ITERATIONS),
+                            seeds=kw["seeds"], steps=kw["steps"], compile=compile_override(args.overrides),
+                            make_backend=lambda: backend_from_args(args),
+                            reference_particles=kw["reference_particles"], variants=variants,
                             threads=args.threads or 1)
     plot_regime_map(result["points"], out / "regime_map.png",
                     title=f"{args.model or 'env=' + args.env}: the closest filter to the reference per time budget")

@@ -1,6 +1,6 @@
 """The frontier's grid: every filter over its cost knobs on one model, the reference first where the
 model has no exact posterior, then one cell per (filter, N, K), on any backend of
-:mod:`escort_rl.bench.runner` (saved as they finish; a rerun skips them)."""
+:mod:`escort_rl.bench.core.runner` (saved as they finish; a rerun skips them)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from escort_rl.bench.frontier.cells import (
 from escort_rl.bench.frontier.pareto import best_at_budgets, pareto_front
 from escort_rl.bench.methods import check_choices
 from escort_rl.bench.reference import Reference, has_exact_posterior
-from escort_rl.bench.runner import CellStore, InProcessBackend, run_cells
+from escort_rl.bench.core.runner import CellStore, InProcessBackend, run_cells
 from escort_rl.reporting.stats import mean_se
 
 DEFAULT_PARTICLES = {"sir": (100, 300, 1000, 3000, 10_000, 30_000, 100_000),

@@ -36,7 +36,7 @@ from escort_rl.belief.importance import effective_sample_size
 from escort_rl.belief.prior import silverman_factor
 from escort_rl.belief.sir import systematic_resample_indices
 from escort_rl.bench import metrics
-from escort_rl.bench.runner import Cell
+from escort_rl.bench.core.runner import Cell
 from escort_rl.bench.targets import (
     GaussianMixture,
     initial_distribution,
@@ -50,7 +50,7 @@ INITS = ("cloud", "overlap", "resampled")
 OVERLAP_SPREAD = 2.0
 """The ``overlap`` start: the target's components with their standard deviations times this."""
 FILTER_METHODS = ("escort", "escort_nocorr", "svgd")
-"""The rows that run an :class:`ESCORTFilter` (their ``--filter-set`` arguments apply)."""
+"""The rows that run an :class:`ESCORTFilter` (their ``filter.KEY=VALUE`` overrides apply)."""
 TRACKING_METHODS = ("escort", "escort_nocorr", "svgd", "sir")
 """The rows of the tracking protocol: the filters (no oracle: the exact posterior is not at hand)."""
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from escort_rl.belief import ESCORTFilter
-from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices, parse_filter_set
+from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices
 from escort_rl.bench.synthetic.cells import INITS, TRACKING_METHODS
 from escort_rl.bench.synthetic.run import PROTOCOLS, SCALING_DIMS, SYNTHETIC_TARGETS, run_scaling, run_synthetic
 from escort_rl.bench.synthetic.tracking import STEPS
@@ -14,65 +14,69 @@ from escort_rl.bench.synthetic.tracking import STEPS
 
 def register(subparsers) -> None:
     """Add ``bench synthetic`` and ``bench scaling`` to the ``bench`` subparsers."""
-    from escort_rl.bench.runner import add_runner_arguments
+    from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option,
+                                              add_runner_options, add_seeds_option)
     from escort_rl.bench.targets import SCALABILITY_STRUCTURES
 
     syn = subparsers.add_parser("synthetic", help="the paper's GMM targets (Table 2): ESCORT, NoCorr, SVGD, SIR, "
                                 "DVRL, oracle", description="The paper's Table 2 targets: MMD², W1, sliced W1, mode "
                                 "coverage, correlation error and RMSE, mean ± s.e. over seeds, under the static or "
                                 "the tracking protocol, beside the paper's figures.")
-    syn.add_argument("--targets", nargs="+", default=list(SYNTHETIC_TARGETS), help="default: all five")
-    syn.add_argument("--seeds", type=int, default=30, help="default 30")
-    syn.add_argument("--quick", action="store_true", help="smoke run: gmm1d, gmm2d, gmm3d, 2 seeds, N=100, 30 steps")
-    syn.add_argument("--output", default="outputs/bench/synthetic", help="folder (default outputs/bench/synthetic)")
+    syn.add_argument("--targets", nargs="+", default=list(SYNTHETIC_TARGETS), help="the GMM targets")
+    add_seeds_option(syn, 30)
+    add_quick_option(syn, "gmm1d, gmm2d, gmm3d, 2 seeds, N=100, 30 steps")
+    add_output_option(syn, "outputs/bench/synthetic", "synthetic.md, synthetic.json, the plots and cells/")
     sca = subparsers.add_parser("scaling", help="RMSE of ESCORT against ESCORT-NoCorr on 5-mode GMMs, 1D-200D",
                                 description="The paper's RMSE-against-dimension table, with the paired NoCorr gap, "
                                 "under the static or the tracking protocol, beside the paper's figures.")
-    sca.add_argument("--dims", type=int, nargs="+", default=list(SCALING_DIMS), help="default 1 5 20 50 100 200")
-    sca.add_argument("--structures", nargs="+", default=list(SCALABILITY_STRUCTURES), help="default: all four")
-    sca.add_argument("--seeds", type=int, default=5, help="default 5")
-    sca.add_argument("--quick", action="store_true", help="smoke run: d 1 5, block, 2 seeds, N=100, 30 steps")
-    sca.add_argument("--output", default="outputs/bench/scaling", help="folder (default outputs/bench/scaling)")
+    sca.add_argument("--dims", type=int, nargs="+", default=list(SCALING_DIMS), metavar="D", help="dimensions")
+    sca.add_argument("--structures", nargs="+", default=list(SCALABILITY_STRUCTURES),
+                     help="the correlation structures of the targets")
+    add_seeds_option(sca, 5)
+    add_quick_option(sca, "d 1 5, block, 2 seeds, N=100, 30 steps")
+    add_output_option(sca, "outputs/bench/scaling", "scaling.md, scaling.json, the plots and cells/")
     for p, methods in ((syn, SYNTHETIC_METHODS), (sca, SCALING_METHODS)):
         p.set_defaults(handler=main)
+        add_overrides_argument(p, "ESCORT/SVGD arguments as filter overrides, e.g. filter.lambda_corr=0.3 "
+                               "filter.corr_form=position filter.compile=true (a row's own setting wins: NoCorr keeps "
+                               "lambda_corr=0, SVGD both lambdas 0)")
         p.add_argument("--methods", nargs="+", default=None,
                        help=f"rows (default: {' '.join(methods)}; with --protocol tracking: {' '.join(TRACKING_METHODS)})")
         p.add_argument("--protocol", choices=PROTOCOLS, default="static",
-                       help="static: fit the fixed target from --init (default); tracking: follow a random walk "
+                       help="static: fit the fixed target from --init; tracking: follow a random walk "
                        "observed through noise shaped as the target")
-        p.add_argument("--particles", type=int, default=1000, help="N (default 1000)")
-        p.add_argument("--num-steps", type=int, default=None,
+        p.add_argument("--particles", type=int, default=1000, metavar="N", help="particles of every method")
+        p.add_argument("--num-steps", type=int, default=None, metavar="K",
                        help="iterations of ESCORT and SVGD: of the fit (default 500), or per update under "
                        "--protocol tracking (default 50)")
-        p.add_argument("--steps", type=int, default=STEPS, help=f"T of the tracking protocol (default {STEPS})")
+        p.add_argument("--steps", type=int, default=STEPS, metavar="T", help="steps of the tracking protocol")
         p.add_argument("--bandwidth-scale", type=float, default=1.0,
-                       help="multiply ESCORT's and SVGD's median-heuristic bandwidth (default 1)")
-        p.add_argument("--compile", action="store_true", help="ESCORT and SVGD with compile=True")
-        p.add_argument("--filter-set", nargs="+", default=None, metavar="KEY=VALUE",
-                       help="other ESCORT/SVGD arguments, e.g. lambda_corr=0.3 corr_form=position (a row's own "
-                       "setting wins: NoCorr keeps lambda_corr=0, SVGD both lambdas 0)")
+                       help="multiply ESCORT's and SVGD's median-heuristic bandwidth")
         p.add_argument("--init", choices=INITS, default="cloud",
-                       help="the static protocol's start: the broad cloud (default), overlap (the target's "
+                       help="the static protocol's start: the broad cloud, overlap (the target's "
                        "components at its weights, spread doubled), or resampled (ESCORT and SVGD from the cloud "
                        "importance-resampled to the target)")
         p.add_argument("--init-scale", type=float, default=1.0,
-                       help="multiply the start's spread, for every method but the oracle (default 1)")
-        add_runner_arguments(p)
+                       help="multiply the start's spread, for every method but the oracle")
+        add_runner_options(p)
 
 
-def filter_arguments(items) -> dict:
-    """``--filter-set KEY=VALUE ...`` as ESCORT/SVGD constructor arguments, each value read as OmegaConf reads a dotlist value
+def filter_arguments(overrides) -> dict:
+    """Positional ``filter.KEY=VALUE ...`` overrides as ESCORT/SVGD constructor arguments, each value read as OmegaConf reads a dotlist value
     (``4`` an int, ``0.5`` a float, ``true`` a bool); a key the constructor does not take is an error
     naming it and the keys it does take, and a bad value is the constructor's error naming the key."""
     import inspect
 
     from omegaconf import OmegaConf
 
+    from escort_rl.bench.core.options import filter_overrides
+
     known = [k for k in inspect.signature(ESCORTFilter.__init__).parameters if k != "self"]
     out = {}
-    for key, value in parse_filter_set(items):
+    for key, value in filter_overrides(overrides):
         if key not in known:
-            raise ValueError(f"--filter-set: ESCORT has no argument '{key}'; choose from {', '.join(known)}")
+            raise ValueError(f"overrides: ESCORT has no argument '{key}' (filter.{key}); choose from "
+                             f"{', '.join(known)}")
         out[key] = OmegaConf.from_dotlist([f"value={value}"])["value"]
     if out:
         ESCORTFilter(**{k: v for k, v in out.items()})  # a bad value fails here, naming its key
@@ -81,7 +85,7 @@ def filter_arguments(items) -> dict:
 
 def main(args) -> None:
     """``bench synthetic`` and ``bench scaling``."""
-    from escort_rl.bench.runner import backend_from_args
+    from escort_rl.bench.core.runner import backend_from_args
     from escort_rl.bench.synthetic.report import (
         rmse_against_paper,
         scaling_markdown,
@@ -100,9 +104,7 @@ def main(args) -> None:
     filter_kwargs = {}
     if args.bandwidth_scale != 1.0:
         filter_kwargs["bandwidth_scale"] = args.bandwidth_scale
-    if args.compile:
-        filter_kwargs["compile"] = True
-    filter_kwargs.update(filter_arguments(args.filter_set))
+    filter_kwargs.update(filter_arguments(args.overrides))
     num_steps = args.num_steps if args.num_steps is not None else (50 if tracking else 500)
 
     def show(row):

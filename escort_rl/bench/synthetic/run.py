@@ -1,6 +1,6 @@
 """The grids of the synthetic benchmark: Table 2's targets (:func:`run_synthetic`) and the 5-mode
 scalability targets against the dimension (:func:`run_scaling`), under the static or the tracking
-protocol, on any backend of :mod:`escort_rl.bench.runner` (cells saved as they finish)."""
+protocol, on any backend of :mod:`escort_rl.bench.core.runner` (cells saved as they finish)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices
-from escort_rl.bench.runner import CellStore, InProcessBackend, run_groups, seed_blocks
+from escort_rl.bench.core.runner import CellStore, InProcessBackend, run_groups, seed_blocks
 from escort_rl.bench.synthetic.cells import INITS, TRACKING_METHODS, SyntheticCell, TrackingCell
 from escort_rl.bench.synthetic.tracking import STEPS
 from escort_rl.bench.targets import SCALABILITY_STRUCTURES, load_target
@@ -79,7 +79,7 @@ def run_synthetic(targets=SYNTHETIC_TARGETS, methods=SYNTHETIC_METHODS, seeds: i
     """Fit (or track) and score every method on every target; per-seed values and mean ± s.e.
 
     ``backend``, ``threads`` (per cell, default 1), ``seeds_per_cell`` (default all) and
-    ``cells_dir`` (saved cells, skipped on a rerun): see :mod:`escort_rl.bench.runner`. ``init`` and
+    ``cells_dir`` (saved cells, skipped on a rerun): see :mod:`escort_rl.bench.core.runner`. ``init`` and
     ``init_scale``: the static protocol's start (:func:`~escort_rl.bench.synthetic.cells.fit_particles`);
     ``steps``: the tracking protocol's ``T`` (``num_steps`` is then the iterations per update). With
     ``plot_dir`` (static), writes ``<target>_particles.png`` (seed 0's particles of every method on

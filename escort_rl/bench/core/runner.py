@@ -278,24 +278,6 @@ def seed_blocks(seeds: list[int], per_cell: int | None) -> list[tuple[int, ...]]
     return [tuple(seeds[i:i + size]) for i in range(0, len(seeds), max(size, 1))]
 
 
-def add_runner_arguments(parser, threads_help: str = "torch threads in each cell (default 1)") -> None:
-    """The flags every grid benchmark takes: ``--backend``, ``--workers``, ``--ray-address``,
-    ``--threads`` and ``--seeds-per-cell``."""
-    parser.add_argument("--backend", choices=BACKENDS, default=None,
-                        help="where the cells run: inprocess (default), process (--workers local processes) or "
-                        "ray (a Ray task per cell); every backend gives the same numbers")
-    parser.add_argument("--workers", type=int, default=1,
-                        help="local worker processes for --backend process (K > 1 implies it; default 1)")
-    parser.add_argument("--ray-address", default=None, metavar="ADDRESS",
-                        help="--backend ray: a running cluster (auto, HOST:PORT; default: RAY_ADDRESS, else a "
-                        "local Ray)")
-    parser.add_argument("--threads", type=int, default=None, help=threads_help)
-    parser.add_argument("--seeds-per-cell", type=int, default=None, metavar="S",
-                        help="seeds per cell, run as one batch (default: all seeds of a row in one cell; 1 gives "
-                        "the most cells to spread over a cluster); part of each cell, so it changes the filters' "
-                        "noise streams")
-
-
 def backend_from_args(args):
     """The backend of ``--backend`` / ``--workers`` / ``--ray-address`` (``--workers K > 1`` alone
     means the process backend)."""
