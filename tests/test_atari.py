@@ -247,13 +247,13 @@ def bench_args(*argv: str) -> argparse.Namespace:
 
 def test_bench_cell_resumes_from_its_checkpoint_and_reports_beside_the_paper(tmp_path, capsys):
     out = tmp_path / "atari"
-    args = bench_args("--frames", "100", "--agents", "gru", "--output", str(out), "--set", *TINY_SET)
+    args = bench_args(*TINY_SET, "--frames", "100", "--agents", "gru", "--output", str(out))
     args.handler(args)  # 100 frames = 10 updates of 2 envs x 5 steps: one iteration
     run_dir = out / "runs" / "pong" / "gru" / "seed0"
     first = json.loads((run_dir / "history.json").read_text())
     assert [r["iteration"] for r in first] == [1]
     # a larger budget continues the same run from its checkpoint instead of starting again
-    args = bench_args("--frames", "200", "--agents", "gru", "--output", str(out), "--set", *TINY_SET)
+    args = bench_args(*TINY_SET, "--frames", "200", "--agents", "gru", "--output", str(out))
     args.handler(args)
     history = json.loads((run_dir / "history.json").read_text())
     assert [r["iteration"] for r in history] == [1, 2] and history[0] == first[0]
@@ -283,8 +283,9 @@ def test_bench_report_puts_paper_rows_beside_ours():
     (["--frames", "10"], "--frames: must be at least 80"),
     (["--frames", "1000", "--games", "tetris"], "--games: unknown 'tetris'"),
     (["--frames", "1000", "--agents", "ppo"], "--agents: unknown 'ppo'"),
-    (["--frames", "1000", "--set", "escort.num_steps=0"], "escort.num_steps"),
-    (["--frames", "1000", "--set", "vrnn.widht=3"], "widht"),
+    (["escort.num_steps=0", "--frames", "1000"], "escort.num_steps"),
+    (["vrnn.widht=3", "--frames", "1000"], "widht"),
+    (["--games", "pong"], "--frames: give the frames"),
 ])
 def test_bench_bad_arguments_name_the_flag(argv, message, tmp_path):
     args = bench_args(*argv, "--output", str(tmp_path))

@@ -303,7 +303,8 @@ def _cli_error(argv, capsys) -> str:
 @pytest.mark.parametrize("argv, expected", [
     (["bench", "cost", "--device", "cuda:99"], "error: --device: 'cuda:99' but this machine has"),
     (["bench", "cost", "--max-pairs", "nan"], "error: --max-pairs: must be a finite number > 0, got nan"),
-    (["bench", "throughput", "--workers", "3", "--num-envs", "2"], "error: --workers: 3 does not divide --num-envs 2"),
+    (["bench", "throughput", "--collector-workers", "3", "--num-envs", "2"],
+     "error: --collector-workers: 3 does not divide --num-envs 2"),
     (["bench", "synthetic", "--methods", "nope"], "error: --methods: unknown name 'nope'; choose from escort"),
     (["bench", "synthetic", "--targets", "nope"], "error: --targets: unknown name 'nope'; choose from gmm1d"),
     (["bench", "scaling", "--structures", "nope"], "error: --structures: unknown structure 'nope'; choose from block"),
@@ -321,8 +322,8 @@ def test_output_arguments_that_cannot_hold_results_are_named(tmp_path, capsys):
         f"error: --output: '{a_file / 'sub'}' is under the file '{a_file}'; pass a folder")
     assert _cli_error(["evaluate", "--checkpoint", str(tmp_path), "--output", str(a_file)], capsys) == (
         f"error: --output: '{a_file}' is an existing file; pass a folder")
-    assert _cli_error(["bench", "throughput", "--output", str(tmp_path)], capsys).startswith(
-        f"error: --output: '{tmp_path}' is a folder; pass a file name")
+    assert _cli_error(["bench", "throughput", "--output", str(a_file)], capsys) == (
+        f"error: --output: '{a_file}' is an existing file; pass a folder")
 
 
 def test_an_output_folder_that_cannot_be_created_is_named(tmp_path, monkeypatch, capsys):

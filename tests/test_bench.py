@@ -30,9 +30,9 @@ def test_bench_cost_quick(tmp_path, capsys):
 
 
 def test_cost_benchmark_compiled_rows(tmp_path):
-    """``--compile`` adds compiled ESCORT and SVGD rows and their table (one small shape)."""
-    assert main(["bench", "cost", "--dims", "4", "--particles", "20", "--batches", "1", "--repeats", "1",
-                 "--num-steps", "2", "--compile", "--output", str(tmp_path)]) == 0
+    """``filter.compile=true`` adds compiled ESCORT and SVGD rows and their table (one small shape)."""
+    assert main(["bench", "cost", "filter.compile=true", "--dims", "4", "--particles", "20", "--batch-sizes", "1",
+                 "--repeats", "1", "--num-steps", "2", "--output", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "cost.json").read_text())
     rows = {r["filter"]: r for r in result["rows"]}
     assert set(rows) == {"escort", "svgd", "sir", "escort_compiled", "svgd_compiled"}
@@ -58,10 +58,9 @@ def test_bench_scaling_quick(tmp_path):
 
 
 def test_bench_throughput_quick(tmp_path, capsys):
-    out = tmp_path / "t.json"
-    assert main(["bench", "throughput", "--workers", "1", "--num-envs", "2", "--steps", "5", "--batches", "1",
-                 "--output", str(out), "num_particles=10"]) == 0
-    rows = json.loads(out.read_text())
+    assert main(["bench", "throughput", "num_particles=10", "--collector-workers", "1", "--num-envs", "2",
+                 "--steps", "5", "--batches", "1", "--output", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "throughput.json").read_text())
     assert rows[0]["frames"] == 10 and rows[0]["frames_per_second"] > 0
 
 
@@ -82,7 +81,8 @@ def test_synthetic_bandwidth_scale_reaches_the_filters(tmp_path):
     (["evaluate", "--checkpoint", "unused", "--episodes", "-3"], "--episodes"),
     (["bench", "cost", "--repeats", "0"], "--repeats"),
     (["bench", "cost", "--dims", "4", "-4"], "--dims"),
-    (["bench", "throughput", "--workers", "0"], "--workers"),
+    (["bench", "throughput", "--collector-workers", "0"], "--collector-workers"),
+    (["bench", "cost", "--batch-sizes", "0"], "--batch-sizes"),
 ])
 def test_count_arguments_get_one_line_naming_them(argv, name, capsys):
     assert main(argv) == 2
@@ -129,8 +129,8 @@ def test_bench_adaptive_stop_reports_iterations_per_tolerance(tmp_path, capsys):
 def test_bench_decisions_rows_share_episodes_and_report_what_the_controller_reads(tmp_path):
     from escort_rl.bench.decisions import paired_difference
 
-    rows = ["sir", "eager: filter=escort filter.num_steps=2 filter.compile=false"]
-    argv = ["bench", "decisions", "--rows", *rows, "--episodes", "3", "--steps", "12", "--particles", "16",
+    argv = ["bench", "decisions", "--rows", "sir", "--add-row", "eager", "filter=escort", "filter.num_steps=2",
+            "filter.compile=false", "--episodes", "3", "--steps", "12", "--particles", "16",
             "--baseline", "eager", "--output", str(tmp_path)]
     assert main(argv) == 0
     result = json.loads((tmp_path / "decisions.json").read_text())
@@ -148,11 +148,12 @@ def test_bench_decisions_rows_share_episodes_and_report_what_the_controller_read
     assert paired_difference([1.0, 0.0, 1.0], [0.0, 0.0, 1.0]) == pytest.approx((1 / 3, 1 / 3))
 
 
-@pytest.mark.parametrize("row, message", [("nonsense", "--rows: unknown row 'nonsense'"),
-                                          ("label:", "--rows: 'label:' needs a label"),
-                                          ("x: filter.no_such_key=1", "no_such_key")])
-def test_bench_decisions_bad_rows_get_one_line(row, message, tmp_path, capsys):
-    assert main(["bench", "decisions", "--rows", row, "--output", str(tmp_path)]) != 0
+@pytest.mark.parametrize("rows, message", [(["--rows", "nonsense"], "--rows: unknown row 'nonsense'"),
+                                           (["--add-row", "label"], "--add-row: 'label' needs overrides"),
+                                           (["--add-row", "filter=sir"], "--add-row: give a label first"),
+                                           (["--add-row", "x", "filter.no_such_key=1"], "no_such_key")])
+def test_bench_decisions_bad_rows_get_one_line(rows, message, tmp_path, capsys):
+    assert main(["bench", "decisions", *rows, "--output", str(tmp_path)]) != 0
     assert message in capsys.readouterr().err
 
 
@@ -176,14 +177,14 @@ def test_bench_decisions_cell_changes_with_the_composed_config():
 def test_synthetic_filter_set_types_and_checks_the_arguments():
     from escort_rl.bench.synthetic import filter_arguments
 
-    assert filter_arguments(["anneal_cycles=2", "bandwidth_start=4", "filter.compile=true"]) == {
+    assert filter_arguments(["filter.anneal_cycles=2", "filter.bandwidth_start=4", "filter.compile=true"]) == {
         "anneal_cycles": 2, "bandwidth_start": 4, "compile": True}
-    with pytest.raises(ValueError, match="--filter-set: ESCORT has no argument 'bandwith_start'"):
-        filter_arguments(["bandwith_start=4"])
+    with pytest.raises(ValueError, match="overrides: ESCORT has no argument 'bandwith_start'"):
+        filter_arguments(["filter.bandwith_start=4"])
     with pytest.raises(ValueError, match="ESCORTFilter.anneal_fraction: must be in"):
-        filter_arguments(["anneal_fraction=2"])
-    with pytest.raises(ValueError, match="is not of the form KEY=VALUE"):
-        filter_arguments(["anneal_cycles"])
+        filter_arguments(["filter.anneal_fraction=2"])
+    with pytest.raises(ValueError, match="is not a filter override filter.KEY=VALUE"):
+        filter_arguments(["anneal_cycles=2"])
 
 
 def test_resampled_start_puts_the_target_mass_on_each_mode():
@@ -275,11 +276,11 @@ def test_tracking_model_scores_match_autograd(per_test_generator):
 def test_bench_ablation_pairs_rows_across_runs(tmp_path):
     args = ["bench", "synthetic", "--quick", "--targets", "gmm2d", "--seeds", "3"]
     assert main([*args, "--methods", "escort", "escort_nocorr", "--output", str(tmp_path / "a")]) == 0
-    assert main([*args, "--methods", "escort", "--filter-set", "lambda_corr=0.3", "--output", str(tmp_path / "b")]) == 0
-    out = tmp_path / "ablation.md"
+    assert main([*args, "filter.lambda_corr=0.3", "--methods", "escort", "--output", str(tmp_path / "b")]) == 0
+    out = tmp_path / "ablation"
     assert main(["bench", "ablation", f"nocorr={tmp_path / 'a'}:escort_nocorr", f"l0.1={tmp_path / 'a'}",
                  f"l0.3={tmp_path / 'b'}", "--metric", "sliced_w1", "--output", str(out)]) == 0
-    md = out.read_text()
+    md = (out / "ablation.md").read_text()
     assert "| row | nocorr | l0.1 | vs nocorr | l0.3 | vs nocorr |" in md and md.count("| gmm2d |") == 1
     from escort_rl.bench.ablation import parse_run
 

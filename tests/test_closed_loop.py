@@ -13,7 +13,7 @@ from escort_rl.cli import main
 
 TINY = ["bench", "domains", "--protocol", "b", "--domains", "lightdark10d", "--methods", "sir", "escort",
         "--seeds", "3", "--particles", "10", "--steps", "5", "--train-envs", "2", "--threads", "1",
-        "--filter-set", "num_steps=2"]
+        "filter.num_steps=2"]
 
 
 def _rows(out):
@@ -149,7 +149,7 @@ def test_the_registry_knows_every_row_and_the_defaults_include_the_baselines():
         cl.run_closed_loop(["lightdark10d"], ["scripted_nowhere"], "unused")
     with pytest.raises(ValueError, match="'random' is always run"):
         cl.run_closed_loop(["lightdark10d"], ["scripted_sir", "random"], "unused")
-    with pytest.raises(ValueError, match="--filter-set"):
+    with pytest.raises(ValueError, match="overrides: no method in --methods has the filter key 'num_steps'"):
         cl.run_closed_loop(["lightdark10d"], ["recurrent_ppo"], "unused", filter_set=(("num_steps", "2"),))
 
 

@@ -85,9 +85,12 @@ def test_bench_frontier_on_the_linear_gaussian_family(tmp_path):
 def test_a_variant_is_a_row_of_its_own_and_leaves_the_filters_cells_alone(tmp_path, capsys):
     from escort_rl.bench.frontier.cells import FrontierCell, parse_variant
 
-    assert parse_variant("enkf_loc=enkf:localisation_radius=2,inflation=1.1") == (
+    assert parse_variant(["enkf_loc", "filter=enkf", "filter.localisation_radius=2", "filter.inflation=1.1"]) == (
         "enkf_loc", "enkf", ("localisation_radius=2", "inflation=1.1"))
-    for bad in ("x=escort", "x=nope:a=1", "sir=sir:roughening=0.1", "1x=sir:roughening=0.1", "x=sir:roughening"):
+    for bad in (["x", "filter=escort"], ["x", "filter=nope", "filter.a=1"], ["sir", "filter=sir", "filter.roughening=0.1"],
+                ["1x", "filter=sir", "filter.roughening=0.1"], ["x", "filter=sir", "filter.roughening"],
+                ["x", "filter.roughening=0.1"], ["x", "filter=sir", "filter=enkf", "filter.roughening=0.1"],
+                ["x", "filter=sir", "roughening=0.1"]):
         try:
             parse_variant(bad)
         except ValueError as err:
@@ -99,7 +102,7 @@ def test_a_variant_is_a_row_of_its_own_and_leaves_the_filters_cells_alone(tmp_pa
     assert "variant" not in own.spec() and "filter_args" not in own.spec()
     out = tmp_path / "v"
     argv = ["bench", "frontier", "env=linear_gaussian", "env.model.state_dim=3", "--quick", "--methods", "enkf",
-            "--enkf-particles", "40", "--steps", "3", "--variant", "enkf_loc=enkf:localisation_radius=1",
+            "--enkf-particles", "40", "--steps", "3", "--variant", "enkf_loc", "filter=enkf", "filter.localisation_radius=1",
             "--output", str(out)]
     assert main(argv) == 0
     rows = json.loads((out / "frontier.json").read_text())["rows"]
@@ -107,7 +110,7 @@ def test_a_variant_is_a_row_of_its_own_and_leaves_the_filters_cells_alone(tmp_pa
         ("enkf", "enkf", []), ("enkf_loc", "enkf", ["localisation_radius=1"])]
     assert rows[0]["per_seed"] != rows[1]["per_seed"]  # the taper changed the belief
     capsys.readouterr()
-    assert main(argv[:-4] + ["--variant", "x=enkf:no_such_key=1", "--output", str(out)]) == 2
+    assert main(argv[:-6] + ["--variant", "x", "filter=enkf", "filter.no_such_key=1", "--output", str(out)]) == 2
     assert "--variant: EnKFFilter does not take ['no_such_key']" in capsys.readouterr().err
 
 

@@ -45,7 +45,7 @@ def test_same_seed_same_episodes():
 @pytest.mark.parametrize(
     "kwargs, flag",
     [
-        (dict(domain="gridworld"), "--domain"),
+        (dict(domain="gridworld"), "--domains"),
         (dict(budgets=[0, 10]), "--budgets"),
         (dict(budgets=[]), "--budgets"),
         (dict(budgets=[2.5]), "--budgets"),
@@ -66,7 +66,7 @@ def test_cli_writes_the_report_and_refuses_bad_flags(tmp_path, capsys):
     assert result["budgets"] == [2, 5] and result["episodes"] == 2 and result["steps"] == 3
     assert (out / "planner_budget.md").read_text().startswith("# POMCPOW return against the simulation budget")
     capsys.readouterr()
-    for argv, flag in ((["--budgets", "0", "5"], "--budgets"), (["--domain", "gridworld"], "--domain"),
+    for argv, flag in ((["--budgets", "0", "5"], "--budgets"), (["--domains", "gridworld"], "--domains"),
                        (["--episodes", "0"], "--episodes")):
         assert main(["bench", "planner-budget", "--quick", "--output", str(tmp_path / "bad"), *argv]) == 2
         err = capsys.readouterr().err.strip()

@@ -11,7 +11,7 @@ import pytest
 
 from escort_rl.bench import domains as dom
 from escort_rl.bench.compare import compare_runs, differences
-from escort_rl.bench.runner import CellStore, make_backend, run_cells, seed_blocks
+from escort_rl.bench.core.runner import CellStore, make_backend, run_cells, seed_blocks
 from escort_rl.cli import main
 
 GRID = dict(domains=["lightdark10d", "kidnapped20d"], methods=["sir", "svgd"], seeds=4, n=10, steps=3,
