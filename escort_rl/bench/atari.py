@@ -51,12 +51,12 @@ def load_settings(overrides: tuple[str, ...] | list[str] = ()) -> DictConfig:
     settings = load_typed(settings_path(), AtariBenchConfig)
     bad = [o for o in overrides if "=" not in o]
     if bad:
-        raise ConfigError(f"--set: '{bad[0]}' is not KEY=VALUE, e.g. escort.num_steps=10")
+        raise ConfigError(f"overrides: '{bad[0]}' is not KEY=VALUE, e.g. escort.num_steps=10")
     try:
         settings = OmegaConf.merge(settings, OmegaConf.from_dotlist(list(overrides)))
     except OmegaConfBaseException as err:
-        raise ConfigError(f"--set: {describe_error(err)}") from None
-    check_config(settings, AtariBenchConfig, prefix="--set: ")
+        raise ConfigError(f"overrides: {describe_error(err)}") from None
+    check_config(settings, AtariBenchConfig, prefix="overrides: ")
     return settings
 
 

@@ -85,7 +85,7 @@ def fixed_point_check(filt, d: int = 5, n: int = 300, batch: int = 8, rho: float
 
 def register(subparsers) -> None:
     """Add ``bench calibration`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import add_quick_option, add_threads_option
+    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_threads_option
 
     cal = subparsers.add_parser("calibration", help="SVGD/ESCORT variants against the Kalman filter",
                                 description="Linear-Gaussian model (d=4), N=300, 12 steps, 4 episodes: mean "
@@ -96,6 +96,8 @@ def register(subparsers) -> None:
                      help=f"steps of each episode (default: 12; --quick: {QUICK['steps']})")
     add_quick_option(cal, f"N={QUICK['particles']}, {QUICK['steps']} steps (--fixed-point: K = 10)")
     add_threads_option(cal)
+    add_output_option(cal, None, "calibration.md (--fixed-point: fixed_point.md), the table also printed "
+                      "(default: print only)")
     cal.add_argument("--fixed-point", action="store_true",
                      help="instead: where the correlation term's two forms bring a static fit to rest "
                      "(N(0, AR(1) 0.6) in 5D, N = 300, 8 fits, K = 100 and 1000, lambda_corr 0, 0.1, 0.3, 1)")
@@ -106,17 +108,18 @@ QUICK = dict(particles=50, steps=3)
 """``--quick``: a smoke run."""
 
 
-def fixed_point_table(iterations=(100, 1000)) -> None:
-    """Print :func:`fixed_point_check` for both forms of the correlation term over λ and K."""
+def fixed_point_table(iterations=(100, 1000), emit=print) -> None:
+    """:func:`fixed_point_check` for both forms of the correlation term over λ and K, a line at a
+    time to ``emit``."""
     from escort_rl.belief import ESCORTFilter
 
-    print("| corr_form | lambda_corr | K | variance ratio | correlation error | error of the mean |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    emit("| corr_form | lambda_corr | K | variance ratio | correlation error | error of the mean |")
+    emit("| --- | --- | --- | --- | --- | --- |")
     for form in ("velocity", "position"):
         for lam in (0.0, 0.1, 0.3, 1.0) if form == "velocity" else (0.1, 0.3, 1.0):
             for k in iterations:
                 r, c, m = fixed_point_check(ESCORTFilter(lambda_corr=lam, corr_form=form), num_steps=k)
-                print(f"| {form} | {lam} | {k} | {r:.3f} | {c:.3f} | {m:.3f} |", flush=True)
+                emit(f"| {form} | {lam} | {k} | {r:.3f} | {c:.3f} | {m:.3f} |")
 
 
 def main(args) -> None:
@@ -129,8 +132,15 @@ def main(args) -> None:
     from escort_rl.bench.core.options import set_threads
 
     set_threads(args)
+    lines = []
+
+    def emit(line: str) -> None:
+        lines.append(line)
+        print(line, flush=True)
+
     if args.fixed_point:
-        fixed_point_table((10,) if args.quick else (100, 1000))
+        fixed_point_table((10,) if args.quick else (100, 1000), emit)
+        _write_table(args.output, "fixed_point.md", lines)
         return
     pick = QUICK if args.quick else dict(particles=300, steps=12)
     particles = args.particles if args.particles is not None else pick["particles"]
@@ -155,8 +165,20 @@ def main(args) -> None:
                 ("escort jitter_at=start", ESCORTFilter(jitter_at="start")),
                 ("escort prior=shrunk jitter_at=start", ESCORTFilter(prior="shrunk", jitter_at="start")),
                 ("filter=escort_train", train_filter)]
-    print("| filter | mean Mahalanobis error | variance ratio |")
-    print("| --- | --- | --- |")
+    emit("| filter | mean Mahalanobis error | variance ratio |")
+    emit("| --- | --- | --- |")
     for name, filt in variants:
         m, r = kalman_calibration(filt, steps=steps, n=particles)
-        print(f"| {name} | {m:.3f} | {r:.3f} |", flush=True)
+        emit(f"| {name} | {m:.3f} | {r:.3f} |")
+    _write_table(args.output, "calibration.md", lines)
+
+
+def _write_table(output: str | None, name: str, lines: list[str]) -> None:
+    """The printed table as ``<output>/<name>`` (nothing without ``--output``)."""
+    if output is not None:
+        from pathlib import Path
+
+        path = Path(output) / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("\n".join(lines) + "\n")
+        print(f"results: {path.resolve()}")

@@ -104,7 +104,8 @@ def test_labelled_rows_and_filter_overrides_are_checked():
 
     assert labelled([["mine", "filter=sir", "num_particles=50"]], "--add-row") == [
         ("mine", ("filter=sir", "num_particles=50"))]
-    for bad in (["mine"], ["filter=sir"], ["mine", "sir"]):
+    assert labelled([["escort K=15", "filter=escort"]], "--add-row")[0][0] == "escort K=15"
+    for bad in (["mine"], ["filter=sir"], ["mine", "sir"], ["+filter.x=1", "filter=sir"]):
         with pytest.raises(ValueError, match="--add-row"):
             labelled([bad], "--add-row")
     with pytest.raises(ValueError, match="labels must differ"):

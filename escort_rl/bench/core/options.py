@@ -18,6 +18,7 @@ count keeps the plain one (``--batches``). Every parser shows each option's defa
 from __future__ import annotations
 
 import argparse
+import re
 
 from escort_rl.bench.core.runner import BACKENDS
 
@@ -98,13 +99,18 @@ def add_labelled_option(parser, flag: str, what: str, example: str) -> None:
                         f"positional overrides before it, e.g. {flag} {example} (default: none)")
 
 
+OVERRIDE = re.compile(r"[+~]?[A-Za-z_][\w./@-]*=")
+"""The start of a Hydra override, ``KEY=`` (a key has no spaces)."""
+
+
 def labelled(items, flag: str) -> list[tuple[str, tuple[str, ...]]]:
     """The ``(label, overrides)`` pairs of a :func:`add_labelled_option` option, checked: each a
-    label without ``=`` followed by at least one ``KEY=VALUE``; labels unique."""
+    label that is not itself an override (``"escort K=15"`` is a label, ``filter=sir`` is not)
+    followed by at least one ``KEY=VALUE``; labels unique."""
     out = []
     for item in items or ():
         label, overrides = item[0], tuple(item[1:])
-        if "=" in label or not label:
+        if not label.strip() or OVERRIDE.match(label):
             raise ValueError(f"{flag}: give a label first, then its overrides (LABEL KEY=VALUE ...), got "
                              f"{' '.join(item)!r}")
         bad = [o for o in overrides if "=" not in o]
