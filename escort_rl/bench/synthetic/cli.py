@@ -47,8 +47,8 @@ def register(subparsers) -> None:
                        "observed through noise shaped as the target")
         p.add_argument("--particles", type=int, default=1000, metavar="N", help="particles of every method")
         p.add_argument("--num-steps", type=int, default=None, metavar="K",
-                       help="iterations of ESCORT and SVGD: of the fit (default 500), or per update under "
-                       "--protocol tracking (default 50)")
+                       help="iterations of ESCORT and SVGD: of the fit, or per update under --protocol tracking "
+                       "(default: 500 for the fit, 50 per update)")
         p.add_argument("--steps", type=int, default=STEPS, metavar="T", help="steps of the tracking protocol")
         p.add_argument("--bandwidth-scale", type=float, default=1.0,
                        help="multiply ESCORT's and SVGD's median-heuristic bandwidth")
