@@ -15,9 +15,12 @@ One update, for particles ``X_t``, action ``a`` and the next observation ``o``:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -49,6 +52,7 @@ from escort_rl.belief.projections import (
     random_directions,
 )
 from escort_rl.belief.importance import tempered_log_weights
+from escort_rl.config.params import HasParams, build_params, param
 
 COMPILE_CACHE_ENTRIES = 64  # compiled variants kept per function (see ESCORTFilter._compiled)
 MAX_SCORE = 1e6  # finite scores are clamped to ±MAX_SCORE; AdaGrad normalises the step anyway
@@ -164,10 +168,11 @@ def target_score(likelihood: tuple[ScoreTerm, Channels],
     return score, lik_channels + prior_channels
 
 
-class ESCORTFilter(BeliefFilter):
-    """ESCORT: SVGD with a correlation-aware regulariser and a temporal-consistency term.
+@dataclass(frozen=True)
+class SVGDParams:
+    """:class:`SVGDFilter`'s parameters, shared by :class:`ESCORTParams`.
 
-    Args:
+    Attributes:
         num_steps: ``K``, particle-evolution iterations per update (default 50).
         step_size: ``ε`` of the AdaGrad-normalised step (default 0.1).
         step_decay: ``ε_k = ε / (1 + step_decay · k)`` (default 0: constant).
@@ -181,26 +186,6 @@ class ESCORTFilter(BeliefFilter):
         bandwidth_scale: multiplies the median-heuristic bandwidth (default 1). With well-separated
             modes the median pairwise distance is the distance between modes, so the kernel spans
             several modes and particles move together; a scale below 1 localises the kernel.
-        lambda_corr: ``λ_corr`` (default 0.1; 0 gives ESCORT-NoCorr). With the velocity form the
-            particles come to rest where SVGD's do for every ``λ_corr < 0.5`` (the term changes the
-            path only); from 0.5 it can reverse the velocity along a projection and diverge, which a
-            warning says.
-        lambda_temp: ``λ_temp`` (default 0.1; 0 gives ESCORT-NoTemp).
-        n_proj: number of correlation projections and of temporal directions (default 5).
-        proj_dim: columns of each correlation projection ``A_k`` (default 2).
-        projection: ``"learned"`` (eigenvectors of ΔC refined by ascent) or ``"random"``
-            (ESCORT-NoProj).
-        projection_every: recompute the correlation projections every this many iterations.
-        corr_form: ``"velocity"`` (default, damps ``φ − φ̄``) or ``"position"`` (the paper's
-            appendix form with ``x − x̄``; it contracts the belief).
-        temp_schedule: ``"anneal"`` (default, ``λ_temp (1 − k/K)``) or ``"constant"``.
-        temp_clip: elementwise clip of ``F_temp`` (default 10, as the paper).
-        temporal_ascent_steps: gradient-ascent steps that refine the directions ``θ_j`` of ``F_temp``
-            toward the maximal projected W1 (default 10; each step sorts both sets along every ``θ_j``,
-            which at ``K = 15`` costs about as much as ten iterations of the loop).
-        likelihood_pull: the paper's ``α w_i (μ_obs − x̃_i)`` pull, applied once after prediction
-            when ``> 0`` (needs a model with ``position``-like observations: ``o`` compared with the
-            first ``obs_dim`` coordinates). Default 0 (off).
         prior: ``"smoothed"`` (default), ``"shrunk"`` (the smoothed prior with its centres shrunk
             toward their mean so that it keeps the predicted covariance instead of widening it by
             ``1 + h²``; :class:`~escort_rl.belief.prior.SmoothedPrior`) or ``"exact"`` (the transition
@@ -230,6 +215,51 @@ class ESCORTFilter(BeliefFilter):
             times the median heuristic and shrinks geometrically to it over the first
             ``anneal_fraction K`` iterations (a wider kernel early moves particles between modes).
             1 (default) is off.
+    """
+
+    num_steps: int = param(50, ge=0)
+    step_size: float = param(0.1, gt=0)
+    step_decay: float = param(0.0, ge=0)
+    adagrad_alpha: float = param(0.9, ge=0, lt=1)
+    repulsion: str = param("plain", choices=["plain", "enhanced"])
+    bandwidth_every: int = param(10, ge=1)
+    bandwidth_scale: float = param(1.0, gt=0)
+    prior: str = param("smoothed", choices=["smoothed", "shrunk", "exact"])
+    jitter: Optional[float] = param(None, ge=0)
+    jitter_at: str = param("end", choices=["end", "start"])
+    compile: bool = param(False)
+    stop_tolerance: float = param(0.0, ge=0)
+    stop_window: int = param(5, ge=1)
+    anneal_cycles: int = param(0, ge=0)
+    anneal_fraction: float = param(0.5, gt=0, le=1)
+    bandwidth_start: float = param(1.0, gt=0)
+
+
+@dataclass(frozen=True)
+class ESCORTParams(SVGDParams):
+    """:class:`ESCORTFilter`'s parameters: SVGD's and the two regularisers'.
+
+    Attributes:
+        lambda_corr: ``λ_corr`` (default 0.1; 0 gives ESCORT-NoCorr). With the velocity form the
+            particles come to rest where SVGD's do for every ``λ_corr < 0.5`` (the term changes the
+            path only); from 0.5 it can reverse the velocity along a projection and diverge, which a
+            warning says.
+        lambda_temp: ``λ_temp`` (default 0.1; 0 gives ESCORT-NoTemp).
+        n_proj: number of correlation projections and of temporal directions (default 5).
+        proj_dim: columns of each correlation projection ``A_k`` (default 2).
+        projection: ``"learned"`` (eigenvectors of ΔC refined by ascent) or ``"random"``
+            (ESCORT-NoProj).
+        projection_every: recompute the correlation projections every this many iterations.
+        corr_form: ``"velocity"`` (default, damps ``φ − φ̄``) or ``"position"`` (the paper's
+            appendix form with ``x − x̄``; it contracts the belief).
+        temp_schedule: ``"anneal"`` (default, ``λ_temp (1 − k/K)``) or ``"constant"``.
+        temp_clip: elementwise clip of ``F_temp`` (default 10, as the paper).
+        temporal_ascent_steps: gradient-ascent steps that refine the directions ``θ_j`` of ``F_temp``
+            toward the maximal projected W1 (default 10; each step sorts both sets along every ``θ_j``,
+            which at ``K = 15`` costs about as much as ten iterations of the loop).
+        likelihood_pull: the paper's ``α w_i (μ_obs − x̃_i)`` pull, applied once after prediction
+            when ``> 0`` (needs a model with ``position``-like observations: ``o`` compared with the
+            first ``obs_dim`` coordinates). Default 0 (off).
         ess_floor: the correlation projections learn the target from importance samples (the
             predicted particles weighted by the likelihood in a filter update; the starting particles
             weighted by ``p/q`` in :meth:`fit`). When their effective sample size is below
@@ -237,6 +267,27 @@ class ESCORTFilter(BeliefFilter):
             reaches it (:func:`~escort_rl.belief.importance.tempered_log_weights`), so the target's
             correlation is never read off one or two particles. Default 0.2; 0 never tempers.
             :meth:`importance_diagnostics` reports the ESS and ``β`` met.
+
+    """
+
+    lambda_corr: float = param(0.1, ge=0)
+    lambda_temp: float = param(0.1, ge=0)
+    n_proj: int = param(5, ge=1)
+    proj_dim: int = param(2, ge=1)
+    projection: str = param("learned", choices=["learned", "random"])
+    projection_every: int = param(10, ge=1)
+    corr_form: str = param("velocity", choices=["velocity", "position"])
+    temp_schedule: str = param("anneal", choices=["anneal", "constant"])
+    temp_clip: float = param(10.0, gt=0)
+    temporal_ascent_steps: int = param(10, ge=0)
+    likelihood_pull: float = param(0.0, ge=0)
+    ess_floor: float = param(0.2, ge=0, le=1)
+
+
+class ESCORTFilter(HasParams, BeliefFilter):
+    """ESCORT: SVGD with a correlation-aware regulariser and a temporal-consistency term.
+
+    Takes :class:`ESCORTParams` (or its fields as keyword arguments: ``ESCORTFilter(num_steps=15)``).
 
     Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
     naming the culprit when the input belief, what the model's methods return (``transition``,
@@ -251,103 +302,16 @@ class ESCORTFilter(BeliefFilter):
     follow the prior and the closed-form score, if any; nothing becomes NaN.
     """
 
-    def __init__(
-        self,
-        num_steps: int = 50,
-        step_size: float = 0.1,
-        step_decay: float = 0.0,
-        adagrad_alpha: float = 0.9,
-        repulsion: str = "plain",
-        bandwidth_every: int = 10,
-        bandwidth_scale: float = 1.0,
-        lambda_corr: float = 0.1,
-        lambda_temp: float = 0.1,
-        n_proj: int = 5,
-        proj_dim: int = 2,
-        projection: str = "learned",
-        projection_every: int = 10,
-        corr_form: str = "velocity",
-        temp_schedule: str = "anneal",
-        temp_clip: float = 10.0,
-        temporal_ascent_steps: int = 10,
-        likelihood_pull: float = 0.0,
-        prior: str = "smoothed",
-        jitter: float | None = None,
-        jitter_at: str = "end",
-        compile: bool = False,
-        stop_tolerance: float = 0.0,
-        stop_window: int = 5,
-        anneal_cycles: int = 0,
-        anneal_fraction: float = 0.5,
-        bandwidth_start: float = 1.0,
-        ess_floor: float = 0.2,
-    ) -> None:
-        for name in ("step_size", "step_decay", "adagrad_alpha", "bandwidth_scale", "lambda_corr", "lambda_temp",
-                     "temp_clip", "likelihood_pull", "jitter", "stop_tolerance", "anneal_fraction", "bandwidth_start",
-                     "ess_floor"):
-            value = locals()[name]
-            if not (value is None and name == "jitter") and (isinstance(value, bool)
-                                                             or not isinstance(value, (int, float))):
-                raise ValueError(f"{type(self).__name__}.{name}: must be a number, got {value!r}")
-        checks = [
-            ("num_steps", isinstance(num_steps, int) and num_steps >= 0, "an int >= 0"),
-            ("step_size", step_size > 0, "> 0"),
-            ("step_decay", step_decay >= 0, ">= 0"),
-            ("adagrad_alpha", 0 <= adagrad_alpha < 1, "in [0, 1)"),
-            ("repulsion", repulsion in ("enhanced", "plain"), "'enhanced' or 'plain'"),
-            ("bandwidth_every", isinstance(bandwidth_every, int) and bandwidth_every >= 1, "an int >= 1"),
-            ("bandwidth_scale", bandwidth_scale > 0, "> 0"),
-            ("lambda_corr", lambda_corr >= 0, ">= 0"),
-            ("lambda_temp", lambda_temp >= 0, ">= 0"),
-            ("n_proj", isinstance(n_proj, int) and n_proj >= 1, "an int >= 1"),
-            ("proj_dim", isinstance(proj_dim, int) and proj_dim >= 1, "an int >= 1"),
-            ("projection", projection in ("learned", "random"), "'learned' or 'random'"),
-            ("projection_every", isinstance(projection_every, int) and projection_every >= 1, "an int >= 1"),
-            ("corr_form", corr_form in ("velocity", "position"), "'velocity' or 'position'"),
-            ("temp_schedule", temp_schedule in ("anneal", "constant"), "'anneal' or 'constant'"),
-            ("likelihood_pull", likelihood_pull >= 0, ">= 0"),
-            ("prior", prior in ("smoothed", "shrunk", "exact"), "'smoothed', 'shrunk' or 'exact'"),
-            ("jitter", jitter is None or jitter >= 0, "None or >= 0"),
-            ("jitter_at", jitter_at in ("end", "start"), "'end' or 'start'"),
-            ("compile", isinstance(compile, bool), "True or False"),
-            ("temp_clip", math.isfinite(temp_clip) and temp_clip > 0, "a finite number > 0"),
-            ("temporal_ascent_steps", isinstance(temporal_ascent_steps, int) and not isinstance(temporal_ascent_steps, bool)
-             and temporal_ascent_steps >= 0, "an int >= 0"),
-            ("stop_tolerance", stop_tolerance >= 0, ">= 0 (0 turns the adaptive stop off)"),
-            ("stop_window", isinstance(stop_window, int) and stop_window >= 1, "an int >= 1"),
-            ("anneal_cycles", isinstance(anneal_cycles, int) and not isinstance(anneal_cycles, bool)
-             and anneal_cycles >= 0, "an int >= 0 (0 turns the annealing off)"),
-            ("anneal_fraction", 0 < anneal_fraction <= 1, "in (0, 1]"),
-            ("bandwidth_start", bandwidth_start > 0, "> 0 (1 turns the bandwidth schedule off)"),
-            ("ess_floor", 0 <= ess_floor <= 1, "in [0, 1] (0 never tempers the importance weights)"),
-        ]
-        for name in ("step_size", "step_decay", "bandwidth_scale", "lambda_corr", "lambda_temp", "likelihood_pull",
-                     "jitter", "stop_tolerance", "bandwidth_start"):
-            value = locals()[name]
-            if value is not None and not math.isfinite(value):
-                raise ValueError(f"{type(self).__name__}.{name}: must be a finite number, got {value!r}")
-        for name, ok, what in checks:
-            if not ok:
-                raise ValueError(f"{type(self).__name__}.{name}: must be {what}, got {locals()[name]!r}")
-        if corr_form == "velocity" and lambda_corr >= 0.5:
-            warnings.warn(f"{type(self).__name__}.lambda_corr={lambda_corr}: with the velocity form, a projection of "
-                          "weight w_k > 1/(2 lambda_corr) reverses SVGD's velocity along it and the particles can "
+    Params = ESCORTParams
+
+    def __init__(self, params: ESCORTParams | None = None, **kwargs) -> None:
+        self.params = build_params(ESCORTParams, params, kwargs, owner=type(self).__name__)
+        if self.corr_form == "velocity" and self.lambda_corr >= 0.5:
+            warnings.warn(f"{type(self).__name__}.lambda_corr={self.lambda_corr}: with the velocity form, a projection "
+                          "of weight w_k > 1/(2 lambda_corr) reverses SVGD's velocity along it and the particles can "
                           "diverge (docs/DESIGN.md, the correlation term's fixed points); keep lambda_corr < 0.5",
                           stacklevel=2)
-        self.num_steps, self.step_size, self.step_decay = num_steps, step_size, step_decay
-        self.adagrad_alpha, self.repulsion, self.bandwidth_every = adagrad_alpha, repulsion, bandwidth_every
-        self.bandwidth_scale = bandwidth_scale
-        self.lambda_corr, self.lambda_temp = lambda_corr, lambda_temp
-        self.n_proj, self.proj_dim, self.projection = n_proj, proj_dim, projection
-        self.projection_every, self.corr_form = projection_every, corr_form
-        self.temp_schedule, self.temp_clip = temp_schedule, temp_clip
-        self.temporal_ascent_steps = temporal_ascent_steps
-        self.likelihood_pull, self.prior, self.jitter, self.jitter_at = likelihood_pull, prior, jitter, jitter_at
-        self.compile = compile
-        self.stop_tolerance, self.stop_window = stop_tolerance, stop_window
-        self.anneal_cycles, self.anneal_fraction, self.bandwidth_start = anneal_cycles, anneal_fraction, bandwidth_start
         self._compiled_fns: dict[str, Callable] = {}
-        self.ess_floor = float(ess_floor)
         self._iterations_used = [0.0, 0]  # Σ over updated beliefs of the iterations they ran, and their count
 
     def mean_iterations(self) -> float:
@@ -707,15 +671,16 @@ def moment_change(before: tuple[Tensor, Tensor], after: tuple[Tensor, Tensor], e
 class SVGDFilter(ESCORTFilter):
     """Plain SVGD: :class:`ESCORTFilter` with ``lambda_corr = lambda_temp = 0`` and the
     median-heuristic bandwidth. The paper's SVGD baseline adds ``repulsion="enhanced"``.
-    Same arguments otherwise."""
 
-    def __init__(self, **kwargs) -> None:
-        for name in ("lambda_corr", "lambda_temp"):
-            if kwargs.get(name, 0.0) != 0.0:
-                raise ValueError(f"SVGDFilter.{name}: SVGD has no regularisers; use ESCORTFilter")
-        kwargs["lambda_corr"] = 0.0
-        kwargs["lambda_temp"] = 0.0
-        super().__init__(**kwargs)
+    Takes :class:`SVGDParams` (or its fields as keyword arguments); ``self.params`` is then the
+    :class:`ESCORTParams` it runs with, the regularisers off.
+    """
+
+    Params = SVGDParams
+
+    def __init__(self, params: SVGDParams | None = None, **kwargs) -> None:
+        svgd = build_params(SVGDParams, params, kwargs, owner=type(self).__name__)
+        super().__init__(ESCORTParams(**dataclasses.asdict(svgd), lambda_corr=0.0, lambda_temp=0.0))
 
 
 def _jittered(x: Tensor, std: float, generator: torch.Generator | None) -> Tensor:

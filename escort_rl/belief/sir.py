@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -10,6 +11,7 @@ from torch import Tensor
 from escort_rl.belief.base import BeliefFilter, check_output_shape
 from escort_rl.belief.checks import OFF
 from escort_rl.belief.particle_belief import ParticleBelief
+from escort_rl.config.params import HasParams, build_params, param
 
 
 def systematic_resample_indices(log_weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
@@ -32,15 +34,26 @@ def systematic_resample_indices(log_weights: Tensor, generator: torch.Generator 
     return torch.searchsorted(cdf.contiguous(), positions.contiguous(), right=True).clamp_max(n - 1)
 
 
-class SIRFilter(BeliefFilter):
-    """Bootstrap particle filter: propagate, weight by the likelihood, resample when ESS is low.
+@dataclass(frozen=True)
+class SIRParams:
+    """:class:`SIRFilter`'s parameters.
 
-    Args:
+    Attributes:
         resample_threshold: resample a belief when ``ESS/N < resample_threshold``; ``1.0`` resamples
-            every step, ``0.0`` never. Default 0.5.
+            every step, ``0.0`` never.
         roughening: if > 0, after resampling add ``N(0, (roughening·range·N^(-1/d))²)`` per dimension,
             where ``range`` is the per-dimension spread of the resampled particles (Gordon et al.).
-            Default 0 (off).
+            0 is off.
+    """
+
+    resample_threshold: float = param(0.5, ge=0, le=1)
+    roughening: float = param(0.0, ge=0)
+
+
+class SIRFilter(HasParams, BeliefFilter):
+    """Bootstrap particle filter: propagate, weight by the likelihood, resample when ESS is low.
+
+    Takes :class:`SIRParams` (or its fields as keyword arguments: ``SIRFilter(roughening=0.2)``).
 
     Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
     naming the culprit when the input belief, what the model's ``transition`` or
@@ -51,16 +64,10 @@ class SIRFilter(BeliefFilter):
     weights (the propagated particles with the input log-weights) instead of becoming NaN.
     """
 
-    def __init__(self, resample_threshold: float = 0.5, roughening: float = 0.0) -> None:
-        for name, value in (("resample_threshold", resample_threshold), ("roughening", roughening)):
-            if not isinstance(value, (int, float)) or isinstance(value, bool):
-                raise ValueError(f"SIRFilter.{name}: must be a number, got {value!r}")
-        if not 0.0 <= resample_threshold <= 1.0:
-            raise ValueError(f"SIRFilter.resample_threshold: must be in [0, 1], got {resample_threshold}")
-        if not (math.isfinite(roughening) and roughening >= 0):
-            raise ValueError(f"SIRFilter.roughening: must be a finite number >= 0, got {roughening}")
-        self.resample_threshold = resample_threshold
-        self.roughening = roughening
+    Params = SIRParams
+
+    def __init__(self, params: SIRParams | None = None, **kwargs) -> None:
+        self.params = build_params(SIRParams, params, kwargs, owner=type(self).__name__)
 
     def __repr__(self) -> str:
         extra = "" if self.check_finite else ", check_finite=False"
