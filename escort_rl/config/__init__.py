@@ -15,7 +15,7 @@ _LAZY = {
     "compose": "composition", "check_composed": "composition", "hydra_error_line": "composition",
     "is_group_override": "composition",
     "recompose": "resume", "merge_override_lists": "resume", "saved_config_drift": "resume",
-    "config_dir": "schema", "option_names": "schema",
+    "config_dir": "files", "option_names": "files",
 }
 
 __all__ = ["ConfigError", *_LAZY]

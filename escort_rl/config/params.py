@@ -120,7 +120,7 @@ def type_ok(value, hint) -> bool:
 
 
 def _show(value) -> str:
-    return repr(value) if isinstance(value, (list, dict, tuple)) else f"'{value}'"
+    return repr(value) if value is None or isinstance(value, (list, dict, tuple)) else f"'{value}'"
 
 
 def numbers(value):

@@ -9,7 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from escort_rl.config.composition import check_composed, compose, hydra_error_line, is_group_override
 from escort_rl.config.errors import ConfigError
-from escort_rl.config import schema
+from escort_rl.config import files
 
 
 def merge_override_lists(saved: list[str], new: list[str]) -> list[str]:
@@ -72,7 +72,7 @@ def _compose_saved(saved: Mapping, overrides: list[str]) -> DictConfig:
     plain = OmegaConf.to_container(OmegaConf.create(dict(saved)), resolve=True)
     ConfigStore.instance().store(name="escort_rl_saved_run", node=plain)
     try:
-        with initialize_config_dir(config_dir=str(schema.config_dir()), version_base=None):
+        with initialize_config_dir(config_dir=str(files.config_dir()), version_base=None):
             cfg = hydra_compose(config_name="escort_rl_saved_run", overrides=overrides)
     except Exception as err:  # noqa: BLE001
         message = hydra_error_line(err)
