@@ -353,7 +353,7 @@ def test_float64_observations_update_a_float32_belief(filt):
 
 
 def test_moment_change_is_the_shift_over_the_spread():
-    from escort_rl.belief.escort import belief_moments, moment_change
+    from escort_rl.belief.evolution import belief_moments, moment_change
 
     x = torch.tensor([[[0.0, 0.0], [2.0, 0.0], [0.0, 2.0], [2.0, 2.0]]])  # mean (1, 1), std (1, 1)
     mean, std = belief_moments(x)
@@ -396,7 +396,7 @@ def test_adaptive_stop_arguments_are_checked():
 
 def test_a_flat_log_density_has_a_zero_score():
     """A log-density that does not depend on the state (no autograd graph) has score 0, eager."""
-    from escort_rl.belief.escort import autograd_score
+    from escort_rl.belief.scores import autograd_score
 
     x = torch.randn(2, 5, 3)
     torch.testing.assert_close(autograd_score(lambda z: torch.zeros(z.shape[:-1]), x), torch.zeros_like(x))
