@@ -20,7 +20,7 @@ that every iteration is logged once. Checkpoints are verified before they are re
 Example::
 
     >>> algorithm = PPO(cfg, model)                       # doctest: +SKIP
-    >>> run_dir = run_training(cfg, algorithm, model)     # doctest: +SKIP
+    >>> run_dir = run_training(cfg, algorithm)            # doctest: +SKIP
 """
 
 from __future__ import annotations
