@@ -15,7 +15,8 @@ from omegaconf import MISSING, OmegaConf
 
 from escort_rl.config import schema
 from escort_rl.cli import main
-from escort_rl.config import ConfigError, compose, config_dir, merge_override_lists, option_names, recompose, saved_config_drift
+from escort_rl.config import ConfigError, compose, config_dir, option_names
+from escort_rl.trainers.resume import merge_override_lists, recompose, saved_config_drift
 from escort_rl.trainers.builders import build_filter, build_model
 from escort_rl.trainers.validation import validate_train_config
 
