@@ -70,7 +70,7 @@ def test_inherited_filter_options_keep_their_parent():
     assert {k: v for k, v in nocorr.items() if k not in ("name", "lambda_corr")} == \
         {k: v for k, v in escort.items() if k not in ("name", "lambda_corr")}
     train = compose().filter
-    assert train.num_steps == 15 and train.compile is True and train.name == "escort"
+    assert train.num_steps == 15 and train.compile is True and train.name == "escort_train" and train.kind == "escort"
 
 
 @pytest.mark.parametrize("env", ENVS)
@@ -278,7 +278,7 @@ def test_train_records_overrides_and_resumes_with_another_filter(tmp_path, capsy
             "filter.num_steps=2", "trainer.iterations=1", f"output_dir={run}"]
     assert main(["train", "--quiet", *tiny]) == 0
     saved = yaml.safe_load((run / "config.yaml").read_text())
-    assert saved["overrides"] == tiny and saved["filter"]["name"] == "escort"
+    assert saved["overrides"] == tiny and saved["filter"]["name"] == "escort_train"
     capsys.readouterr()
 
     assert main(["config", f"resume={run}", "filter=sir", "trainer.iterations=2"]) == 0

@@ -35,6 +35,12 @@ def _instantiate(target: str, kwargs: dict, where: str, **extra):
         raise cause from None
 
 
+def _prefixed(where: str, err: Exception) -> str:
+    """The first line of ``err``, led by ``where`` unless it already names it."""
+    line = str(err).splitlines()[0]
+    return line if line.startswith(where) else f"{where}: {line}"
+
+
 def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
     """The POMDP model of ``env.model._target_`` (configs saved without one: the model named by
     ``env.name``) with the other keys of ``env.model`` as keyword arguments."""
@@ -45,7 +51,7 @@ def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
     try:
         return _instantiate(target, _kwargs(model_cfg, exclude=("_target_",)), "env.model", device=device)
     except (TypeError, ValueError) as err:
-        raise ConfigError(f"env.model: {str(err).splitlines()[0]}") from None
+        raise ConfigError(_prefixed("env.model", err)) from None
 
 
 def build_filter(filter_cfg: DictConfig):
@@ -58,7 +64,7 @@ def build_filter(filter_cfg: DictConfig):
     try:
         return _instantiate(target, _kwargs(filter_cfg, exclude=("_target_", "name", "kind")), "filter")
     except (TypeError, ValueError) as err:
-        raise ConfigError(f"filter: {str(err).splitlines()[0]}") from None
+        raise ConfigError(_prefixed("filter", err)) from None
 
 
 def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None, action_repeat: int = 1) -> TransformedEnv:
