@@ -1,4 +1,4 @@
-"""Tests of the synthetic-benchmark metrics (escort_rl.bench.metrics) against closed forms, scipy
+"""Tests of the synthetic-benchmark metrics (escort_rl.metrics.distances) against closed forms, scipy
 and (when installed) POT."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from escort_rl.bench.metrics import (
+from escort_rl.metrics.distances import (
     correlation_error,
     correlation_matrix,
     mixture_correlation,
@@ -476,7 +476,7 @@ def test_weighted_metrics_errors_name_the_argument():
 # ----------------------------------------------------------------------------- Mahalanobis coverage
 
 def test_chi2_quantile_matches_closed_form_and_scipy():
-    from escort_rl.bench.metrics import chi2_quantile
+    from escort_rl.metrics.distances import chi2_quantile
 
     assert chi2_quantile(2, 0.99) == pytest.approx(-2 * math.log(0.01), rel=1e-9)
     for df in (1, 5, 20, 200):
@@ -488,7 +488,7 @@ def test_chi2_quantile_matches_closed_form_and_scipy():
 @pytest.mark.parametrize("dim", [1, 5, 20, 50, 200])
 def test_exact_samples_cover_every_mode_at_every_dimension(dim, per_test_generator):
     """The paper's τ = 1 ball misses the modes of exact samples from 20D; the Mahalanobis form does not."""
-    from escort_rl.bench.metrics import mode_coverage_mahalanobis
+    from escort_rl.metrics.distances import mode_coverage_mahalanobis
     from escort_rl.bench.targets import scalability_target
 
     t = scalability_target(dim, "block", 0)
@@ -499,7 +499,7 @@ def test_exact_samples_cover_every_mode_at_every_dimension(dim, per_test_generat
 
 
 def test_mahalanobis_coverage_of_one_mode_is_one_over_k(per_test_generator):
-    from escort_rl.bench.metrics import mode_coverage_mahalanobis, mode_fractions_mahalanobis
+    from escort_rl.metrics.distances import mode_coverage_mahalanobis, mode_fractions_mahalanobis
     from escort_rl.bench.targets import scalability_target
 
     t = scalability_target(20, "banded", 0)

@@ -10,7 +10,7 @@ import scipy.stats
 import torch
 from torch.distributions import Categorical, MixtureSameFamily, MultivariateNormal
 
-from escort_rl.bench.metrics import mode_coverage
+from escort_rl.metrics.distances import mode_coverage
 from escort_rl.bench.targets import (
     SCALABILITY_DIMS,
     SCALABILITY_STRUCTURES,

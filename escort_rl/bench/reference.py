@@ -27,7 +27,7 @@ damaged or replaced file is detected, not read.
 **The distances** (:meth:`Reference.compare`) of a belief (particles ``x``, weights ``w``) at step
 ``t``, per part:
 
-- ``w1``: sliced W1 along the reference's directions (:func:`~escort_rl.bench.metrics.weighted_sliced_wasserstein`);
+- ``w1``: sliced W1 along the reference's directions (:func:`~escort_rl.metrics.distances.weighted_sliced_wasserstein`);
 - ``mmd2``: MMD² with the reference's γ (the biased V-statistic, weighted);
 - ``mean``: ``‖E_b[s_part] − E_ref[s_part]‖₂``;
 - ``cov``: ``‖Cov_b[s_part] − Cov_ref[s_part]‖_F`` (weighted, normalised by Σw = 1, as the reference's).
@@ -43,7 +43,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from escort_rl.bench.metrics import kernel_mean, random_projections, weighted_sliced_wasserstein
+from escort_rl.metrics.distances import kernel_mean, random_projections, weighted_sliced_wasserstein
 from escort_rl.bench.runner import Cell
 
 CHUNK_ROWS = 400_000

@@ -17,7 +17,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from escort_rl.bench.metrics import cov_to_corr, mixture_mean_and_covariance
+from escort_rl.metrics.distances import cov_to_corr, mixture_mean_and_covariance
 
 __all__ = [
     "GaussianMixture",

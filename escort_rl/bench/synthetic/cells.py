@@ -35,7 +35,7 @@ from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
 from escort_rl.belief.importance import effective_sample_size
 from escort_rl.belief.prior import silverman_factor
 from escort_rl.belief.sir import systematic_resample_indices
-from escort_rl.bench import metrics
+from escort_rl.metrics import distances as metrics
 from escort_rl.bench.runner import Cell
 from escort_rl.bench.targets import (
     GaussianMixture,

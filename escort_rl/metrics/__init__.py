@@ -1,0 +1,1 @@
+"""Distances between particle sets and to a reference posterior."""
