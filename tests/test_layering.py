@@ -13,6 +13,7 @@ ROOT = Path(escort_rl.__file__).parent
 # a layer may import only the layers listed for it (besides itself)
 BELOW = {
     "reporting": set(),
+    "metrics": {"models", "belief", "config", "reporting"},
     "trainers": {"reporting", "models", "envs", "belief", "transforms", "modules", "planners", "config"},
 }
 
