@@ -69,6 +69,13 @@ def mmd_squared(x, y, gamma: float = 0.5, unbiased: bool = False) -> Tensor:
 
     Shapes: ``x`` [N, d] or [..., N, d], ``y`` [M, d] or [..., M, d] (batch dims broadcast; a 1-D
     tensor [N] is read as [N, 1]). Returns a scalar, or [...] for batched input.
+
+    Examples:
+        >>> x = torch.tensor([[0.0], [1.0]])
+        >>> float(mmd_squared(x, x))
+        0.0
+        >>> round(float(mmd_squared(torch.tensor([[0.0]]), torch.tensor([[1.0]]))), 6)  # 2 − 2e^{−1/2}
+        0.786939
     """
     unbiased = bool(unbiased)
     min_n = 2 if unbiased else 1
@@ -131,6 +138,12 @@ def wasserstein_1d(x, y) -> Tensor:
     ``mean(|sort(x) − sort(y)|)``.
 
     Shapes: ``x`` [N] (or [N, 1]), ``y`` [M] (or [M, 1]). Returns a scalar tensor.
+
+    Examples:
+        >>> float(wasserstein_1d(torch.tensor([0.0, 1.0]), torch.tensor([2.0, 3.0])))  # a shift by 2
+        2.0
+        >>> float(wasserstein_1d(torch.tensor([0.0]), torch.tensor([0.0, 1.0])))
+        0.5
     """
     x = as_float("x", x)
     y = as_float("y", y)
@@ -150,8 +163,17 @@ def wasserstein_1d(x, y) -> Tensor:
 
 def sphere_directions(num_projections: int, dim: int, generator: torch.Generator | None = None,
                        dtype: torch.dtype = torch.float64) -> Tensor:
-    """``[L, d]`` directions uniform on the unit sphere S^{d−1}: normalised standard normal draws
-    from ``generator`` (CPU; a fresh ``torch.Generator().manual_seed(0)`` if None)."""
+    """``[L, d]`` directions uniform on the unit sphere S^{d−1}: ``θ_l = g_l / ‖g_l‖₂`` for standard
+    normal draws ``g_l`` from ``generator`` (CPU; a fresh ``torch.Generator().manual_seed(0)`` if
+    None). (Not :func:`escort_rl.belief.projections.random_directions`, which draws per belief.)
+
+    Examples:
+        >>> theta = sphere_directions(3, 4)
+        >>> theta.shape, bool(torch.allclose(theta.norm(dim=-1), torch.ones(3, dtype=torch.float64)))
+        (torch.Size([3, 4]), True)
+        >>> torch.equal(theta, sphere_directions(3, 4))  # seeded: the same directions every call
+        True
+    """
     if int(num_projections) < 1:
         raise ValueError(f"num_projections: expected >= 1, got {num_projections}")
     if generator is None:

@@ -159,6 +159,13 @@ def rmse_of_mean(x, true_mean, weights=None, per_coordinate: bool = True) -> Ten
 
     Shapes: ``x`` [N, d] or [..., N, d], ``true_mean`` [d] (broadcasts to [..., d]),
     ``weights`` [..., N] or None. Returns a scalar or [...].
+
+    Examples:
+        >>> x = torch.tensor([[1.0, 3.0], [3.0, 5.0]])  # mean (2, 4)
+        >>> float(rmse_of_mean(x, torch.tensor([2.0, 1.0])))  # √((0² + 3²) / 2)
+        2.1213202476501465
+        >>> float(rmse_of_mean(x, torch.tensor([2.0, 1.0]), per_coordinate=False))
+        3.0
     """
     x = sample_set("x", x)
     mu = as_float("true_mean", true_mean)

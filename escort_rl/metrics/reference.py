@@ -1,12 +1,12 @@
 """Protocol (a)'s reference posterior, and each belief's distance to it.
 
-**The reference** is a bootstrap particle filter with many particles (``--reference-particles``,
-default 10⁵): propagate through the model's transition, weight by its observation likelihood,
-resample systematically when ESS/N < 0.5, no roughening. It filters the same shared trajectories as
-the methods, from its own draw of the same prior, and converges to the exact filtering posterior as
-N grows. The benchmark checks that: it runs the reference again at 2N and reports (i) the distance
-between the two references (the floor under every figure) and (ii) how much each method's figures
-move when the 2N reference replaces the N one.
+**The reference** is a bootstrap particle filter with many particles (the domain benchmark's
+``--reference-particles``, default 10⁵): propagate through the model's transition, weight by its
+observation likelihood, resample systematically when ESS/N < 0.5, no roughening. It filters the
+same shared trajectories as the methods, from its own draw of the same prior, and converges to the
+exact filtering posterior as N grows. The benchmark checks that: it runs the reference again at 2N
+and reports (i) the distance between the two references (the floor under every figure) and (ii) how
+much each method's figures move when the 2N reference replaces the N one.
 
 :func:`reference_posterior` filters a block of seeds in chunks of at most :data:`CHUNK_ROWS` particle
 rows (seeds × N), so memory stays bounded whatever N. For every seed, step ``t = 0..T`` and part of
@@ -27,7 +27,8 @@ detected, not read.
 **The distances** (:meth:`Reference.compare`) of a belief (particles ``x``, weights ``w``) at step
 ``t``, per part:
 
-- ``w1``: sliced W1 along the reference's directions (:func:`~escort_rl.metrics.distances.weighted_sliced_wasserstein`);
+- ``w1``: sliced W1 along the reference's directions
+  (:func:`~escort_rl.metrics.distances.weighted_sliced_wasserstein`);
 - ``mmd2``: MMD² with the reference's γ (the biased V-statistic, weighted);
 - ``mean``: ``‖E_b[s_part] − E_ref[s_part]‖₂``;
 - ``cov``: ``‖Cov_b[s_part] − Cov_ref[s_part]‖_F`` (weighted, normalised by Σw = 1, as the reference's).
@@ -50,22 +51,14 @@ CHUNK_ROWS = 400_000
 """Particle rows (seeds × N) a reference filters at once: 10⁵ particles go 4 seeds at a time. Multi-Target
 Tracking's exact likelihood (a mixture over zones and identity swaps) peaks at about 16 KB per row,
 so 10⁶ rows took 15.6 GB; 4·10⁵ keeps two references side by side within 16 GB."""
-
 SAMPLE = 500
 """Reference particles kept per step for the sample-based distances (W1, MMD²)."""
-
 PROJECTIONS = 50
 """Directions of the sliced W1, per part."""
-
 METRICS = ("w1", "mmd2", "mean", "cov")
-
-
 METRIC_LABELS = {"w1": "sliced W1", "mmd2": "MMD²", "mean": "‖mean − mean_ref‖₂", "cov": "‖cov − cov_ref‖_F"}
-
-
 THIN_SEED = 7_777
 """Seed (plus the step) of the systematic draws that thin a belief larger than M for MMD²."""
-
 COMPARE_ROWS = 40_000_000
 """Kernel entries (seeds × N × max(N, M)) one chunk of :meth:`Reference.compare` may hold."""
 
