@@ -115,15 +115,6 @@ POSITIVE_ARGUMENTS = ("episodes", "repeats", "dims", "particles", "batches", "wo
                       "seeds", "threads", "num_steps", "training", "training_steps", "seeds_per_cell")
 
 
-def check_positive_arguments(args) -> None:
-    """Raise ``ValueError`` naming the first count argument that is zero or negative."""
-    for name in POSITIVE_ARGUMENTS:
-        value = getattr(args, name, None)
-        for v in (value if isinstance(value, list) else [value]):
-            if isinstance(v, int) and not isinstance(v, bool) and v < 1:
-                raise ValueError(f"--{name.replace('_', '-')}: must be a positive int, got {v}")
-
-
 def check_output_argument(args) -> None:
     """Raise ``ValueError`` naming ``--output`` when it cannot hold the results: an existing file
     where a folder is wanted, a path under a file, or a folder that cannot be created. The folder
@@ -151,12 +142,13 @@ def check_output_argument(args) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     _quiet_compiler_notices()
+    from escort_rl.bench.methods import check_at_least_one
     from escort_rl.config import ConfigError
     from escort_rl.trainers.checkpointing import CheckpointLoadError
     from escort_rl.trainers.scaffold import CollectorWorkerDied
 
     try:
-        check_positive_arguments(args)
+        check_at_least_one(**{name: getattr(args, name, None) for name in POSITIVE_ARGUMENTS})
         check_output_argument(args)
         if args.command == "config":
             from omegaconf import OmegaConf

@@ -281,8 +281,8 @@ def test_bench_report_puts_paper_rows_beside_ours():
 
 @pytest.mark.parametrize("argv, message", [
     (["--frames", "10"], "--frames: must be at least 80"),
-    (["--frames", "1000", "--games", "tetris"], "--games: unknown 'tetris'"),
-    (["--frames", "1000", "--agents", "ppo"], "--agents: unknown 'ppo'"),
+    (["--frames", "1000", "--games", "tetris"], "--games: unknown game 'tetris'"),
+    (["--frames", "1000", "--agents", "ppo"], "--agents: unknown agent 'ppo'"),
     (["--frames", "1000", "--set", "escort.num_steps=0"], "escort.num_steps"),
     (["--frames", "1000", "--set", "vrnn.widht=3"], "widht"),
 ])

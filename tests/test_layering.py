@@ -96,8 +96,9 @@ def test_every_module_has_a_layer():
 
 
 def test_lower_layers_do_not_import_higher_ones():
-    bad = [f"{m} imports {t}" for m, deps in _imports_cache.items()
-           for t, _ in deps if _layer(t) not in BELOW.get(_layer(m), set()) | {_layer(m)}]
+    # ``from escort_rl import metrics`` imports the subpackage, not the package's own names
+    bad = [f"{m} imports {t}" for m, deps in _imports_cache.items() for t, names in deps
+           if (t != "escort_rl" or names) and _layer(t) not in BELOW.get(_layer(m), set()) | {_layer(m)}]
     assert not bad, bad
 
 

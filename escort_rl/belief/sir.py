@@ -14,20 +14,27 @@ from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.config.params import HasParams, build_params, param
 
 
-def systematic_resample_indices(log_weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
+def systematic_resample_indices(log_weights: Tensor, generator: torch.Generator | None = None,
+                                num_samples: int | None = None) -> Tensor:
     """Systematic resampling: one uniform offset per belief.
 
-    With normalised weights ``w`` ``[*B, N]`` and ``u ~ U[0, 1)``, particle ``k`` of the new set is
-    the index ``i`` with ``C_{i-1} ≤ (u + k)/N < C_i``, where ``C`` is the cumulative sum of ``w``.
-    Returns indices ``[*B, N]`` (int64).
+    With normalised weights ``w`` ``[*B, N]`` and ``u ~ U[0, 1)``, draw ``k`` of the new set is
+    the index ``i`` with ``C_{i-1} ≤ (u + k)/M < C_i``, where ``C`` is the cumulative sum of ``w``
+    and ``M`` = ``num_samples`` (default ``N``). Returns indices ``[*B, M]`` (int64).
+
+    Examples:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> systematic_resample_indices(torch.log(torch.tensor([0.5, 0.0, 0.5])), g, num_samples=4)
+        tensor([0, 0, 2, 2])
     """
     n = log_weights.shape[-1]
+    m = n if num_samples is None else int(num_samples)
     w = torch.softmax(log_weights, dim=-1)
     cdf = torch.cumsum(w, dim=-1)
     cdf = cdf / cdf[..., -1:]  # exactly 1 at the top, and flat after the last positive weight
     u = torch.rand((*log_weights.shape[:-1], 1), generator=generator, device=w.device, dtype=w.dtype)
-    positions = (u + torch.arange(n, device=w.device, dtype=w.dtype)) / n
-    # (u + N - 1)/N can round up to 1.0; keep positions strictly below 1 so that a trailing
+    positions = (u + torch.arange(m, device=w.device, dtype=w.dtype)) / m
+    # (u + M - 1)/M can round up to 1.0; keep positions strictly below 1 so that a trailing
     # zero-weight particle (whose cdf value equals 1) is never selected.
     one = torch.ones((), dtype=w.dtype, device=w.device)
     positions = positions.clamp_max(torch.nextafter(one, torch.zeros_like(one)))

@@ -23,6 +23,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from escort_rl.bench.methods import check_choices
 from escort_rl.bench.runner import Cell, CellStore, add_runner_arguments, backend_from_args, run_cells
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
@@ -203,18 +204,12 @@ def plot_curves(results: list[dict], path: Path, window: int = 20) -> Path:
 
 
 # ------------------------------------------------------------------------------------ the command
-def check_names(flag: str, given: list[str], known) -> None:
-    for name in given:
-        if name not in known:
-            raise ValueError(f"{flag}: unknown '{name}'; choose from {', '.join(known)}")
-
-
 def main(args) -> None:
     from escort_rl.envs.atari import GAMES
     from escort_rl.trainers.atari_a2c import AGENTS
 
-    check_names("--games", args.games, list(GAMES))
-    check_names("--agents", args.agents, list(AGENTS))
+    check_choices("--games", args.games, list(GAMES), "game")
+    check_choices("--agents", args.agents, list(AGENTS), "agent")
     from escort_rl.config.schema import check_device
 
     problem = check_device(args.device)
