@@ -103,76 +103,11 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _train_config(overrides: list[str]):
-    """The config ``escort-rl train`` runs with, and the checkpoint it resumes (``None``: a new run).
-
-    A new run records its overrides in the config (``overrides``); ``resume=RUN_DIR key=value ...``
-    composes the saved run's overrides followed by the new ones again (see
-    :func:`escort_rl.config.recompose`). ``RUN_DIR`` gives its newest intact checkpoint (a damaged
-    newer one is skipped with a warning); ``resume=CHECKPOINT`` names one.
-
-    A resume writes into the run directory that holds the checkpoint, whatever ``output_dir`` the
-    run was saved with, so resuming a moved or copied run directory never touches the original. An
-    ``output_dir=`` given with ``resume=`` must name that same directory; another one is an error
-    (to branch a run, copy its directory and resume the copy)."""
-    from escort_rl.config import ConfigError, recompose, saved_config_drift
-    from escort_rl.trainers.checkpointing import load_checkpoint, run_dir_of
-    from escort_rl.trainers.scaffold import output_path
-
-    resume = [o.split("=", 1)[1] for o in overrides if o.startswith("resume=")]
-    rest = [o for o in overrides if not o.startswith("resume=")]
-    if not resume or resume[-1] in ("", "null", "None"):
-        return _new_run_config(rest), None
-    saved = load_checkpoint(resume[-1])
-    run_dir = run_dir_of(saved["path"])
-    cfg = recompose(saved["config"], rest)
-    if output_path(cfg.output_dir).resolve() != run_dir.resolve():
-        if any(_override_key(o) == "output_dir" for o in rest):
-            raise ConfigError(f"output_dir: '{cfg.output_dir}' is not the run directory being resumed ('{run_dir}'); "
-                              "a resume writes into the run it continues: drop output_dir=, or copy the run "
-                              "directory and resume the copy")
-        cfg.output_dir = str(run_dir)  # the run was moved or copied: write into it, not the original
-        if cfg.get("overrides") is not None:
-            cfg.overrides = _with_output_dir(list(cfg.overrides), run_dir)
-    cfg.resume = saved["path"]
-    drift = saved_config_drift(saved["config"])
-    if drift:
-        print(f"note: the yaml changed since this run started; resuming with today's values of "
-              f"{', '.join(drift[:8])}{' ...' if len(drift) > 8 else ''}", file=sys.stderr)
-    return cfg, saved
-
-
-def _new_run_config(overrides: list[str]):
-    """The config of a new run, with its overrides recorded (``overrides``) for a later resume."""
-    from escort_rl.config import compose
-
-    cfg = compose(overrides)
-    cfg.overrides = overrides
-    return cfg
-
-
-def _with_output_dir(overrides: list[str], run_dir: Path) -> list[str]:
-    """``overrides`` with their ``output_dir=`` naming ``run_dir``: replaced where it stood, appended
-    when there was none."""
-    new = f"output_dir={_quoted(str(run_dir))}"
-    out = [new if _override_key(o) == "output_dir" else o for o in overrides]
-    return out if new in out else [*out, new]
-
-
-def _quoted(value: str) -> str:
-    """``value`` as a single-quoted Hydra override value (any path parses back to itself)."""
-    return "'" + value.replace("'", "\\'") + "'"
-
-
-def _override_key(override: str) -> str:
-    """The key of a Hydra override (``+a.b=1`` -> ``a.b``)."""
-    return override.split("=", 1)[0].lstrip("+~")
-
-
 def _train(overrides: list[str], quiet: bool = False) -> Path:
     from escort_rl.trainers.registry import train
+    from escort_rl.trainers.resume import train_config
 
-    cfg, saved = _train_config(overrides)
+    cfg, saved = train_config(overrides)
     if saved is not None:
         print(f"resuming from {saved['path']} (iteration {saved['trainer_state']['iteration']})")
     return train(cfg, resume_state=saved, progress=not quiet)
@@ -192,15 +127,6 @@ def _quiet_compiler_notices() -> None:
 POSITIVE_ARGUMENTS = ("episodes", "repeats", "dims", "particles", "batches", "batch_sizes", "workers",
                       "collector_workers", "num_envs", "steps",
                       "seeds", "threads", "num_steps", "training", "training_steps", "seeds_per_cell")
-
-
-def check_positive_arguments(args) -> None:
-    """Raise ``ValueError`` naming the first count argument that is zero or negative."""
-    for name in POSITIVE_ARGUMENTS:
-        value = getattr(args, name, None)
-        for v in (value if isinstance(value, list) else [value]):
-            if isinstance(v, int) and not isinstance(v, bool) and v < 1:
-                raise ValueError(f"--{name.replace('_', '-')}: must be a positive int, got {v}")
 
 
 def check_output_argument(args) -> None:
@@ -226,18 +152,21 @@ def check_output_argument(args) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     _quiet_compiler_notices()
+    from escort_rl.bench.methods import check_at_least_one
     from escort_rl.config import ConfigError
     from escort_rl.trainers.checkpointing import CheckpointLoadError
     from escort_rl.trainers.scaffold import CollectorWorkerDied
 
     try:
-        check_positive_arguments(args)
+        check_at_least_one(**{name: getattr(args, name, None) for name in POSITIVE_ARGUMENTS})
         check_output_argument(args)
         if args.command == "config":
             from omegaconf import OmegaConf
 
+            from escort_rl.trainers.resume import train_config
+
             # with resume=RUN_DIR: the config `escort-rl train` would resume that run with
-            print(OmegaConf.to_yaml(_train_config(args.overrides)[0]))
+            print(OmegaConf.to_yaml(train_config(args.overrides)[0]))
         elif args.command == "bench":
             status = args.handler(args)
             if isinstance(status, int):

@@ -281,8 +281,8 @@ def test_bench_report_puts_paper_rows_beside_ours():
 
 @pytest.mark.parametrize("argv, message", [
     (["--frames", "10"], "--frames: must be at least 80"),
-    (["--frames", "1000", "--games", "tetris"], "--games: unknown 'tetris'"),
-    (["--frames", "1000", "--agents", "ppo"], "--agents: unknown 'ppo'"),
+    (["--frames", "1000", "--games", "tetris"], "--games: unknown game 'tetris'"),
+    (["--frames", "1000", "--agents", "ppo"], "--agents: unknown agent 'ppo'"),
     (["escort.num_steps=0", "--frames", "1000"], "escort.num_steps"),
     (["vrnn.widht=3", "--frames", "1000"], "widht"),
     (["--games", "pong"], "--frames: give the frames"),

@@ -152,7 +152,7 @@ def test_init_names_a_bad_batch_shape(batch_shape):
                          ids=["threshold-str", "roughening-none", "roughening-str"])
 def test_sir_arguments_that_are_not_numbers_are_named(kwargs, field):
     message = _one_line_error(lambda: SIRFilter(**kwargs))
-    assert message == f"SIRFilter.{field}: must be a number, got {kwargs[field]!r}"
+    assert message == f"SIRFilter.{field}: expected a number, got {kwargs[field]!r}"
 
 
 @pytest.mark.parametrize("kwargs, expected", [

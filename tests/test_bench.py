@@ -181,7 +181,7 @@ def test_synthetic_filter_set_types_and_checks_the_arguments():
         "anneal_cycles": 2, "bandwidth_start": 4, "compile": True}
     with pytest.raises(ValueError, match="overrides: ESCORT has no argument 'bandwith_start'"):
         filter_arguments(["filter.bandwith_start=4"])
-    with pytest.raises(ValueError, match="ESCORTFilter.anneal_fraction: must be in"):
+    with pytest.raises(ValueError, match="ESCORTFilter.anneal_fraction: must be"):
         filter_arguments(["filter.anneal_fraction=2"])
     with pytest.raises(ValueError, match="is not a filter override filter.KEY=VALUE"):
         filter_arguments(["anneal_cycles=2"])

@@ -15,13 +15,14 @@ from omegaconf import MISSING, OmegaConf
 
 from escort_rl.config import schema
 from escort_rl.cli import main
-from escort_rl.config import ConfigError, compose, config_dir, merge_override_lists, recompose, saved_config_drift
+from escort_rl.config import ConfigError, compose, config_dir, option_names
+from escort_rl.trainers.resume import merge_override_lists, recompose, saved_config_drift
 from escort_rl.trainers.builders import build_filter, build_model
 from escort_rl.trainers.validation import validate_train_config
 
-ENVS = schema.option_names("env")
-FILTERS = schema.option_names("filter")
-TRAINERS = schema.option_names("trainer")
+ENVS = option_names("env")
+FILTERS = option_names("filter")
+TRAINERS = option_names("trainer")
 
 
 def _error(overrides) -> str:
@@ -69,7 +70,7 @@ def test_inherited_filter_options_keep_their_parent():
     assert {k: v for k, v in nocorr.items() if k not in ("name", "lambda_corr")} == \
         {k: v for k, v in escort.items() if k not in ("name", "lambda_corr")}
     train = compose().filter
-    assert train.num_steps == 15 and train.compile is True and train.name == "escort"
+    assert train.num_steps == 15 and train.compile is True and train.name == "escort_train" and train.kind == "escort"
 
 
 @pytest.mark.parametrize("env", ENVS)
@@ -178,11 +179,11 @@ def test_output_dir_that_is_a_file(tmp_path):
 @pytest.fixture
 def config_copy(tmp_path, monkeypatch):
     """A copy of configs/ that compose reads instead."""
-    import escort_rl.config.schema
+    import escort_rl.config.files
 
     copy = tmp_path / "configs"
     shutil.copytree(config_dir(), copy)
-    monkeypatch.setattr(escort_rl.config.schema, "config_dir", lambda: copy)
+    monkeypatch.setattr(escort_rl.config.files, "config_dir", lambda: copy)
     return copy
 
 
@@ -277,7 +278,7 @@ def test_train_records_overrides_and_resumes_with_another_filter(tmp_path, capsy
             "filter.num_steps=2", "trainer.iterations=1", f"output_dir={run}"]
     assert main(["train", "--quiet", *tiny]) == 0
     saved = yaml.safe_load((run / "config.yaml").read_text())
-    assert saved["overrides"] == tiny and saved["filter"]["name"] == "escort"
+    assert saved["overrides"] == tiny and saved["filter"]["name"] == "escort_train"
     capsys.readouterr()
 
     assert main(["config", f"resume={run}", "filter=sir", "trainer.iterations=2"]) == 0
@@ -316,11 +317,8 @@ def _schema_defaults(cls) -> dict:
 
 
 @pytest.mark.parametrize(("node", "cls_path"), [
-    (schema.LightDark10DModelConfig, "escort_rl.models.LightDark10D"),
     (schema.KidnappedRobot20DModelConfig, "escort_rl.models.KidnappedRobot20D"),
     (schema.MultiTargetTracking20DModelConfig, "escort_rl.models.MultiTargetTracking20D"),
-    (schema.SIRConfig, "escort_rl.belief.SIRFilter"),
-    (schema.ESCORTConfig, "escort_rl.belief.ESCORTFilter"),
     (schema.PlannerConfig, "escort_rl.planners.pomcpow.POMCPOW"),
 ])
 def test_class_schemas_mirror_the_constructors(node, cls_path):
@@ -355,7 +353,7 @@ def test_bench_settings_load_typed(name, node):
     assert OmegaConf.to_container(cfg) == yaml.safe_load(path.read_text())
 
 
-@pytest.mark.parametrize("domain", schema.option_names("planner"))
+@pytest.mark.parametrize("domain", option_names("planner"))
 def test_planner_settings_load_typed(domain):
     from escort_rl.planners.planner_config import load_planner_config
 
@@ -398,11 +396,11 @@ def test_build_errors_name_the_group():
         build_filter(OmegaConf.create({"name": "escort", "kind": "escort", "corr_form": "diagonal"}))
     with pytest.raises(ConfigError, match="^filter.kind: unknown filter 'foo'"):
         build_filter(OmegaConf.create({"name": "foo"}))
-    with pytest.raises(ConfigError, match="^env.model: .*unexpected keyword argument 'foo'"):
+    with pytest.raises(ConfigError, match="^env.model: LightDark10D: unknown parameter 'foo'; LightDark10D takes "):
         build_model(OmegaConf.create({"name": "lightdark10d", "model": {"foo": 1}}))
     with pytest.raises(ConfigError, match="^env.model._target_: cannot import 'escort_rl.models.Nope'"):
         build_model(OmegaConf.create({"name": "lightdark10d", "model": {"_target_": "escort_rl.models.Nope"}}))
-    with pytest.raises(ConfigError, match="^env.name: unknown environment 'x'"):
+    with pytest.raises(ConfigError, match="^env.name: unknown model 'x'; choose one of kidnapped20d, "):
         build_model(OmegaConf.create({"name": "x", "model": {}}))
 
 
@@ -411,6 +409,37 @@ def test_every_packaged_yaml_is_covered():
     root = Path(config_dir())
     covered = {"config.yaml", "bench/closed_loop.yaml", "bench/synthetic.yaml", "bench/atari.yaml"}
     for group in ("env", "filter", "trainer", "dvrl", "planner"):
-        covered |= {f"{group}/{option}.yaml" for option in schema.option_names(group)}
+        covered |= {f"{group}/{option}.yaml" for option in option_names(group)}
     assert {str(p.relative_to(root)) for p in root.rglob("*.yaml")} == covered
-    assert set(schema.option_names("dvrl")) == set(ENVS)
+    assert set(option_names("dvrl")) == set(ENVS)
+
+
+def _option_values(group: str, option: str) -> dict:
+    """The values a group option composes to (its parents' and its own)."""
+    return OmegaConf.to_container(compose([f"{group}={option}"])[group], resolve=True)
+
+
+def _parent_values(group: str, raw) -> dict:
+    """What an option's first ``defaults`` entry composes to: a schema's defaults or another option."""
+    parent = raw["defaults"][0]
+    if parent.endswith("_schema"):
+        node = {"filter": schema.FILTER_SCHEMAS, "env": schema.ENV_SCHEMAS}[group][parent[: -len("_schema")]]
+        return OmegaConf.to_container(OmegaConf.structured(node), resolve=False)
+    return _option_values(group, parent)
+
+
+@pytest.mark.parametrize("option", FILTERS)
+def test_a_filter_yaml_holds_only_what_differs_from_its_parent(option):
+    raw = OmegaConf.to_container(OmegaConf.load(config_dir() / "filter" / f"{option}.yaml"))
+    parent = _parent_values("filter", raw)
+    same = [k for k, v in raw.items() if k != "defaults" and parent.get(k) == v]
+    assert not same, f"filter/{option}.yaml repeats its parent's {same}"
+
+
+@pytest.mark.parametrize("option", ENVS)
+def test_an_env_yaml_sets_only_model_values_that_differ_from_the_model_defaults(option):
+    raw = OmegaConf.to_container(OmegaConf.load(config_dir() / "env" / f"{option}.yaml"))
+    defaults = OmegaConf.to_container(OmegaConf.structured(type(schema.ENV_SCHEMAS[option]().model)),
+                                      resolve=False)
+    same = [k for k, v in (raw.get("model") or {}).items() if defaults.get(k) == v]
+    assert not same, f"env/{option}.yaml repeats the model defaults {same}"

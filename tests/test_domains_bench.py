@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from escort_rl.belief import ParticleBelief
+from escort_rl.belief.seeding import initial_beliefs
 from escort_rl.bench import domains as dom
 from escort_rl.bench import methods as registry
 from escort_rl.bench import trajectories as tr
@@ -85,7 +86,7 @@ def test_trajectories_are_seeded_per_seed():
     assert a["hashes"] == b["hashes"] and a["hashes"][2] == c["hashes"][0]
     assert a["states"].shape == (3, 5, 20) and a["actions"].shape == (3, 4) and a["observations"].shape[:2] == (3, 4)
     filt = registry.build_method("mtt20d", "sir")
-    prior, hashes = tr.initial_beliefs(filt, model, [0, 1, 2], 8)
+    prior, hashes = initial_beliefs(filt, model, [0, 1, 2], 8)
     assert prior.particles.shape == (3, 8, 20) and len(set(hashes)) == 3
     assert not torch.isclose(prior.particles[:, 0], a["states"][:, 0]).all()  # independent of the true start
 

@@ -70,7 +70,7 @@ def test_localisation_cuts_far_correlations_and_inflation_widens(per_test_genera
 @pytest.mark.parametrize("kwargs, match", [
     ({"inflation": 0.9}, "inflation: must be >= 1"),
     ({"inflation": math.nan}, "inflation: must be a finite number"),
-    ({"localisation_radius": 0.0}, "localisation_radius: must be a positive number or None"),
+    ({"localisation_radius": 0.0}, "localisation_radius: must be > 0, got 0.0"),
     ({"ridge": -1.0}, "ridge: must be >= 0"),
 ])
 def test_bad_arguments_name_the_field(kwargs, match):

@@ -1,4 +1,4 @@
-"""Tests of the synthetic-benchmark metrics (escort_rl.bench.metrics) against closed forms, scipy
+"""Tests of the synthetic-benchmark metrics (escort_rl.metrics) against closed forms, scipy
 and (when installed) POT."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from escort_rl.bench.metrics import (
+from escort_rl.bench.targets import load_target
+from escort_rl.metrics import (
     correlation_error,
     correlation_matrix,
     mixture_correlation,
@@ -21,15 +22,14 @@ from escort_rl.bench.metrics import (
     mmd_squared,
     mode_coverage,
     mode_fractions,
-    random_projections,
     rmse_of_mean,
     sliced_wasserstein,
+    sphere_directions,
     wasserstein_1d,
     weighted_mmd_squared,
     weighted_sliced_wasserstein,
     weighted_wasserstein_1d,
 )
-from escort_rl.bench.targets import load_target
 
 F64 = torch.float64
 
@@ -192,17 +192,17 @@ def test_wasserstein_1d_input_errors_name_the_argument():
         wasserstein_1d(randn(5), torch.empty(0, dtype=F64))
 
 
-def test_random_projections_are_unit_and_seeded():
-    a = random_projections(50, 4, gen(3))
+def test_sphere_directions_are_unit_and_seeded():
+    a = sphere_directions(50, 4, gen(3))
     assert a.shape == (50, 4)
     assert torch.allclose(a.norm(dim=1), torch.ones(50, dtype=F64), atol=1e-12)
-    assert torch.equal(a, random_projections(50, 4, gen(3)))
-    assert not torch.equal(a, random_projections(50, 4, gen(4)))
+    assert torch.equal(a, sphere_directions(50, 4, gen(3)))
+    assert not torch.equal(a, sphere_directions(50, 4, gen(4)))
 
 
 def test_sliced_wasserstein_equals_averaged_scipy_per_projection():
     x, y = randn(30, 3, seed=14), randn(45, 3, seed=15) + torch.tensor([1.0, 0.0, -0.5], dtype=F64)
-    theta = random_projections(25, 3, gen(16))
+    theta = sphere_directions(25, 3, gen(16))
     by_hand = np.mean([scipy.stats.wasserstein_distance((x @ t).numpy(), (y @ t).numpy()) for t in theta])
     assert float(sliced_wasserstein(x, y, projections=theta)) == pytest.approx(by_hand, rel=1e-10)
     # default directions: num_projections drawn from the generator, same as passing them
@@ -211,7 +211,7 @@ def test_sliced_wasserstein_equals_averaged_scipy_per_projection():
 
 def test_sliced_wasserstein_p2_is_root_mean_of_squared_w2():
     x, y = randn(40, 2, seed=17), randn(40, 2, seed=18) * 2
-    theta = random_projections(10, 2, gen(19))
+    theta = sphere_directions(10, 2, gen(19))
     w2sq = [float(((x @ t).sort().values - (y @ t).sort().values).pow(2).mean()) for t in theta]
     expected = math.sqrt(np.mean(w2sq))
     assert float(sliced_wasserstein(x, y, projections=theta, p=2)) == pytest.approx(expected, rel=1e-10)
@@ -233,7 +233,7 @@ def test_sliced_wasserstein_default_is_seeded():
 def test_sliced_wasserstein_equals_pot(p):
     ot = pytest.importorskip("ot")
     x, y = randn(40, 4, seed=24), randn(55, 4, seed=25) * 1.5 + 0.5
-    theta = random_projections(30, 4, gen(26))
+    theta = sphere_directions(30, 4, gen(26))
     expected = ot.sliced_wasserstein_distance(x.numpy(), y.numpy(), projections=theta.T.numpy(), p=p)
     assert float(sliced_wasserstein(x, y, projections=theta, p=p)) == pytest.approx(float(expected), rel=1e-9)
 
@@ -434,7 +434,7 @@ def test_weighted_wasserstein_1d_uniform_is_the_unweighted_one():
 def test_weighted_sliced_wasserstein_uniform_is_sliced_wasserstein_per_batch():
     g = torch.Generator().manual_seed(4)
     x, y = torch.randn(3, 20, 4, generator=g, dtype=torch.float64), torch.randn(3, 30, 4, generator=g, dtype=torch.float64)
-    theta = random_projections(10, 4)
+    theta = sphere_directions(10, 4)
     got = weighted_sliced_wasserstein(x, y, theta)
     want = torch.stack([sliced_wasserstein(x[i], y[i], projections=theta) for i in range(3)])
     assert torch.allclose(got, want, atol=1e-12)
@@ -446,7 +446,7 @@ def test_integer_weights_are_repeated_samples():
     x, y = torch.randn(3, 2, generator=g, dtype=torch.float64), torch.randn(4, 2, generator=g, dtype=torch.float64)
     w = torch.tensor([2.0, 1.0, 3.0], dtype=torch.float64)
     repeated = x.repeat_interleave(torch.tensor([2, 1, 3]), dim=0)
-    theta = random_projections(7, 2)
+    theta = sphere_directions(7, 2)
     assert math.isclose(float(weighted_sliced_wasserstein(x, y, theta, w)),
                         float(sliced_wasserstein(repeated, y, projections=theta)), rel_tol=1e-12)
     assert math.isclose(float(weighted_mmd_squared(x, y, 0.5, w)), float(mmd_squared(repeated, y)), rel_tol=1e-12)
@@ -476,7 +476,7 @@ def test_weighted_metrics_errors_name_the_argument():
 # ----------------------------------------------------------------------------- Mahalanobis coverage
 
 def test_chi2_quantile_matches_closed_form_and_scipy():
-    from escort_rl.bench.metrics import chi2_quantile
+    from escort_rl.metrics import chi2_quantile
 
     assert chi2_quantile(2, 0.99) == pytest.approx(-2 * math.log(0.01), rel=1e-9)
     for df in (1, 5, 20, 200):
@@ -488,7 +488,7 @@ def test_chi2_quantile_matches_closed_form_and_scipy():
 @pytest.mark.parametrize("dim", [1, 5, 20, 50, 200])
 def test_exact_samples_cover_every_mode_at_every_dimension(dim, per_test_generator):
     """The paper's τ = 1 ball misses the modes of exact samples from 20D; the Mahalanobis form does not."""
-    from escort_rl.bench.metrics import mode_coverage_mahalanobis
+    from escort_rl.metrics import mode_coverage_mahalanobis
     from escort_rl.bench.targets import scalability_target
 
     t = scalability_target(dim, "block", 0)
@@ -499,7 +499,7 @@ def test_exact_samples_cover_every_mode_at_every_dimension(dim, per_test_generat
 
 
 def test_mahalanobis_coverage_of_one_mode_is_one_over_k(per_test_generator):
-    from escort_rl.bench.metrics import mode_coverage_mahalanobis, mode_fractions_mahalanobis
+    from escort_rl.metrics import mode_coverage_mahalanobis, mode_fractions_mahalanobis
     from escort_rl.bench.targets import scalability_target
 
     t = scalability_target(20, "banded", 0)

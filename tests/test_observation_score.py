@@ -183,12 +183,12 @@ def test_escort_update_is_the_same_without_the_closed_form(name, seed):
 def test_compiled_update_runs_the_closed_form(monkeypatch):
     """Under ``compile=True`` the filter traces the model's ``observation_score`` (autograd is never
     called) and gives the eager update."""
-    import escort_rl.belief.escort as escort
+    import escort_rl.belief.scores as scores
 
     def no_autograd(*args, **kwargs):
         raise AssertionError("the likelihood score went through autograd")
 
-    monkeypatch.setattr(escort, "autograd_score", no_autograd)
+    monkeypatch.setattr(scores, "autograd_score", no_autograd)
     model = MultiTargetTracking20D()
     results = []
     for compile_ in (False, True):

@@ -1,4 +1,5 @@
-"""Protocol (a)'s reference posterior (escort_rl.bench.reference) and the distances to it."""
+"""Protocol (a)'s reference posterior (escort_rl.metrics.reference), the benchmark cell that computes it, and
+the distances to it."""
 
 from __future__ import annotations
 
@@ -7,9 +8,11 @@ import math
 import pytest
 import torch
 
-from escort_rl.bench.reference import (DamagedReferenceError, Reference, ReferenceCell, content_hash, median_gamma,
-                                       reference_posterior, systematic_indices, weighted_moments)
+from escort_rl.bench.reference_cell import ReferenceCell
 from escort_rl.bench.trajectories import generate_trajectories
+from escort_rl.metrics.distances import median_gamma
+from escort_rl.metrics.moments import weighted_moments
+from escort_rl.metrics.reference import DamagedReferenceError, Reference, content_hash, reference_posterior
 from escort_rl.models.linear_gaussian import LinearGaussian
 
 
@@ -71,12 +74,6 @@ def test_weighted_moments_closed_form():
 def test_median_gamma_closed_form():
     y = torch.tensor([[0.0], [1.0], [3.0]])  # distances 1, 3, 2: the median is 2
     assert math.isclose(float(median_gamma(y)), 1.0 / 8.0)
-
-
-def test_systematic_indices_follow_the_weights():
-    log_w = torch.log(torch.tensor([0.5, 0.0, 0.25, 0.25]))
-    idx = systematic_indices(log_w, 8, torch.Generator().manual_seed(0))
-    assert torch.bincount(idx, minlength=4).tolist() == [4, 0, 2, 2]
 
 
 @pytest.fixture
@@ -193,7 +190,7 @@ def test_gaussian_sum_posterior_matches_bayes_on_a_grid():
 def test_gaussian_sum_reference_samples_its_modes_and_counts_what_it_prunes():
     """The exact reference of a mixture model: its mean and covariance are the mixture's, its draws
     follow them, and a pruned sum reports the mass it cut."""
-    from escort_rl.bench.reference import exact_reference, has_exact_posterior
+    from escort_rl.metrics.reference import exact_reference, has_exact_posterior
     from escort_rl.bench.synthetic.tracking import gmm_tracking
 
     model = gmm_tracking(dim=3, max_components=4)

@@ -143,6 +143,15 @@ def test_systematic_resample_degenerate_weight():
     assert torch.equal(idx, torch.tensor([0, 4, 9]).unsqueeze(-1).expand(3, 10))
 
 
+def test_systematic_resample_draws_any_number_of_indices():
+    # M = 8 draws from weights (1/2, 0, 1/4, 1/4): exactly M w_i of each, whatever the offset
+    log_w = torch.log(torch.tensor([0.5, 0.0, 0.25, 0.25], dtype=torch.float64))
+    for seed in range(5):
+        idx = systematic_resample_indices(log_w, gen(seed), num_samples=8)
+        assert idx.shape == (8,)
+        assert torch.bincount(idx, minlength=4).tolist() == [4, 0, 2, 2]
+
+
 
 
 def _largest_rand(monkeypatch):
@@ -422,6 +431,6 @@ def test_non_finite_roughening_is_refused():
     import math as _math
 
     for bad in (float("inf"), float("nan"), -1.0):
-        with pytest.raises(ValueError, match="^SIRFilter.roughening: must be a finite number >= 0"):
+        with pytest.raises(ValueError, match="^SIRFilter.roughening: must be (a finite number|>= 0)"):
             SIRFilter(roughening=bad)
     assert _math.isfinite(SIRFilter(roughening=0.2).roughening)

@@ -2,19 +2,23 @@
 
 from escort_rl.belief.base import BeliefFilter, validate_update_inputs
 from escort_rl.belief.checks import NonFiniteError
-from escort_rl.belief.enkf import EnKFFilter
-from escort_rl.belief.escort import ESCORTFilter, SVGDFilter
+from escort_rl.belief.enkf import EnKFFilter, EnKFParams
+from escort_rl.belief.escort import ESCORTFilter, ESCORTParams, SVGDFilter, SVGDParams
 from escort_rl.belief.particle_belief import ParticleBelief
-from escort_rl.belief.sir import SIRFilter, systematic_resample_indices
+from escort_rl.belief.sir import SIRFilter, SIRParams, systematic_resample_indices
 
 __all__ = [
     "BeliefFilter",
     "EnKFFilter",
+    "EnKFParams",
     "ESCORTFilter",
+    "ESCORTParams",
     "NonFiniteError",
     "SVGDFilter",
+    "SVGDParams",
     "ParticleBelief",
     "SIRFilter",
+    "SIRParams",
     "systematic_resample_indices",
     "validate_update_inputs",
 ]

@@ -33,7 +33,8 @@ Examples:
 
 from __future__ import annotations
 
-import math
+from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -41,6 +42,7 @@ from torch import Tensor
 from escort_rl.belief.base import BeliefFilter, check_output_shape
 from escort_rl.belief.checks import OFF
 from escort_rl.belief.particle_belief import ParticleBelief
+from escort_rl.config.params import HasParams, build_params, param
 
 
 def gaspari_cohn(r: Tensor) -> Tensor:
@@ -68,38 +70,39 @@ def coordinates(model, kind: str, size: int, state_dim: int) -> Tensor:
     return (index if kind == "state" else index * state_dim / max(size, 1)).unsqueeze(-1)
 
 
-class EnKFFilter(BeliefFilter):
-    """The stochastic ensemble Kalman filter with perturbed observations (see the module docstring).
+@dataclass(frozen=True)
+class EnKFParams:
+    """:class:`EnKFFilter`'s parameters.
 
-    Args:
-        inflation: multiplicative covariance inflation ``ρ ≥ 1`` of the forecast anomalies (default 1:
-            off). Small ensembles underestimate their spread; ``ρ`` slightly above 1 counters it.
+    Attributes:
+        inflation: multiplicative covariance inflation ``ρ ≥ 1`` of the forecast anomalies (1: off).
+            Small ensembles underestimate their spread; ``ρ`` slightly above 1 counters it.
         localisation_radius: the Gaspari–Cohn half-width ``c`` of the taper applied to ``C_xy`` and
             ``C_yy``, in the units of the model's coordinates (:func:`coordinates`); correlations
-            beyond ``2c`` are cut. ``None`` (default): off.
+            beyond ``2c`` are cut. ``None``: off.
         ridge: added to the diagonal of ``C_yy``, times its mean diagonal, so that ``C_yy`` stays
-            invertible when ``N ≤ m`` (default 1e-6).
+            invertible when ``N ≤ m``.
+    """
+
+    inflation: float = param(1.0, ge=1)
+    localisation_radius: Optional[float] = param(None, gt=0)
+    ridge: float = param(1e-6, ge=0)
+
+
+class EnKFFilter(HasParams, BeliefFilter):
+    """The stochastic ensemble Kalman filter with perturbed observations (see the module docstring).
+
+    Takes :class:`EnKFParams` (or its fields as keyword arguments: ``EnKFFilter(inflation=1.05)``).
 
     Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
     naming the culprit when the input belief, what ``model.transition`` or ``model.observe`` returns,
     or the result holds a NaN or an inf. One host synchronisation per update.
     """
 
-    def __init__(self, inflation: float = 1.0, localisation_radius: float | None = None, ridge: float = 1e-6) -> None:
-        for name, value in (("inflation", inflation), ("ridge", ridge)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"EnKFFilter.{name}: must be a finite number, got {value!r}")
-        if inflation < 1.0:
-            raise ValueError(f"EnKFFilter.inflation: must be >= 1 (1 turns it off), got {inflation}")
-        if ridge < 0:
-            raise ValueError(f"EnKFFilter.ridge: must be >= 0, got {ridge}")
-        if localisation_radius is not None and (isinstance(localisation_radius, bool)
-                                                or not isinstance(localisation_radius, (int, float))
-                                                or not 0 < localisation_radius < math.inf):
-            raise ValueError(f"EnKFFilter.localisation_radius: must be a positive number or None, got "
-                             f"{localisation_radius!r}")
-        self.inflation, self.ridge = float(inflation), float(ridge)
-        self.localisation_radius = None if localisation_radius is None else float(localisation_radius)
+    Params = EnKFParams
+
+    def __init__(self, params: EnKFParams | None = None, **kwargs) -> None:
+        self.params = build_params(EnKFParams, params, kwargs, owner=type(self).__name__)
 
     def __repr__(self) -> str:
         extra = "" if self.check_finite else ", check_finite=False"

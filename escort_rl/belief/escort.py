@@ -15,9 +15,12 @@ One update, for particles ``X_t``, action ``a`` and the next observation ``o``:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -26,20 +29,15 @@ from escort_rl.belief.base import BeliefFilter
 from escort_rl.belief.checks import (
     OFF,
     FiniteGuard,
-    is_finite,
-    log_density_channels,
-    log_density_flags,
-    value_channels,
-    value_flags,
 )
 from escort_rl.belief.denormals import flush_denormals
-from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists, svgd_direction
+from escort_rl.belief.evolution import PartTimer, belief_moments, evolution_step, jittered, moment_change
+from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.prior import SmoothedPrior
 from escort_rl.belief.projections import (
     RANK_COUNT_MAX,
     TemporalReference,
-    correlation_force,
     correlation_projections,
     max_sliced_directions,
     permutation_ranks,
@@ -49,125 +47,24 @@ from escort_rl.belief.projections import (
     random_directions,
 )
 from escort_rl.belief.importance import tempered_log_weights
+from escort_rl.belief.scores import (
+    MAX_SCORE,
+    Channels,
+    ScoreTerm,
+    gaussian_fit_log_prob,
+    likelihood_score,
+    log_density_score,
+    smoothed_prior_score,
+    target_score,
+)
+from escort_rl.config.params import HasParams, build_params, param
 
 COMPILE_CACHE_ENTRIES = 64  # compiled variants kept per function (see ESCORTFilter._compiled)
-MAX_SCORE = 1e6  # finite scores are clamped to ±MAX_SCORE; AdaGrad normalises the step anyway
+@dataclass(frozen=True)
+class SVGDParams:
+    """:class:`SVGDFilter`'s parameters, shared by :class:`ESCORTParams`.
 
-ScoreTerm = Callable[[Tensor], tuple[Tensor, Tensor]]
-"""A score with its health flags: ``x`` ``[*B, N, d]`` -> ``(score [*B, N, d], flags bool [*B, N, C])``,
-where flag ``c`` marks the particles at which the score's source gave a NaN or an inf (see
-:mod:`escort_rl.belief.checks`); it comes with ``C`` ``(lead, fix)`` message pairs."""
-
-Channels = tuple[tuple[str, str], ...]
-
-
-def autograd_score(log_density: Callable[[Tensor], Tensor], x: Tensor,
-                   with_value: bool = False) -> Tensor | tuple[Tensor, Tensor]:
-    """``∇_x Σ log_density(x)`` by autograd, whatever the caller's grad mode. ``x`` ``[*B, N, d]`` ->
-    ``[*B, N, d]``; with ``with_value``, also the log-density ``[*B, N]`` (detached).
-
-    Where the log-density is not finite the gradient is 0: ``−inf`` is a zero density, flat, and NaN
-    or ``+inf`` is an error the caller detects from the value (:func:`~escort_rl.belief.checks.log_density_flags`).
-    Such values are replaced by ``−1e30`` before the sum, so they do not turn the other particles'
-    gradients into NaN.
-    """
-
-    def total(z: Tensor) -> tuple[Tensor, Tensor]:
-        lp = log_density(z)
-        return torch.where(is_finite(lp), lp, torch.full_like(lp, -1e30)).sum(), lp
-
-    if torch.compiler.is_compiling():  # dynamo traces torch.func.grad, not torch.autograd.grad
-        grad, lp = torch.func.grad(total, has_aux=True)(x.detach())
-    else:
-        with torch.enable_grad():  # eager: torch.autograd.grad has less per-call overhead
-            xg = x.detach().requires_grad_(True)
-            value, lp = total(xg)
-            # a log-density that does not depend on x (a flat likelihood) has no graph: its gradient is 0
-            grad = (torch.autograd.grad(value, xg, allow_unused=True)[0] if value.requires_grad else None)
-            grad = torch.zeros_like(xg) if grad is None else grad
-    lp = lp.detach()
-    # 0·∞ in the backward pass of an impossible particle gives NaN: its gradient is 0 by definition
-    grad = torch.where(is_finite(lp).unsqueeze(-1), grad, torch.zeros_like(grad))
-    return (grad, lp) if with_value else grad
-
-
-def _finite(t: Tensor, bound: float = MAX_SCORE) -> Tensor:
-    """NaN → 0 and ±inf → ±bound (finite values are left as they are). Only for the SVGD velocity,
-    whose kernel can overflow for particles far apart; the scores that feed it are checked first."""
-    return torch.nan_to_num(t, nan=0.0, posinf=bound, neginf=-bound)
-
-
-def log_density_score(log_density: Callable[[Tensor], Tensor], name: str, fix: str) -> tuple[ScoreTerm, Channels]:
-    """The :data:`ScoreTerm` of ``log_density`` (``[*B, N, d] -> [*B, N]``) by :func:`autograd_score`,
-    flagging a NaN or +inf value and a non-finite gradient at a finite value; with their messages."""
-
-    def score(x: Tensor) -> tuple[Tensor, Tensor]:
-        grad, lp = autograd_score(log_density, x, with_value=True)
-        return grad, log_density_flags(lp, grad)
-
-    return score, log_density_channels(name, fix)
-
-
-def likelihood_score(model, obs: Tensor, action: Tensor) -> tuple[ScoreTerm, Channels]:
-    """``x ↦ ∇_x log O(obs | x, action)`` for particles ``x`` ``[*B, N, d]`` (``obs`` ``[*B, 1, obs_dim]``,
-    ``action`` ``[*B, N]``) -> ``[*B, N, d]``, as a :data:`ScoreTerm` with its messages.
-
-    Uses the model's closed-form ``observation_score`` when it has one (no autograd graph is recorded
-    and replayed: cheaper per iteration, eager or compiled), flagging NaN and ±inf; otherwise
-    :func:`autograd_score` through ``observation_log_prob`` (a model without a closed form works
-    unchanged), flagging a NaN or +inf log-likelihood and a non-finite gradient. A ``-inf``
-    log-likelihood (zero likelihood) is allowed and has a zero score.
-    """
-    own = getattr(model, "observation_score", None)
-    where = "wherever the particles move (it may be 0 where the likelihood is flat)"
-    if callable(own):
-
-        def closed_form(x: Tensor) -> tuple[Tensor, Tensor]:
-            s = own(obs, x, action)
-            return s, value_flags(s)
-
-        return closed_form, value_channels("model.observation_score",
-                                           f"the model's observation_score must be finite {where}")
-    fix = f"the model's observation_log_prob must be finite or -inf, with a finite gradient, {where}"
-    return log_density_score(lambda z: model.observation_log_prob(obs, z, action), "model.observation_log_prob", fix)
-
-
-def smoothed_prior_score(prior: SmoothedPrior) -> tuple[ScoreTerm, Channels]:
-    """The :data:`ScoreTerm` of the smoothed prior (:meth:`SmoothedPrior.score`), flagging a NaN or inf
-    score (its means and covariance are checked when it is built, so this is an overflow)."""
-
-    def score(x: Tensor) -> tuple[Tensor, Tensor]:
-        s = prior.score(x)
-        return s, ~is_finite(s).all(-1, keepdim=True)
-
-    return score, (("the smoothed prior's score was NaN or inf",
-                    "the particles overflowed; check the scale of the model's transition_mean and "
-                    "transition_scale_tril"),)
-
-
-def target_score(likelihood: tuple[ScoreTerm, Channels],
-                 prior: tuple[ScoreTerm, Channels]) -> tuple[Callable[[Tensor], tuple[Tensor, Tensor]], Channels]:
-    """The score of ESCORT's target ``log p(x) = log-likelihood(x) + log p̂(x)`` from the two
-    :data:`ScoreTerm` s: ``x`` ``[*B, N, d]`` -> ``(score [*B, N, d], counts [*B, C])``, the score clamped
-    to ``±MAX_SCORE`` and ``counts`` the particles of each belief flagged by each of the ``C`` channels
-    (the likelihood's, then the prior's; returned with the function). What :meth:`ESCORTFilter.evolve`
-    takes as ``score_fn``."""
-    likelihood_fn, lik_channels = likelihood
-    prior_fn, prior_channels = prior
-
-    def score(x: Tensor) -> tuple[Tensor, Tensor]:
-        s_lik, f_lik = likelihood_fn(x)
-        s_prior, f_prior = prior_fn(x)
-        counts = torch.cat([f_lik, f_prior], dim=-1).sum(-2)  # [*B, C]
-        return (s_lik + s_prior).clamp(-MAX_SCORE, MAX_SCORE), counts
-
-    return score, lik_channels + prior_channels
-
-
-class ESCORTFilter(BeliefFilter):
-    """ESCORT: SVGD with a correlation-aware regulariser and a temporal-consistency term.
-
-    Args:
+    Attributes:
         num_steps: ``K``, particle-evolution iterations per update (default 50).
         step_size: ``ε`` of the AdaGrad-normalised step (default 0.1).
         step_decay: ``ε_k = ε / (1 + step_decay · k)`` (default 0: constant).
@@ -181,26 +78,6 @@ class ESCORTFilter(BeliefFilter):
         bandwidth_scale: multiplies the median-heuristic bandwidth (default 1). With well-separated
             modes the median pairwise distance is the distance between modes, so the kernel spans
             several modes and particles move together; a scale below 1 localises the kernel.
-        lambda_corr: ``λ_corr`` (default 0.1; 0 gives ESCORT-NoCorr). With the velocity form the
-            particles come to rest where SVGD's do for every ``λ_corr < 0.5`` (the term changes the
-            path only); from 0.5 it can reverse the velocity along a projection and diverge, which a
-            warning says.
-        lambda_temp: ``λ_temp`` (default 0.1; 0 gives ESCORT-NoTemp).
-        n_proj: number of correlation projections and of temporal directions (default 5).
-        proj_dim: columns of each correlation projection ``A_k`` (default 2).
-        projection: ``"learned"`` (eigenvectors of ΔC refined by ascent) or ``"random"``
-            (ESCORT-NoProj).
-        projection_every: recompute the correlation projections every this many iterations.
-        corr_form: ``"velocity"`` (default, damps ``φ − φ̄``) or ``"position"`` (the paper's
-            appendix form with ``x − x̄``; it contracts the belief).
-        temp_schedule: ``"anneal"`` (default, ``λ_temp (1 − k/K)``) or ``"constant"``.
-        temp_clip: elementwise clip of ``F_temp`` (default 10, as the paper).
-        temporal_ascent_steps: gradient-ascent steps that refine the directions ``θ_j`` of ``F_temp``
-            toward the maximal projected W1 (default 10; each step sorts both sets along every ``θ_j``,
-            which at ``K = 15`` costs about as much as ten iterations of the loop).
-        likelihood_pull: the paper's ``α w_i (μ_obs − x̃_i)`` pull, applied once after prediction
-            when ``> 0`` (needs a model with ``position``-like observations: ``o`` compared with the
-            first ``obs_dim`` coordinates). Default 0 (off).
         prior: ``"smoothed"`` (default), ``"shrunk"`` (the smoothed prior with its centres shrunk
             toward their mean so that it keeps the predicted covariance instead of widening it by
             ``1 + h²``; :class:`~escort_rl.belief.prior.SmoothedPrior`) or ``"exact"`` (the transition
@@ -230,6 +107,51 @@ class ESCORTFilter(BeliefFilter):
             times the median heuristic and shrinks geometrically to it over the first
             ``anneal_fraction K`` iterations (a wider kernel early moves particles between modes).
             1 (default) is off.
+    """
+
+    num_steps: int = param(50, ge=0)
+    step_size: float = param(0.1, gt=0)
+    step_decay: float = param(0.0, ge=0)
+    adagrad_alpha: float = param(0.9, ge=0, lt=1)
+    repulsion: str = param("plain", choices=["plain", "enhanced"])
+    bandwidth_every: int = param(10, ge=1)
+    bandwidth_scale: float = param(1.0, gt=0)
+    prior: str = param("smoothed", choices=["smoothed", "shrunk", "exact"])
+    jitter: Optional[float] = param(None, ge=0)
+    jitter_at: str = param("end", choices=["end", "start"])
+    compile: bool = param(False)
+    stop_tolerance: float = param(0.0, ge=0)
+    stop_window: int = param(5, ge=1)
+    anneal_cycles: int = param(0, ge=0)
+    anneal_fraction: float = param(0.5, gt=0, le=1)
+    bandwidth_start: float = param(1.0, gt=0)
+
+
+@dataclass(frozen=True)
+class ESCORTParams(SVGDParams):
+    """:class:`ESCORTFilter`'s parameters: SVGD's and the two regularisers'.
+
+    Attributes:
+        lambda_corr: ``λ_corr`` (default 0.1; 0 gives ESCORT-NoCorr). With the velocity form the
+            particles come to rest where SVGD's do for every ``λ_corr < 0.5`` (the term changes the
+            path only); from 0.5 it can reverse the velocity along a projection and diverge, which a
+            warning says.
+        lambda_temp: ``λ_temp`` (default 0.1; 0 gives ESCORT-NoTemp).
+        n_proj: number of correlation projections and of temporal directions (default 5).
+        proj_dim: columns of each correlation projection ``A_k`` (default 2).
+        projection: ``"learned"`` (eigenvectors of ΔC refined by ascent) or ``"random"``
+            (ESCORT-NoProj).
+        projection_every: recompute the correlation projections every this many iterations.
+        corr_form: ``"velocity"`` (default, damps ``φ − φ̄``) or ``"position"`` (the paper's
+            appendix form with ``x − x̄``; it contracts the belief).
+        temp_schedule: ``"anneal"`` (default, ``λ_temp (1 − k/K)``) or ``"constant"``.
+        temp_clip: elementwise clip of ``F_temp`` (default 10, as the paper).
+        temporal_ascent_steps: gradient-ascent steps that refine the directions ``θ_j`` of ``F_temp``
+            toward the maximal projected W1 (default 10; each step sorts both sets along every ``θ_j``,
+            which at ``K = 15`` costs about as much as ten iterations of the loop).
+        likelihood_pull: the paper's ``α w_i (μ_obs − x̃_i)`` pull, applied once after prediction
+            when ``> 0`` (needs a model with ``position``-like observations: ``o`` compared with the
+            first ``obs_dim`` coordinates). Default 0 (off).
         ess_floor: the correlation projections learn the target from importance samples (the
             predicted particles weighted by the likelihood in a filter update; the starting particles
             weighted by ``p/q`` in :meth:`fit`). When their effective sample size is below
@@ -237,6 +159,27 @@ class ESCORTFilter(BeliefFilter):
             reaches it (:func:`~escort_rl.belief.importance.tempered_log_weights`), so the target's
             correlation is never read off one or two particles. Default 0.2; 0 never tempers.
             :meth:`importance_diagnostics` reports the ESS and ``β`` met.
+
+    """
+
+    lambda_corr: float = param(0.1, ge=0)
+    lambda_temp: float = param(0.1, ge=0)
+    n_proj: int = param(5, ge=1)
+    proj_dim: int = param(2, ge=1)
+    projection: str = param("learned", choices=["learned", "random"])
+    projection_every: int = param(10, ge=1)
+    corr_form: str = param("velocity", choices=["velocity", "position"])
+    temp_schedule: str = param("anneal", choices=["anneal", "constant"])
+    temp_clip: float = param(10.0, gt=0)
+    temporal_ascent_steps: int = param(10, ge=0)
+    likelihood_pull: float = param(0.0, ge=0)
+    ess_floor: float = param(0.2, ge=0, le=1)
+
+
+class ESCORTFilter(HasParams, BeliefFilter):
+    """ESCORT: SVGD with a correlation-aware regulariser and a temporal-consistency term.
+
+    Takes :class:`ESCORTParams` (or its fields as keyword arguments: ``ESCORTFilter(num_steps=15)``).
 
     Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
     naming the culprit when the input belief, what the model's methods return (``transition``,
@@ -251,103 +194,16 @@ class ESCORTFilter(BeliefFilter):
     follow the prior and the closed-form score, if any; nothing becomes NaN.
     """
 
-    def __init__(
-        self,
-        num_steps: int = 50,
-        step_size: float = 0.1,
-        step_decay: float = 0.0,
-        adagrad_alpha: float = 0.9,
-        repulsion: str = "plain",
-        bandwidth_every: int = 10,
-        bandwidth_scale: float = 1.0,
-        lambda_corr: float = 0.1,
-        lambda_temp: float = 0.1,
-        n_proj: int = 5,
-        proj_dim: int = 2,
-        projection: str = "learned",
-        projection_every: int = 10,
-        corr_form: str = "velocity",
-        temp_schedule: str = "anneal",
-        temp_clip: float = 10.0,
-        temporal_ascent_steps: int = 10,
-        likelihood_pull: float = 0.0,
-        prior: str = "smoothed",
-        jitter: float | None = None,
-        jitter_at: str = "end",
-        compile: bool = False,
-        stop_tolerance: float = 0.0,
-        stop_window: int = 5,
-        anneal_cycles: int = 0,
-        anneal_fraction: float = 0.5,
-        bandwidth_start: float = 1.0,
-        ess_floor: float = 0.2,
-    ) -> None:
-        for name in ("step_size", "step_decay", "adagrad_alpha", "bandwidth_scale", "lambda_corr", "lambda_temp",
-                     "temp_clip", "likelihood_pull", "jitter", "stop_tolerance", "anneal_fraction", "bandwidth_start",
-                     "ess_floor"):
-            value = locals()[name]
-            if not (value is None and name == "jitter") and (isinstance(value, bool)
-                                                             or not isinstance(value, (int, float))):
-                raise ValueError(f"{type(self).__name__}.{name}: must be a number, got {value!r}")
-        checks = [
-            ("num_steps", isinstance(num_steps, int) and num_steps >= 0, "an int >= 0"),
-            ("step_size", step_size > 0, "> 0"),
-            ("step_decay", step_decay >= 0, ">= 0"),
-            ("adagrad_alpha", 0 <= adagrad_alpha < 1, "in [0, 1)"),
-            ("repulsion", repulsion in ("enhanced", "plain"), "'enhanced' or 'plain'"),
-            ("bandwidth_every", isinstance(bandwidth_every, int) and bandwidth_every >= 1, "an int >= 1"),
-            ("bandwidth_scale", bandwidth_scale > 0, "> 0"),
-            ("lambda_corr", lambda_corr >= 0, ">= 0"),
-            ("lambda_temp", lambda_temp >= 0, ">= 0"),
-            ("n_proj", isinstance(n_proj, int) and n_proj >= 1, "an int >= 1"),
-            ("proj_dim", isinstance(proj_dim, int) and proj_dim >= 1, "an int >= 1"),
-            ("projection", projection in ("learned", "random"), "'learned' or 'random'"),
-            ("projection_every", isinstance(projection_every, int) and projection_every >= 1, "an int >= 1"),
-            ("corr_form", corr_form in ("velocity", "position"), "'velocity' or 'position'"),
-            ("temp_schedule", temp_schedule in ("anneal", "constant"), "'anneal' or 'constant'"),
-            ("likelihood_pull", likelihood_pull >= 0, ">= 0"),
-            ("prior", prior in ("smoothed", "shrunk", "exact"), "'smoothed', 'shrunk' or 'exact'"),
-            ("jitter", jitter is None or jitter >= 0, "None or >= 0"),
-            ("jitter_at", jitter_at in ("end", "start"), "'end' or 'start'"),
-            ("compile", isinstance(compile, bool), "True or False"),
-            ("temp_clip", math.isfinite(temp_clip) and temp_clip > 0, "a finite number > 0"),
-            ("temporal_ascent_steps", isinstance(temporal_ascent_steps, int) and not isinstance(temporal_ascent_steps, bool)
-             and temporal_ascent_steps >= 0, "an int >= 0"),
-            ("stop_tolerance", stop_tolerance >= 0, ">= 0 (0 turns the adaptive stop off)"),
-            ("stop_window", isinstance(stop_window, int) and stop_window >= 1, "an int >= 1"),
-            ("anneal_cycles", isinstance(anneal_cycles, int) and not isinstance(anneal_cycles, bool)
-             and anneal_cycles >= 0, "an int >= 0 (0 turns the annealing off)"),
-            ("anneal_fraction", 0 < anneal_fraction <= 1, "in (0, 1]"),
-            ("bandwidth_start", bandwidth_start > 0, "> 0 (1 turns the bandwidth schedule off)"),
-            ("ess_floor", 0 <= ess_floor <= 1, "in [0, 1] (0 never tempers the importance weights)"),
-        ]
-        for name in ("step_size", "step_decay", "bandwidth_scale", "lambda_corr", "lambda_temp", "likelihood_pull",
-                     "jitter", "stop_tolerance", "bandwidth_start"):
-            value = locals()[name]
-            if value is not None and not math.isfinite(value):
-                raise ValueError(f"{type(self).__name__}.{name}: must be a finite number, got {value!r}")
-        for name, ok, what in checks:
-            if not ok:
-                raise ValueError(f"{type(self).__name__}.{name}: must be {what}, got {locals()[name]!r}")
-        if corr_form == "velocity" and lambda_corr >= 0.5:
-            warnings.warn(f"{type(self).__name__}.lambda_corr={lambda_corr}: with the velocity form, a projection of "
-                          "weight w_k > 1/(2 lambda_corr) reverses SVGD's velocity along it and the particles can "
+    Params = ESCORTParams
+
+    def __init__(self, params: ESCORTParams | None = None, **kwargs) -> None:
+        self.params = build_params(ESCORTParams, params, kwargs, owner=type(self).__name__)
+        if self.corr_form == "velocity" and self.lambda_corr >= 0.5:
+            warnings.warn(f"{type(self).__name__}.lambda_corr={self.lambda_corr}: with the velocity form, a projection "
+                          "of weight w_k > 1/(2 lambda_corr) reverses SVGD's velocity along it and the particles can "
                           "diverge (docs/DESIGN.md, the correlation term's fixed points); keep lambda_corr < 0.5",
                           stacklevel=2)
-        self.num_steps, self.step_size, self.step_decay = num_steps, step_size, step_decay
-        self.adagrad_alpha, self.repulsion, self.bandwidth_every = adagrad_alpha, repulsion, bandwidth_every
-        self.bandwidth_scale = bandwidth_scale
-        self.lambda_corr, self.lambda_temp = lambda_corr, lambda_temp
-        self.n_proj, self.proj_dim, self.projection = n_proj, proj_dim, projection
-        self.projection_every, self.corr_form = projection_every, corr_form
-        self.temp_schedule, self.temp_clip = temp_schedule, temp_clip
-        self.temporal_ascent_steps = temporal_ascent_steps
-        self.likelihood_pull, self.prior, self.jitter, self.jitter_at = likelihood_pull, prior, jitter, jitter_at
-        self.compile = compile
-        self.stop_tolerance, self.stop_window = stop_tolerance, stop_window
-        self.anneal_cycles, self.anneal_fraction, self.bandwidth_start = anneal_cycles, anneal_fraction, bandwidth_start
         self._compiled_fns: dict[str, Callable] = {}
-        self.ess_floor = float(ess_floor)
         self._iterations_used = [0.0, 0]  # Σ over updated beliefs of the iterations they ran, and their count
 
     def mean_iterations(self) -> float:
@@ -433,6 +289,45 @@ class ESCORTFilter(BeliefFilter):
             self._compiled_fns[fn.__name__] = torch.compile(fn, dynamic=False)
         return self._compiled_fns[fn.__name__]
 
+    def iteration_scalars(self, k: int, k_total: int, dtype=None, device=None) -> Tensor:
+        """``[ε_k, α_k, λ_temp,k]`` of iteration ``k`` of ``k_total``, then ``(γ_k, b_k)`` of
+        :meth:`schedule` when a schedule is on: ``[3]`` or ``[5]``. They travel as one tensor, so a
+        compiled step is not re-specialised per iteration."""
+        lam_temp = self.lambda_temp * (1.0 - k / k_total) if self.temp_schedule == "anneal" else self.lambda_temp
+        scheduled = self.anneal_cycles > 0 or self.bandwidth_start != 1.0
+        return torch.tensor([self.step_size / (1.0 + self.step_decay * k), 0.0 if k == 0 else self.adagrad_alpha,
+                             lam_temp, *(self.schedule(k, k_total) if scheduled else ())], dtype=dtype, device=device)
+
+    def _temporal_reference(self, x: Tensor, reference: Tensor, generator) -> TemporalReference:
+        """``F_temp``'s sorted reference: the directions ``θ_j`` refined toward the maximal projected
+        W1 between ``x`` and ``reference`` (both ``[*B, N, d]``). Once per update, eager apart from its
+        ranks: compiling the whole ascent cost about 10 s per shape and saved nothing, but a compiled
+        filter ranks by counting, which beats ``torch.sort`` for short rows, here and in the iterations."""
+        theta0 = random_directions(x, self.n_proj, generator)
+        counting = self.compile and x.shape[-2] <= RANK_COUNT_MAX
+        rank_fn = self._compiled(permutation_ranks) if counting else None
+        theta, theta_w = max_sliced_directions(x, reference, theta0, ascent_steps=self.temporal_ascent_steps,
+                                               rank_fn=rank_fn)
+        return TemporalReference(reference, theta, theta_w, rank_fn=rank_fn)
+
+    def _correlation_projector(self, x: Tensor, target_samples: Tensor, target_log_weights: Tensor, generator,
+                               k_total: int) -> Tensor:
+        """``Σ_k w_k A_k A_kᵀ`` ``[*B, d, d]`` of ``F_corr``: learned from the weighted target samples,
+        or random deflated projections with equal weights (ESCORT-NoProj)."""
+        d = x.shape[-1]
+        if self.projection == "learned":
+            # compiled only where it runs more than once per update: a compile costs about 10 s per
+            # shape, and once per update eager is as fast
+            refine = (self._compiled(correlation_projections) if self.projection_every < k_total
+                      else correlation_projections)
+            projections, proj_weights = refine(x, target_samples, target_log_weights, self.n_proj, self.proj_dim)
+        else:
+            projections = random_deflated_projections(x.shape[:-2], d, self.n_proj, self.proj_dim, generator,
+                                                      x.device, x.dtype)
+            m = projection_shape(d, self.n_proj, self.proj_dim)[0]
+            proj_weights = torch.full((*projections.shape[:-3], m), 1.0 / m, dtype=x.dtype, device=x.device)
+        return projector(projections, proj_weights)
+
     def evolve(self, x: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]], *,
                target_samples: Tensor | None = None, target_log_weights: Tensor | None = None,
                reference: Tensor | None = None, generator: torch.Generator | None = None,
@@ -456,7 +351,7 @@ class ESCORTFilter(BeliefFilter):
         use_corr = self.lambda_corr > 0 and target_samples is not None
         use_temp = self.lambda_temp > 0 and reference is not None
         repulsion = self.repulsion_scale(d)
-        timer = _Timer(breakdown)
+        timer = PartTimer(breakdown)
         step = self._compiled(evolution_step)
         if self.compile and target_samples is x:
             target_samples = x.clone()  # a compiled function is specialised on argument aliasing
@@ -470,15 +365,7 @@ class ESCORTFilter(BeliefFilter):
         with torch.no_grad():
             if use_temp:
                 with timer("temporal"):
-                    theta0 = random_directions(x, self.n_proj, generator)
-                    # Once per update, eager apart from its ranks: compiling the whole ascent cost about
-                    # 10 s per shape and saved nothing, but a compiled filter ranks by counting, which
-                    # beats torch.sort for short rows (projections.ranks), here and in the iterations.
-                    counting = fused and x.shape[-2] <= RANK_COUNT_MAX
-                    rank_fn = self._compiled(permutation_ranks) if counting else None
-                    theta, theta_w = max_sliced_directions(
-                        x, reference, theta0, ascent_steps=self.temporal_ascent_steps, rank_fn=rank_fn)
-                    temporal = TemporalReference(reference, theta, theta_w, rank_fn=rank_fn)
+                    temporal = self._temporal_reference(x, reference, generator)
             hist = torch.zeros_like(x)
             counts = None
             stop = self.stop_tolerance > 0
@@ -491,28 +378,8 @@ class ESCORTFilter(BeliefFilter):
                         bandwidth = median_bandwidth(pairwise_sq_dists(x)) * self.bandwidth_scale
                 if use_corr and (proj is None or (self.projection == "learned" and k % self.projection_every == 0)):
                     with timer("correlation"):
-                        if self.projection == "learned":
-                            # compiled only where it runs more than once per update: a compile
-                            # costs about 10 s per shape, and once per update eager is as fast
-                            refine = (self._compiled(correlation_projections) if self.projection_every < k_total
-                                      else correlation_projections)
-                            projections, proj_weights = refine(x, target_samples, target_log_weights, self.n_proj,
-                                                               self.proj_dim)
-                        else:
-                            projections = random_deflated_projections(x.shape[:-2], d, self.n_proj, self.proj_dim,
-                                                                      generator, x.device, x.dtype)
-                            m = projection_shape(d, self.n_proj, self.proj_dim)[0]
-                            proj_weights = torch.full(projections.shape[:-3], 1.0 / m, **full).unsqueeze(-1).expand(
-                                *projections.shape[:-3], m)
-                        proj = projector(projections, proj_weights)
-                lam_temp = (self.lambda_temp * (1.0 - k / k_total) if self.temp_schedule == "anneal"
-                            else self.lambda_temp)
-                # Per-iteration scalars travel as tensors, so a compiled step is not re-specialised;
-                # the annealing factor and the bandwidth's multiplier only when a schedule is on.
-                scheduled = self.anneal_cycles > 0 or self.bandwidth_start != 1.0
-                scalars = torch.tensor([self.step_size / (1.0 + self.step_decay * k),
-                                        0.0 if k == 0 else self.adagrad_alpha, lam_temp,
-                                        *(self.schedule(k, k_total) if scheduled else ())], **full)
+                        proj = self._correlation_projector(x, target_samples, target_log_weights, generator, k_total)
+                scalars = self.iteration_scalars(k, k_total, **full)
                 with timer("iteration" if fused else None):
                     x, hist, bad = step(x, hist, score_fn, bandwidth, scalars, repulsion=repulsion, proj=proj,
                                         lambda_corr=self.lambda_corr, corr_form=self.corr_form, temporal=temporal,
@@ -537,13 +404,13 @@ class ESCORTFilter(BeliefFilter):
         x_t = belief.particles
         n, d = x_t.shape[-2], x_t.shape[-1]
         a = action.unsqueeze(-1).expand(x_t.shape[:-1])  # [*B, N]
-        timer = _Timer(breakdown)
+        timer = PartTimer(breakdown)
         std = self.jitter_std(d)
         with timer("score"):
             x_pred = model.transition(x_t, a, generator)
             guard.model_values("model.transition", x_pred)
             if std > 0 and self.jitter_at == "start":
-                x_pred = _jittered(x_pred, std, generator)
+                x_pred = jittered(x_pred, std, generator)
             means = model.transition_mean(x_t, a)
             guard.model_values("model.transition_mean", means)
             if self.prior in ("smoothed", "shrunk"):
@@ -570,7 +437,7 @@ class ESCORTFilter(BeliefFilter):
                                 breakdown=breakdown)
         guard.counts(channels, counts, "during the particle evolution")
         if std > 0 and self.jitter_at == "end":
-            x = _jittered(x, std, generator)
+            x = jittered(x, std, generator)
         return ParticleBelief.uniform(x.detach())
 
     def fit(self, log_prob: Callable[[Tensor], Tensor], particles: Tensor, num_steps: int | None = None,
@@ -618,137 +485,18 @@ class ESCORTFilter(BeliefFilter):
         return x.detach()
 
 
-def gaussian_fit_log_prob(x: Tensor) -> Tensor:
-    """``log N(x_i; x̄, Σ̂)`` of each particle under the Gaussian with the particles' own mean and
-    covariance (a ridge of ``1e-6 · tr(Σ̂)/d`` keeps it factorable; with ``N ≤ d`` particles, where
-    ``Σ̂`` is singular, its diagonal): ``[*B, N, d] -> [*B, N]``; NaN for a belief whose covariance is
-    not finite or cannot be factored (never an exception: :meth:`ESCORTFilter.fit` names bad particles)."""
-    d = x.shape[-1]
-    mean = x.mean(-2, keepdim=True)
-    c = x - mean
-    cov = c.transpose(-1, -2) @ c / max(x.shape[-2] - 1, 1)
-    if x.shape[-2] <= d:
-        cov = torch.diag_embed(torch.diagonal(cov, dim1=-2, dim2=-1))
-    ridge = 1e-6 * torch.diagonal(cov, dim1=-2, dim2=-1).mean(-1).clamp_min(1e-12)
-    cov = cov + ridge[..., None, None] * torch.eye(d, dtype=x.dtype, device=x.device)
-    bad = ~is_finite(cov).all(-1).all(-1)  # non-finite particles: the caller's guard names them
-    cov = torch.where(bad[..., None, None], torch.eye(d, dtype=x.dtype, device=x.device), cov)
-    tril, info = torch.linalg.cholesky_ex(cov)
-    bad = bad | (info != 0)
-    tril = torch.where(bad[..., None, None], torch.eye(d, dtype=x.dtype, device=x.device), tril)
-    z = torch.linalg.solve_triangular(tril, c.transpose(-1, -2), upper=False)  # [*B, d, N]
-    half_log_det = torch.log(torch.diagonal(tril, dim1=-2, dim2=-1)).sum(-1, keepdim=True)
-    out = -0.5 * (z * z).sum(-2) - half_log_det - 0.5 * d * math.log(2 * math.pi)
-    # a belief whose moments cannot be factored gets no Gaussian: NaN, which its weights treat as impossible
-    return torch.where(bad.unsqueeze(-1), torch.full_like(out, float("nan")), out)
-
-
-def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]],
-                   bandwidth: Tensor, scalars: Tensor, *, repulsion: float = 1.0, proj: Tensor | None = None,
-                   lambda_corr: float = 0.0, corr_form: str = "velocity", temporal: TemporalReference | None = None,
-                   temp_clip: float = 10.0, timer: _Timer | None = None,
-                   active: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
-    """One ESCORT iteration: ``x ← x + ε v / (sqrt(G) + 1e-6)``, ``G ← α G + (1 − α) v²``, with the
-    velocity ``v = φ_SVGD + F_corr + F_temp``.
-
-    ``x``, ``hist`` (``G``) ``[*B, N, d]``; ``bandwidth`` ``[*B]``; ``scalars`` ``[3]`` or ``[5]`` holds
-    ``(ε, α, λ_temp)`` of this iteration and, when given, the annealing factor ``γ`` that multiplies
-    the score in ``φ_SVGD`` and the bandwidth's multiplier (:meth:`ESCORTFilter.schedule`); ``proj`` ``[*B, d, d]`` is ``Σ_k w_k A_k A_kᵀ`` (``None``
-    turns ``F_corr`` off); ``temporal`` is the sorted reference of ``F_temp`` (``None`` turns it off).
-    ``score_fn(x)`` gives the score ``[*B, N, d]`` and the counts ``[*B, C]`` of particles at which
-    its sources gave NaN or inf (or ``None``): they are passed on, never read here (no host sync).
-    ``active`` ``[*B]`` (1 or 0; ``None``: all 1) scales each belief's step: the adaptive stop freezes
-    the beliefs that have converged.
-    Pure apart from ``timer``, so ``torch.compile`` fuses it whole. Returns the new ``(x, hist)`` and
-    the counts.
-
-    The velocity's NaN → 0 and ±inf → ±``MAX_SCORE`` (:func:`_finite`) guards against the kernel
-    overflowing for particles far apart; a non-finite score shows in the counts, not hidden by it.
-    """
-    timer = timer or _NO_TIMER
-    eps, alpha, lam_temp = scalars[0], scalars[1], scalars[2]
-    with timer("score"):
-        score, bad = score_fn(x)
-    with timer("kernel"):
-        if scalars.shape[0] > 3:  # annealing and the bandwidth schedule (1 and 1 when off)
-            phi = svgd_direction(x, scalars[3] * score, bandwidth * scalars[4], repulsion)
-        else:
-            phi = svgd_direction(x, score, bandwidth, repulsion)
-    velocity = phi
-    if proj is not None:
-        with timer("correlation"):
-            velocity = velocity + correlation_force(phi, None, None, lambda_corr, corr_form, x, proj=proj)
-    if temporal is not None:
-        with timer("temporal"):
-            velocity = velocity + temporal.force(x, lam_temp, temp_clip)
-    velocity = _finite(velocity)
-    hist = alpha * hist + (1.0 - alpha) * velocity * velocity
-    move = eps * velocity / (hist.sqrt() + 1e-6)
-    if active is not None:
-        move = active[..., None, None] * move
-    return x + move, hist, bad
-
-
-def belief_moments(x: Tensor) -> tuple[Tensor, Tensor]:
-    """The mean ``[*B, d]`` and per-coordinate standard deviation ``[*B, d]`` of equally weighted
-    particles ``x`` ``[*B, N, d]``."""
-    mean = x.mean(-2)
-    return mean, (x - mean.unsqueeze(-2)).pow(2).mean(-2).sqrt()
-
-
-def moment_change(before: tuple[Tensor, Tensor], after: tuple[Tensor, Tensor], eps: float = 1e-12) -> Tensor:
-    """How far a belief moved, relative to its spread: ``max(‖μ' − μ‖, ‖σ' − σ‖) / ‖σ‖`` per belief,
-    for the moments ``(μ, σ)`` of :func:`belief_moments` (``[*B, d]`` each) -> ``[*B]``."""
-    (m0, s0), (m1, s1) = before, after
-    scale = torch.linalg.vector_norm(s0, dim=-1).clamp_min(eps)
-    return torch.maximum(torch.linalg.vector_norm(m1 - m0, dim=-1), torch.linalg.vector_norm(s1 - s0, dim=-1)) / scale
-
-
 class SVGDFilter(ESCORTFilter):
     """Plain SVGD: :class:`ESCORTFilter` with ``lambda_corr = lambda_temp = 0`` and the
     median-heuristic bandwidth. The paper's SVGD baseline adds ``repulsion="enhanced"``.
-    Same arguments otherwise."""
 
-    def __init__(self, **kwargs) -> None:
-        for name in ("lambda_corr", "lambda_temp"):
-            if kwargs.get(name, 0.0) != 0.0:
-                raise ValueError(f"SVGDFilter.{name}: SVGD has no regularisers; use ESCORTFilter")
-        kwargs["lambda_corr"] = 0.0
-        kwargs["lambda_temp"] = 0.0
-        super().__init__(**kwargs)
+    Takes :class:`SVGDParams` (or its fields as keyword arguments); ``self.params`` is then the
+    :class:`ESCORTParams` it runs with, the regularisers off.
+    """
 
+    Params = SVGDParams
 
-def _jittered(x: Tensor, std: float, generator: torch.Generator | None) -> Tensor:
-    """``x + std · ε``, ``ε ~ N(0, I)`` of ``x``'s shape, device and dtype."""
-    return x + std * torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+    def __init__(self, params: SVGDParams | None = None, **kwargs) -> None:
+        svgd = build_params(SVGDParams, params, kwargs, owner=type(self).__name__)
+        super().__init__(ESCORTParams(**dataclasses.asdict(svgd), lambda_corr=0.0, lambda_temp=0.0))
 
 
-class _Timer:
-    """Accumulates wall-clock seconds per named part into a dict (no-op when the dict or the name
-    is None)."""
-
-    def __init__(self, store: dict | None) -> None:
-        self.store = store
-
-    def __call__(self, name: str | None):
-        return _TimerScope(self.store if name is not None else None, name)
-
-
-class _TimerScope:
-    def __init__(self, store, name):
-        self.store, self.name = store, name
-
-    def __enter__(self):
-        if self.store is not None:
-            import time
-
-            self.t0 = time.perf_counter()
-
-    def __exit__(self, *exc):
-        if self.store is not None:
-            import time
-
-            self.store[self.name] = self.store.get(self.name, 0.0) + time.perf_counter() - self.t0
-
-
-_NO_TIMER = _Timer(None)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -10,37 +11,56 @@ from torch import Tensor
 from escort_rl.belief.base import BeliefFilter, check_output_shape
 from escort_rl.belief.checks import OFF
 from escort_rl.belief.particle_belief import ParticleBelief
+from escort_rl.config.params import HasParams, build_params, param
 
 
-def systematic_resample_indices(log_weights: Tensor, generator: torch.Generator | None = None) -> Tensor:
+def systematic_resample_indices(log_weights: Tensor, generator: torch.Generator | None = None,
+                                num_samples: int | None = None) -> Tensor:
     """Systematic resampling: one uniform offset per belief.
 
-    With normalised weights ``w`` ``[*B, N]`` and ``u ~ U[0, 1)``, particle ``k`` of the new set is
-    the index ``i`` with ``C_{i-1} ≤ (u + k)/N < C_i``, where ``C`` is the cumulative sum of ``w``.
-    Returns indices ``[*B, N]`` (int64).
+    With normalised weights ``w`` ``[*B, N]`` and ``u ~ U[0, 1)``, draw ``k`` of the new set is
+    the index ``i`` with ``C_{i-1} ≤ (u + k)/M < C_i``, where ``C`` is the cumulative sum of ``w``
+    and ``M`` = ``num_samples`` (default ``N``). Returns indices ``[*B, M]`` (int64).
+
+    Examples:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> systematic_resample_indices(torch.log(torch.tensor([0.5, 0.0, 0.5])), g, num_samples=4)
+        tensor([0, 0, 2, 2])
     """
     n = log_weights.shape[-1]
+    m = n if num_samples is None else int(num_samples)
     w = torch.softmax(log_weights, dim=-1)
     cdf = torch.cumsum(w, dim=-1)
     cdf = cdf / cdf[..., -1:]  # exactly 1 at the top, and flat after the last positive weight
     u = torch.rand((*log_weights.shape[:-1], 1), generator=generator, device=w.device, dtype=w.dtype)
-    positions = (u + torch.arange(n, device=w.device, dtype=w.dtype)) / n
-    # (u + N - 1)/N can round up to 1.0; keep positions strictly below 1 so that a trailing
+    positions = (u + torch.arange(m, device=w.device, dtype=w.dtype)) / m
+    # (u + M - 1)/M can round up to 1.0; keep positions strictly below 1 so that a trailing
     # zero-weight particle (whose cdf value equals 1) is never selected.
     one = torch.ones((), dtype=w.dtype, device=w.device)
     positions = positions.clamp_max(torch.nextafter(one, torch.zeros_like(one)))
     return torch.searchsorted(cdf.contiguous(), positions.contiguous(), right=True).clamp_max(n - 1)
 
 
-class SIRFilter(BeliefFilter):
-    """Bootstrap particle filter: propagate, weight by the likelihood, resample when ESS is low.
+@dataclass(frozen=True)
+class SIRParams:
+    """:class:`SIRFilter`'s parameters.
 
-    Args:
+    Attributes:
         resample_threshold: resample a belief when ``ESS/N < resample_threshold``; ``1.0`` resamples
-            every step, ``0.0`` never. Default 0.5.
+            every step, ``0.0`` never.
         roughening: if > 0, after resampling add ``N(0, (roughening·range·N^(-1/d))²)`` per dimension,
             where ``range`` is the per-dimension spread of the resampled particles (Gordon et al.).
-            Default 0 (off).
+            0 is off.
+    """
+
+    resample_threshold: float = param(0.5, ge=0, le=1)
+    roughening: float = param(0.0, ge=0)
+
+
+class SIRFilter(HasParams, BeliefFilter):
+    """Bootstrap particle filter: propagate, weight by the likelihood, resample when ESS is low.
+
+    Takes :class:`SIRParams` (or its fields as keyword arguments: ``SIRFilter(roughening=0.2)``).
 
     Attribute ``check_finite`` (default True; see :class:`BeliefFilter`): raise a ``ValueError``
     naming the culprit when the input belief, what the model's ``transition`` or
@@ -51,16 +71,10 @@ class SIRFilter(BeliefFilter):
     weights (the propagated particles with the input log-weights) instead of becoming NaN.
     """
 
-    def __init__(self, resample_threshold: float = 0.5, roughening: float = 0.0) -> None:
-        for name, value in (("resample_threshold", resample_threshold), ("roughening", roughening)):
-            if not isinstance(value, (int, float)) or isinstance(value, bool):
-                raise ValueError(f"SIRFilter.{name}: must be a number, got {value!r}")
-        if not 0.0 <= resample_threshold <= 1.0:
-            raise ValueError(f"SIRFilter.resample_threshold: must be in [0, 1], got {resample_threshold}")
-        if not (math.isfinite(roughening) and roughening >= 0):
-            raise ValueError(f"SIRFilter.roughening: must be a finite number >= 0, got {roughening}")
-        self.resample_threshold = resample_threshold
-        self.roughening = roughening
+    Params = SIRParams
+
+    def __init__(self, params: SIRParams | None = None, **kwargs) -> None:
+        self.params = build_params(SIRParams, params, kwargs, owner=type(self).__name__)
 
     def __repr__(self) -> str:
         extra = "" if self.check_finite else ", check_finite=False"

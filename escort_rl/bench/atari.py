@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option, add_runner_options,
                                           add_seeds_option)
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
+from escort_rl.bench.methods import check_choices
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
 
@@ -209,18 +210,12 @@ QUICK_FRAMES = 256
 """``--quick``: frames per run."""
 
 
-def check_names(flag: str, given: list[str], known) -> None:
-    for name in given:
-        if name not in known:
-            raise ValueError(f"{flag}: unknown '{name}'; choose from {', '.join(known)}")
-
-
 def main(args) -> None:
     from escort_rl.envs.atari import GAMES
     from escort_rl.trainers.atari_a2c import AGENTS
 
-    check_names("--games", args.games or [], list(GAMES))
-    check_names("--agents", args.agents, list(AGENTS))
+    check_choices("--games", args.games or [], list(GAMES), "game")
+    check_choices("--agents", args.agents, list(AGENTS), "agent")
     from escort_rl.config.schema import check_device
 
     problem = check_device(args.device)

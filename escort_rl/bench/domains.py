@@ -15,7 +15,7 @@ weighted belief mean at every step (Light-Dark: the 5 position coordinates; Kidn
 at the final step and its average over steps 1..T, and the wall-clock seconds per filter update
 (summed over a row's cells). With ``reference_particles`` (the command's default 10⁵) every filter row
 also gets its distances to a reference posterior at every step, for the position and the velocity
-(:mod:`escort_rl.bench.reference`): the reference cells run first, as their own grid phase.
+(:mod:`escort_rl.metrics.reference`): the reference cells run first, as their own grid phase.
 
 Equal wall-clock table: each method's time per step is measured here, one method at a time with the
 cells' thread count, on a few steps of the same batch at each ``N'`` of a grid (capped by
@@ -36,15 +36,15 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench import methods as registry
-from escort_rl.bench.methods import applied_filter_set, build_domain, check_at_least_one, check_names
-from escort_rl.bench.reference import (METRIC_LABELS, METRICS, SAMPLE, Reference, ReferenceCell, state_parts,
-                                      summarize_series)
 from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option, add_runner_options,
                                           add_seeds_option, filter_overrides)
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_groups, seed_blocks
+from escort_rl.bench.methods import applied_filter_set, build_domain, check_at_least_one, check_names
+from escort_rl.bench.reference_cell import ReferenceCell
 from escort_rl.bench.trajectories import (BEHAVIOUR_POLICY, NonFiniteBeliefError, filter_trajectories,
                                           generate_trajectories, learned_trajectories, position_error_label,
                                           time_per_step)
+from escort_rl.metrics.reference import METRIC_LABELS, METRICS, SAMPLE, Reference, state_parts, summarize_series
 from escort_rl.reporting.paths import display_path, write_results
 from escort_rl.reporting.plots import plot_curve_panels, plot_curves
 from escort_rl.reporting.stats import format_importance, format_mean_se, mean_se, merge_importance
@@ -88,7 +88,7 @@ class FilterCell(Cell):
     filter_set: tuple = ()
     references: tuple = ()
     """``((particles, file, hash), ...)``: the reference posteriors of these seeds
-    (:class:`~escort_rl.bench.reference.ReferenceCell` results) to compare the belief with."""
+    (:class:`~escort_rl.bench.reference_cell.ReferenceCell` results) to compare the belief with."""
     reference_folder: str = ""
     """Where the reference files are; left out of :meth:`spec` (it is where, not what)."""
 
@@ -315,7 +315,7 @@ def run_domains(domains=registry.DOMAINS, methods=registry.PROTOCOL_A_METHODS, s
     they have no particle count, so they sit out the equal-time table.
 
     ``reference_particles`` (0: none): the size N of the reference posterior
-    (:mod:`escort_rl.bench.reference`), computed at N and 2N on the same trajectories; every filter
+    (:mod:`escort_rl.metrics.reference`), computed at N and 2N on the same trajectories; every filter
     row then gets ``accuracy``, its distances to it at every step (``reference_sample`` reference
     particles per step for the sample-based ones). The reference files live under ``cells_dir``
     (a temporary folder without it).

@@ -140,11 +140,21 @@ def check_choices(flag: str, given, known, what: str = "name") -> None:
 
 
 def check_at_least_one(**flags) -> None:
-    """Raise ``ValueError`` naming the flag (``particles`` -> ``--particles``) of the first value
-    below 1; ``None`` (not given) passes."""
+    """Raise ``ValueError`` naming the flag (``particles`` -> ``--particles``) of the first count
+    below 1; a flag's value may be a list of counts. ``None`` (not given) and values that are not
+    ints (or are bools) pass.
+
+    Examples:
+        >>> check_at_least_one(particles=100, dims=[2, 4], threads=None)
+        >>> check_at_least_one(particles=100, dims=[2, -4])
+        Traceback (most recent call last):
+        ...
+        ValueError: --dims: must be a positive int, got -4
+    """
     for name, value in flags.items():
-        if value is not None and value < 1:
-            raise ValueError(f"--{name.replace('_', '-')}: must be >= 1, got {value}")
+        for v in (value if isinstance(value, list) else [value]):
+            if isinstance(v, int) and not isinstance(v, bool) and v < 1:
+                raise ValueError(f"--{name.replace('_', '-')}: must be a positive int, got {v}")
 
 
 @lru_cache(maxsize=None)

@@ -18,17 +18,17 @@ closed-loop benchmark.
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
 
+from escort_rl.bench.methods import RANDOM
 from escort_rl.reporting.paths import write_results
+from escort_rl.reporting.stats import format_mean_se
 
 LIGHTDARK1D = "lightdark1d"
-RANDOM = "random"
 FILTER = "sir"  # the paper's POMCPOW baseline plans on an SIR belief
 
 # Defaults per domain (other planner-config domains use the lightdark10d ones).
@@ -170,17 +170,18 @@ def run_planner_budget(domain: str = LIGHTDARK1D, budgets=None, episodes: int | 
 
 
 # ---------------------------------------------------------------------------------------- reporting
-def _mean_se(summary: dict, key: str, digits: int) -> str:
-    m, se = summary[key], summary[f"{key}_se"]
-    return "—" if m is None or math.isnan(m) else f"{m:.{digits}f} ± {se:.{digits}f}"
+def _pair(summary: dict, key: str) -> tuple:
+    """``(mean, standard error)`` of ``key`` in a row's summary."""
+    return summary[key], summary[f"{key}_se"]
 
 
 def row_cells(row: dict, has_distance: bool) -> list[str]:
     s = row["summary"]
     label = "random policy" if row["policy"] == RANDOM else f"POMCPOW n_sim={row['n_sim']}"
     ms = "—" if row["seconds_per_decision"] is None else f"{1e3 * row['seconds_per_decision']:.1f}"
-    return [label, _mean_se(s, "episode_return", 1), _mean_se(s, "final_distance", 3) if has_distance else "—",
-            _mean_se(s, "success_rate", 2), f"{s['mean_length']:.1f}", ms, f"{row['seconds']:.1f}"]
+    return [label, format_mean_se(_pair(s, "episode_return"), 1),
+            format_mean_se(_pair(s, "final_distance"), 3) if has_distance else "—",
+            format_mean_se(_pair(s, "success_rate"), 2), f"{s['mean_length']:.1f}", ms, f"{row['seconds']:.1f}"]
 
 
 HEADER = ["policy", "return", "final distance to goal", "ended (terminal)", "steps", "ms per decision",

@@ -17,7 +17,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from escort_rl.bench.metrics import cov_to_corr, mixture_mean_and_covariance
+from escort_rl.metrics.moments import mixture_mean_and_covariance, safe_correlation
 
 __all__ = [
     "GaussianMixture",
@@ -181,11 +181,11 @@ class GaussianMixture:
 
     def correlation(self) -> Tensor:
         """Correlation matrix of the whole mixture (the metric's C_true), [d, d]."""
-        return cov_to_corr(self.covariance())
+        return safe_correlation(self.covariance())
 
     def component_correlations(self) -> Tensor:
         """Per-component correlation matrices, [K, d, d]."""
-        return cov_to_corr(self.covariances)
+        return safe_correlation(self.covariances)
 
 
 # --------------------------------------------------------------------------------- config

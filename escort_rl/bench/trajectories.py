@@ -9,20 +9,21 @@ action/observation sequence from the *same* prior particles: seed ``s``'s prior 
 ``filt.init`` with a generator of its own, and the per-seed priors are stacked into one batch
 ``[B, N, d]``; the only Python loop in the filtering is over time steps.
 
-Every stream is derived from ``(kind, base_seed, seed)`` (:func:`derived_seed`), so a seed's
-trajectory and prior do not depend on which other seeds share its batch (the hashes prove it). The
+Every stream is derived from ``(kind, base_seed, seed)``
+(:func:`~escort_rl.belief.seeding.derived_seed`), so a seed's trajectory and prior do not depend on
+which other seeds share its batch (the hashes prove it). The
 filter's own noise (SIR's resampling offsets, ESCORT's propagation and jitter) comes from one
 generator per batch, seeded by the batch's first seed.
 """
 
 from __future__ import annotations
 
-import hashlib
 import time
 from pathlib import Path
 
 import torch
 
+from escort_rl.belief.seeding import derived_seed, initial_beliefs, tensor_hash
 from escort_rl.bench.methods import build_domain, build_method
 from escort_rl.models import position_dims, position_error
 from escort_rl.reporting.paths import display_path
@@ -42,24 +43,6 @@ def belief_failures() -> tuple[type[Exception], ...]:
     from escort_rl.belief.prior import PriorCovarianceError
 
     return NonFiniteBeliefError, PriorCovarianceError, NonFiniteError
-
-
-# ---------------------------------------------------------------------------------------- seeds
-def derived_seed(kind: str, base_seed: int, seed: int) -> int:
-    """A 63-bit seed for ``kind`` (``trajectory``, ``belief``, ``filter``) of one seed: the streams
-    never overlap, so no prior particle copies the true start state."""
-    digest = hashlib.sha256(f"escort-rl/domains/{kind}/{base_seed}/{seed}".encode()).digest()
-    return int.from_bytes(digest[:8], "little") & ((1 << 63) - 1)
-
-
-def tensor_hash(*tensors: torch.Tensor) -> str:
-    """SHA-256 (first 16 hex digits) of the tensors' bytes, shapes and dtypes."""
-    h = hashlib.sha256()
-    for t in tensors:
-        t = t.detach().cpu().contiguous()
-        h.update(f"{tuple(t.shape)}{t.dtype}".encode())
-        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
-    return h.hexdigest()[:16]
 
 
 def position_error_label(model) -> str:
@@ -98,22 +81,6 @@ def generate_trajectories(model, steps: int, seeds: list[int], base_seed: int = 
     return out
 
 
-def initial_beliefs(filt, model, seeds: list[int], n: int, base_seed: int = 0, kind: str = "belief"):
-    """The prior of each seed, drawn by ``filt.init`` with the seed's own generator (the stream
-    ``kind``), stacked into one ``ParticleBelief`` with particles ``[B, n, d]``; and the per-seed
-    hashes of the particles."""
-    from escort_rl.belief import ParticleBelief
-
-    parts = []
-    for s in seeds:
-        g = torch.Generator().manual_seed(derived_seed(kind, base_seed, s))
-        b = filt.init(model, (), n, g)
-        parts.append((b.particles, b.log_weights))
-    particles = torch.stack([p for p, _ in parts])
-    log_w = torch.stack([w for _, w in parts])
-    return ParticleBelief(particles, log_w), [tensor_hash(p) for p, _ in parts]
-
-
 def check_finite(belief, method: str, domain: str, step: int, seeds: list[int]) -> None:
     x, lw = belief.particles, belief.log_weights
     bad = ~torch.isfinite(x).all(-1).all(-1) | torch.isnan(lw).any(-1) | torch.isposinf(lw).any(-1)
@@ -129,7 +96,7 @@ def filter_trajectories(domain: str, method: str, traj: dict, seeds: list[int], 
     priors. Returns per-seed errors ``errors`` ``[B, T+1]`` (index 0: the prior), the filter seconds,
     and the per-seed hashes of the inputs it was fed and of its priors.
 
-    ``references``: :class:`~escort_rl.bench.reference.Reference` posteriors of the same seeds; the
+    ``references``: :class:`~escort_rl.metrics.reference.Reference` posteriors of the same seeds; the
     belief is compared with each at every step (untimed), and ``accuracy`` holds, per reference, the
     series ``{"<part>/<metric>": [B, T+1]}`` of :meth:`Reference.compare`."""
     model, _ = build_domain(domain)

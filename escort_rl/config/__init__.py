@@ -1,5 +1,6 @@
 """Configuration: typed schemas (:mod:`.schema`), composing the shipped Hydra configs
-(:mod:`.composition`), resuming a run (:mod:`.resume`), and :class:`ConfigError`.
+(:mod:`.composition`), and :class:`ConfigError`. Resuming a run (which checkpoint, which config,
+which run directory) is :mod:`escort_rl.trainers.resume`'s.
 
 The names below are imported on first use, so that a low layer may import
 ``escort_rl.config.errors`` without loading Hydra.
@@ -14,8 +15,7 @@ from escort_rl.config.errors import ConfigError
 _LAZY = {
     "compose": "composition", "check_composed": "composition", "hydra_error_line": "composition",
     "is_group_override": "composition",
-    "recompose": "resume", "merge_override_lists": "resume", "saved_config_drift": "resume",
-    "config_dir": "schema", "option_names": "schema",
+    "config_dir": "files", "option_names": "files",
 }
 
 __all__ = ["ConfigError", *_LAZY]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
-from escort_rl.config import schema
+from escort_rl.config import files, schema
 from escort_rl.config.errors import ConfigError
 
 UNKNOWN_KEY_HINT = ("check the spelling against `escort-rl config`, or add a new key on purpose with "
@@ -26,7 +26,7 @@ def compose(overrides: list[str] | None = None, config_name: str = "config") -> 
     overrides = list(overrides or [])
     _refuse_schema_options(overrides)
     try:
-        with initialize_config_dir(config_dir=str(schema.config_dir()), version_base=None):
+        with initialize_config_dir(config_dir=str(files.config_dir()), version_base=None):
             cfg = hydra_compose(config_name=config_name, overrides=overrides)
     except Exception as err:  # noqa: BLE001 - Hydra and OmegaConf errors, turned into one line below
         message = hydra_error_line(err)
@@ -87,7 +87,7 @@ def _refuse_schema_options(overrides: list[str]) -> None:
     """``filter=escort_schema``: the schemas sit in the groups (Hydra's pattern) but are not options."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from escort_rl.config.schema import option_names
+    from escort_rl.config.files import option_names
 
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)
@@ -107,4 +107,4 @@ def _first_line(text: str) -> str:
 
 def is_group_override(override) -> bool:
     """Whether a parsed Hydra override picks a group option (``filter=sir``), not a value."""
-    return "." not in override.key_or_group and (schema.config_dir() / override.key_or_group).is_dir()
+    return "." not in override.key_or_group and (files.config_dir() / override.key_or_group).is_dir()

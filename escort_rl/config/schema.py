@@ -32,39 +32,23 @@ read without Hydra; :func:`load_typed` applies a schema to such a file.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import typing
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Dict, List, Optional
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
-from escort_rl.config.errors import ConfigError
 from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException,
                               ValidationError)
 
-
-def config_dir() -> Path:
-    """The folder holding ``config.yaml`` and the groups ``env/``, ``filter/``, ``trainer/``."""
-    return Path(str(resources.files("escort_rl.configs")))
-
-
-def _f(default: Any = MISSING, **meta) -> Any:
-    """A dataclass field with ``meta`` as its metadata; list and dict defaults are copied per instance."""
-    if isinstance(default, (list, dict)):
-        value = default
-        return field(default_factory=lambda: _copy(value), metadata=meta)
-    return field(default=default, metadata=meta)
+from escort_rl.config import registry
+from escort_rl.config.errors import ConfigError
+from escort_rl.config.files import option_names
+from escort_rl.config.params import describe_type, param, value_problem
 
 
-def _copy(value):
-    if isinstance(value, list):
-        return [_copy(v) for v in value]
-    if isinstance(value, dict):
-        return {k: _copy(v) for k, v in value.items()}
-    return value
+_f = param
 
 
 def _sub(cls) -> Any:
@@ -140,32 +124,48 @@ def check_number_or_list(value) -> str | None:
     return None
 
 
-def option_names(group: str) -> list[str]:
-    """The options of a Hydra group: the yaml files in ``configs/<group>/``."""
-    return sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
+# ------------------------------------------------------------------- schemas of classes
+def class_schema(cls: type, schema_name: str, head: list[tuple] = ()) -> type:
+    """The Hydra schema of ``cls``'s parameters: a dataclass with the fields of ``cls.Params``,
+    defaults and range metadata included, after the fields of ``head`` (``(name, type, field)``
+    triples, e.g. ``_target_``). A mapping field has no default (``???``): OmegaConf merges mappings
+    key by key, so a default would keep the keys a yaml leaves out."""
+    params = cls.Params
+    hints = typing.get_type_hints(params)
+    specs = list(head)
+    for f in dataclasses.fields(params):
+        hint = hints[f.name]
+        if typing.get_origin(hint) in (dict, Dict):
+            spec = field(default=MISSING, metadata=f.metadata)
+        elif f.default_factory is not dataclasses.MISSING:
+            spec = field(default_factory=f.default_factory, metadata=f.metadata)
+        else:
+            spec = field(default=f.default, metadata=f.metadata)
+        specs.append((f.name, hint, spec))
+    schema = dataclasses.make_dataclass(schema_name, specs)
+    schema.__module__ = __name__
+    return schema
+
+
+def _target_field(kind: str, name: str) -> tuple:
+    return ("_target_", str, field(default=registry.target(kind, name)))
+
+
+def model_schema(name: str, schema_name: str) -> type:
+    """The schema of the model registered as ``name`` (``env.model``)."""
+    return class_schema(registry.resolve("model", name), schema_name, [_target_field("model", name)])
+
+
+def filter_schema(kind: str, schema_name: str) -> type:
+    """The schema of a filter family (``configs/filter/*.yaml``): ``name`` labels the configuration,
+    ``kind`` names the family (the class of configs saved without ``_target_``)."""
+    head = [_target_field("filter", kind), ("name", str, field(default=kind)),
+            ("kind", str, field(default=kind, metadata={"choices": [kind]}))]
+    return class_schema(registry.resolve("filter", kind), schema_name, head)
 
 
 # ------------------------------------------------------------------------------- env (models)
-@dataclass
-class LightDark10DModelConfig:
-    """``escort_rl.models.LightDark10D``'s arguments."""
-
-    _target_: str = "escort_rl.models.LightDark10D"
-    position_noise_std: float = _f(0.05, gt=0)
-    velocity_noise_std: float = _f(0.05, gt=0)
-    force: float = 0.1
-    damping: float = 0.1
-    dt: float = _f(0.1, gt=0)
-    sigma_base: float = _f(0.5, gt=0)
-    sigma_min: float = _f(0.01, gt=0)
-    confusion_prob: float = _f(0.2, ge=0, lt=1)
-    dark_threshold: float = 0.1
-    goal: float = 8.0
-    success_radius: float = 0.5
-    start_low: float = 0.0
-    start_high: float = 2.0
-    prior_width: Optional[float] = _f(None, gt=0)
-    n_pos: int = _f(5, ge=5)
+LightDark10DModelConfig = model_schema("lightdark10d", "LightDark10DModelConfig")
 
 
 @dataclass
@@ -314,86 +314,10 @@ ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "kidnapped20d": KidnappedR
 
 
 # ------------------------------------------------------------------------------------ filters
-@dataclass
-class SIRConfig:
-    """``configs/filter/sir.yaml``: ``escort_rl.belief.SIRFilter``'s arguments; ``name`` labels the
-    configuration and ``kind`` the filter family (the class of configs saved without ``_target_``)."""
-
-    _target_: str = "escort_rl.belief.SIRFilter"
-    name: str = "sir"
-    kind: str = _f("sir", choices=["sir"])
-    resample_threshold: float = _f(0.5, ge=0, le=1)
-    roughening: float = _f(0.0, ge=0)
-
-
-@dataclass
-class EnKFConfig:
-    """``configs/filter/enkf.yaml``: ``escort_rl.belief.EnKFFilter``'s arguments."""
-
-    _target_: str = "escort_rl.belief.EnKFFilter"
-    name: str = "enkf"
-    kind: str = _f("enkf", choices=["enkf"])
-    inflation: float = _f(1.0, ge=1)
-    localisation_radius: Optional[float] = _f(None, gt=0)
-    ridge: float = _f(1e-6, ge=0)
-
-
-def _prior() -> Any:
-    return _f("smoothed", choices=["smoothed", "shrunk", "exact"])
-
-
-def _jitter() -> Any:
-    return _f(None, ge=0)
-
-
-@dataclass
-class SVGDConfig:
-    """``configs/filter/svgd.yaml``: ``escort_rl.belief.SVGDFilter``'s arguments (ESCORT's without
-    the regularisers)."""
-
-    _target_: str = "escort_rl.belief.SVGDFilter"
-    name: str = "svgd"
-    kind: str = _f("svgd", choices=["svgd"])
-    num_steps: int = _f(50, ge=0)
-    step_size: float = _f(0.1, gt=0)
-    step_decay: float = _f(0.0, ge=0)
-    adagrad_alpha: float = _f(0.9, ge=0, lt=1)
-    repulsion: str = _f("plain", choices=["plain", "enhanced"])
-    bandwidth_every: int = _f(10, ge=1)
-    bandwidth_scale: float = _f(1.0, gt=0)
-    prior: str = _prior()
-    jitter: Optional[float] = _jitter()
-    jitter_at: str = _f("end", choices=["end", "start"])
-    compile: bool = False
-    stop_tolerance: float = _f(0.0, ge=0)
-    stop_window: int = _f(5, ge=1)
-    anneal_cycles: int = _f(0, ge=0)
-    anneal_fraction: float = _f(0.5, gt=0, le=1)
-    bandwidth_start: float = _f(1.0, gt=0)
-
-
-@dataclass
-class ESCORTConfig(SVGDConfig):
-    """``configs/filter/escort*.yaml``: ``escort_rl.belief.ESCORTFilter``'s arguments:
-    SVGD's and the two regularisers'."""
-
-    _target_: str = "escort_rl.belief.ESCORTFilter"
-    name: str = "escort"
-    kind: str = _f("escort", choices=["escort"])
-    lambda_corr: float = _f(0.1, ge=0)
-    lambda_temp: float = _f(0.1, ge=0)
-    n_proj: int = _f(5, ge=1)
-    proj_dim: int = _f(2, ge=1)
-    projection: str = _f("learned", choices=["learned", "random"])
-    projection_every: int = _f(10, ge=1)
-    corr_form: str = _f("velocity", choices=["velocity", "position"])
-    temp_schedule: str = _f("anneal", choices=["anneal", "constant"])
-    temp_clip: float = _f(10.0, gt=0)
-    temporal_ascent_steps: int = _f(10, ge=0)
-    likelihood_pull: float = _f(0.0, ge=0)
-    ess_floor: float = _f(0.2, ge=0, le=1)
-
-
+SIRConfig = filter_schema("sir", "SIRConfig")
+EnKFConfig = filter_schema("enkf", "EnKFConfig")
+SVGDConfig = filter_schema("svgd", "SVGDConfig")
+ESCORTConfig = filter_schema("escort", "ESCORTConfig")
 FILTER_SCHEMAS = {"sir": SIRConfig, "enkf": EnKFConfig, "svgd": SVGDConfig, "escort": ESCORTConfig}
 
 
@@ -775,52 +699,6 @@ def register() -> None:
 
 
 # ------------------------------------------------------------------------------ type messages
-_NAMES = {int: ("an int", "ints"), float: ("a number", "numbers"), bool: ("true or false", "booleans"),
-          str: ("a string", "strings")}
-
-
-def describe_type(hint, plural: bool = False) -> str:
-    """``int`` -> ``an int``; ``List[float]`` -> ``a list of numbers``; ``Optional[X]`` -> ``... or null``."""
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin is typing.Union and type(None) in args:
-        rest = [a for a in args if a is not type(None)]
-        return f"{describe_type(rest[0], plural)} or null" if len(rest) == 1 else "a value"
-    if hint in _NAMES:
-        return _NAMES[hint][plural]
-    if origin in (list, List):
-        return "lists" if plural else f"a list of {describe_type(args[0], True) if args else 'values'}"
-    if origin in (dict, Dict):
-        return "mappings" if plural else f"a mapping to {describe_type(args[1], True) if args else 'values'}"
-    if dataclasses.is_dataclass(hint):
-        return "mappings" if plural else "a mapping"
-    return "values" if plural else "a value"
-
-
-def _type_ok(value, hint) -> bool:
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if hint is Any:
-        return True
-    if origin is typing.Union:
-        return any(_type_ok(value, a) for a in args)
-    if hint is type(None):
-        return value is None
-    if hint is bool:
-        return isinstance(value, bool)
-    if hint is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    if hint is float:
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
-    if hint is str:
-        return isinstance(value, str)
-    if origin in (list, List):
-        return isinstance(value, list) and (not args or all(_type_ok(v, args[0]) for v in value))
-    if origin in (dict, Dict):
-        return isinstance(value, dict) and (not args or all(_type_ok(v, args[1]) for v in value.values()))
-    if dataclasses.is_dataclass(hint):
-        return isinstance(value, dict)
-    return True
-
-
 def _field_hint(schema, key) -> Any:
     if not (isinstance(schema, type) and dataclasses.is_dataclass(schema)) or not isinstance(key, str):
         return None
@@ -902,48 +780,7 @@ def _check_value(value, hint, meta, key: str, stage: str) -> str | None:
                 return problem
         return None
     plain = OmegaConf.to_container(value, resolve=True) if isinstance(value, (DictConfig, ListConfig)) else value
-    if not _type_ok(plain, hint):
-        return f"{key}: expected {describe_type(hint)}, got {_show(plain)}"
-    if plain is None:
-        return None
-    if meta.get("finite", True):
-        bad = next((v for v in _numbers(plain) if isinstance(v, float) and not math.isfinite(v)), None)
-        if bad is not None:
-            return f"{key}: must be a finite number, got {bad}"
-    if meta.get("stage", "compose") == "train" and stage != "train":
-        return None
-    for name, ok, what in (("ge", lambda v, b: v >= b, ">="), ("gt", lambda v, b: v > b, ">"),
-                           ("le", lambda v, b: v <= b, "<="), ("lt", lambda v, b: v < b, "<")):
-        if name in meta:
-            bad = next((v for v in _numbers(plain) if not ok(v, meta[name])), None)
-            if bad is not None:
-                return f"{key}: must be {what} {meta[name]}, got {bad}"
-    if "choices" in meta:
-        items = plain if isinstance(plain, list) else [plain]
-        bad = [v for v in items if v not in meta["choices"]]
-        if bad:
-            choices = ", ".join(str(c) for c in meta["choices"])
-            return f"{key}: must be one of {choices}; got '{bad[0]}'"
-    check: Callable | None = meta.get("check")
-    if check is not None:
-        msg = check(plain)
-        if msg:
-            return f"{key}: {msg}"
-    return None
-
-
-def _numbers(value):
-    """Every number in ``value`` (a number, or nested lists and mappings), booleans excluded."""
-    if isinstance(value, bool):
-        return
-    if isinstance(value, (int, float)):
-        yield value
-    elif isinstance(value, list):
-        for v in value:
-            yield from _numbers(v)
-    elif isinstance(value, dict):
-        for v in value.values():
-            yield from _numbers(v)
+    return value_problem(plain, hint, meta, key, stage)
 
 
 # ------------------------------------------------------------------------------ plain files

@@ -57,22 +57,6 @@ class AdditiveGaussianTransition:
         return self._process.log_prob(s_next - self.transition_mean(s, a))
 
 
-def mvn_log_prob_tril(x: Tensor, mean: Tensor, scale_tril: Tensor) -> Tensor:
-    """log N(x; mean, L Lᵀ) for a shared lower-triangular factor ``L``.
-
-    Shapes: ``x`` and ``mean`` broadcast to ``[*S, d]``; ``scale_tril`` is ``[d, d]``.
-    Returns ``[*S]``:  -½‖L⁻¹(x-μ)‖² - Σ log L_ii - (d/2) log 2π. (Models that call it often keep a
-    :class:`GaussianNoise` instead.)
-    """
-    return GaussianNoise(scale_tril).log_prob(x - mean)
-
-
-def diag_normal_log_prob(x: Tensor, mean: Tensor, std: Tensor) -> Tensor:
-    """Σ_k log N(x_k; mean_k, std_k²) over the last dimension; ``std`` broadcasts. Returns ``[*S]``."""
-    z = (x - mean) / std
-    return (-0.5 * z * z - torch.log(std) - 0.5 * math.log(2 * math.pi)).sum(-1)
-
-
 def nearest_correlation_matrix(a: Tensor, max_iter: int = 1000, tol: float = 1e-10) -> Tensor:
     """The nearest correlation matrix in the Frobenius norm (Higham 2002, alternating projections
     with Dykstra's correction).

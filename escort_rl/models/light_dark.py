@@ -32,10 +32,13 @@ ambiguous region, and the start velocity (zero).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor
 
+from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.gaussian import (
     AdditiveGaussianTransition,
     GaussianNoise,
@@ -83,27 +86,58 @@ def paper_correlations(n_pos: int = 5) -> Tensor:
     return c
 
 
-class LightDark10D(AdditiveGaussianTransition):
-    """The 10-D Light-Dark navigation POMDP. All tensors are float32 on ``device``.
+@dataclass(frozen=True)
+class LightDark10DParams:
+    """:class:`LightDark10D`'s parameters (paper, Appendix "Domains"). Values the paper gives are
+    marked (paper); the others are choices it leaves open, with the reason.
 
-    Args:
-        position_noise_std: std of the position process noise per step (paper: unspecified).
-        velocity_noise_std: std of the velocity process noise per step (paper: unspecified).
+    Attributes:
+        position_noise_std, velocity_noise_std: std of the process noise per step in position and in
+            velocity. The paper gives the noise's correlations but not its scale: 0.05 keeps the
+            noise small next to the 0.1 force.
         force: force magnitude per action (paper: 0.1).
         damping: velocity damping γ (paper: 0.1).
         dt: time step Δt (paper: 0.1).
         sigma_base, sigma_min: observation noise law (paper: 0.5, 0.01).
         confusion_prob: probability of a dimension swap when ``L < dark_threshold`` (paper: 0.2).
         dark_threshold: light level under which swaps happen (paper: 0.1).
-        goal: goal position (paper: (8, 8, 8, 8, 8)); success_radius (paper: 0.5).
+        goal: every coordinate of the goal position (paper: (8, 8, 8, 8, 8)).
+        success_radius: (paper: 0.5).
+        start_low, start_high: the start box for positions (paper: [0, 2]^5); start velocity 0
+            (our choice).
+        prior_width: ``None``: the belief's prior is the start distribution. A number (exploring
+            starts, where the start box is wider than the paper's): the prior is a box of this side
+            placed around the start (:meth:`LightDark10D.initial_belief_around`).
         n_pos: the position dimension (paper: 5; at least 5); ``state_dim = 2·n_pos``,
-            ``obs_dim = n_pos``, ``n_actions = 2·n_pos``.
-        start_low, start_high: the start box for positions (paper: [0, 2]^5).
-        prior_width: ``None`` (default): the belief's prior is the start distribution. A number
-            (exploring starts, where the start box is wider than the paper's): the prior is a box
-            of this side placed around the start (:meth:`initial_belief_around`).
-        device: where the model's constant tensors live.
+            ``obs_dim = n_pos``, ``n_actions = 2·n_pos``. More gives the family in more dimensions:
+            the same light field of the first five coordinates, and ``⌊n_pos/2⌋`` dark swaps.
     """
+
+    position_noise_std: float = param(0.05, gt=0)
+    velocity_noise_std: float = param(0.05, gt=0)
+    force: float = param(0.1)
+    damping: float = param(0.1)
+    dt: float = param(0.1, gt=0)
+    sigma_base: float = param(0.5, gt=0)
+    sigma_min: float = param(0.01, gt=0)
+    confusion_prob: float = param(0.2, ge=0, lt=1)
+    dark_threshold: float = param(0.1)
+    goal: float = param(8.0)
+    success_radius: float = param(0.5)
+    start_low: float = param(0.0)
+    start_high: float = param(2.0)
+    prior_width: Optional[float] = param(None, gt=0)
+    n_pos: int = param(5, ge=LIGHT_DIM)
+
+
+class LightDark10D(HasParams, AdditiveGaussianTransition):
+    """The 10-D Light-Dark navigation POMDP. All tensors are float32 on ``device``.
+
+    Takes :class:`LightDark10DParams` (or its fields as keyword arguments) and ``device``, where the
+    model's constant tensors live.
+    """
+
+    Params = LightDark10DParams
 
     # the paper's sizes; another n_pos sets its own on the instance (so that at n_pos = 5 a subclass
     # or a caller may still change one)
@@ -114,56 +148,18 @@ class LightDark10D(AdditiveGaussianTransition):
     obs_dim = 5
     n_actions = 10
 
-    def __init__(
-        self,
-        position_noise_std: float = 0.05,
-        velocity_noise_std: float = 0.05,
-        force: float = 0.1,
-        damping: float = 0.1,
-        dt: float = 0.1,
-        sigma_base: float = 0.5,
-        sigma_min: float = 0.01,
-        confusion_prob: float = 0.2,
-        dark_threshold: float = 0.1,
-        goal: float = 8.0,
-        success_radius: float = 0.5,
-        start_low: float = 0.0,
-        start_high: float = 2.0,
-        prior_width: float | None = None,
-        n_pos: int = 5,
-        device: torch.device | str | None = None,
-    ) -> None:
-        for name, value in (
-            ("position_noise_std", position_noise_std),
-            ("velocity_noise_std", velocity_noise_std),
-            ("sigma_base", sigma_base),
-            ("sigma_min", sigma_min),
-            ("dt", dt),
-        ):
-            if not value > 0:
-                raise ValueError(f"LightDark10D.{name}: must be > 0, got {value}")
-        if prior_width is not None and not prior_width > 0:
-            raise ValueError(f"LightDark10D.prior_width: must be None or > 0, got {prior_width}")
-        if not 0.0 <= confusion_prob < 1.0:
-            raise ValueError(f"LightDark10D.confusion_prob: must be in [0, 1), got {confusion_prob}")
-        if isinstance(n_pos, bool) or int(n_pos) != n_pos or n_pos < LIGHT_DIM:
-            raise ValueError(f"LightDark10D.n_pos: must be an integer >= {LIGHT_DIM} (the light field's "
-                             f"dimension), got {n_pos!r}")
-        n = int(n_pos)
+    def __init__(self, params: LightDark10DParams | None = None, *, device: torch.device | str | None = None,
+                 **kwargs) -> None:
+        self.params = p = build_params(LightDark10DParams, params, kwargs, owner=type(self).__name__)
+        n, confusion_prob, force = p.n_pos, p.confusion_prob, p.force
         if n != type(self).n_pos:
             self.n_pos, self.position_dims, self.velocity_dims = n, tuple(range(n)), tuple(range(n, 2 * n))
             self.state_dim, self.obs_dim, self.n_actions = 2 * n, n, 2 * n
         self.device = torch.device(device) if device is not None else torch.device("cpu")
-        self.force, self.damping, self.dt = force, damping, dt
-        self.sigma_base, self.sigma_min = sigma_base, sigma_min
-        self.confusion_prob, self.dark_threshold = confusion_prob, dark_threshold
-        self.success_radius = success_radius
-        self.start_low, self.start_high = start_low, start_high
-        self.prior_width = prior_width
-        self.goal = torch.full((self.n_pos,), float(goal), device=self.device)
+        self.goal = torch.full((self.n_pos,), float(p.goal), device=self.device)
 
         self.correlation = make_positive_definite(nearest_correlation_matrix(paper_correlations(n)))
-        stds = torch.tensor([position_noise_std] * n + [velocity_noise_std] * n, dtype=torch.float64)
+        stds = torch.tensor([p.position_noise_std] * n + [p.velocity_noise_std] * n, dtype=torch.float64)
         cov = self.correlation * stds[:, None] * stds[None, :]
         self.noise_covariance = cov.to(torch.float32).to(self.device)
         self._process = GaussianNoise(torch.linalg.cholesky(cov).to(torch.float32).to(self.device))

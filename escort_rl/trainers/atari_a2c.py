@@ -33,6 +33,7 @@ from escort_rl.belief import ESCORTFilter
 from escort_rl.config import ConfigError
 from escort_rl.envs.atari import FRAME_SIZE, check_game, make_atari_torchrl_env
 from escort_rl.modules import DVRL, DVRLPolicy, ESCORTLatent, FrameGRU, FrameGRUPolicy
+from escort_rl.trainers.algorithm import Algorithm
 from escort_rl.trainers.dvrl_a2c import a2c_loss
 
 AGENTS = ("dvrl", "escort_latent", "gru")
@@ -95,23 +96,28 @@ class GameLog:
         self.returns, self.frames = [float(r) for r in state["returns"]], [int(f) for f in state["frames"]]
 
 
-class AtariA2C:
+class AtariA2C(Algorithm):
     """A2C on flickering Atari for ``cfg.agent`` (see the module docstring); an algorithm of
-    :func:`escort_rl.trainers.scaffold.run_training`."""
+    :func:`escort_rl.trainers.scaffold.run_training` without a POMDP model, stepping its envs
+    itself. Components: ``actor``, ``optimizer`` and ``games`` (:class:`GameLog`)."""
 
     def __init__(self, cfg: DictConfig) -> None:
+        super().__init__(cfg)
         t = cfg.trainer
-        self.cfg, self.agent = cfg, check_agent(cfg.agent)
+        self.agent = check_agent(cfg.agent)
         self.policy = build_atari_policy(cfg, n_actions_of(cfg.game)).to(cfg.device)
         self.optimizer = torch.optim.RMSprop(self.policy.parameters(), lr=float(t.lr), alpha=float(t.rmsprop_alpha),
                                              eps=float(t.rmsprop_eps))
         self.games = GameLog()
-        self.components = {"actor": self.policy, "optimizer": self.optimizer, "games": self.games}
         self.env = make_atari_env(cfg.game, int(t.num_envs), self.policy.make_tensordict_primer(),
                                   parallel=bool(t.parallel_envs), device=cfg.device)
         self.td = None  # the envs' current tensordict, carried across iterations
         self.running = torch.zeros(int(t.num_envs))  # the unclipped return of each env's current game
         self.frames = 0  # frames of this session (for the game log, offset by the resumed frames)
+
+    @property
+    def components(self) -> dict:
+        return {"actor": self.policy, "optimizer": self.optimizer, "games": self.games}
 
     def iteration(self, index: int, seed: int) -> dict:
         t = self.cfg.trainer

@@ -1,5 +1,5 @@
-"""Build models, filters, environments and policies from a config (the only place that maps
-config names to classes)."""
+"""Build models, filters, environments and policies from a config; the names a config uses map to
+classes in :mod:`escort_rl.config.registry`."""
 
 from __future__ import annotations
 
@@ -9,26 +9,14 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import Compose, TransformedEnv
 
-from escort_rl.belief import EnKFFilter, ESCORTFilter, SIRFilter, SVGDFilter
-from escort_rl.config import ConfigError
+from escort_rl.config import ConfigError, registry
 from escort_rl.envs import POMDPEnv
-from escort_rl.models import DOMAINS, LightDark1D, LinearGaussian
 from escort_rl.modules import DeepSetsActor
 from escort_rl.transforms import ActionRepeat, BeliefTransform
-
-# The benchmark domains, and the 1-D planning test problem (no env config; built by name for
-# `escort-rl bench planner-budget --domain lightdark1d`).
-MODELS = {**DOMAINS, "lightdark1d": LightDark1D, "linear_gaussian": LinearGaussian}
-FILTERS = {"sir": SIRFilter, "enkf": EnKFFilter, "svgd": SVGDFilter, "escort": ESCORTFilter}
-
 
 def _kwargs(node, exclude: tuple[str, ...] = ("name",)) -> dict:
     data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
     return {k: v for k, v in data.items() if k not in exclude}
-
-
-def _target(cls) -> str:
-    return f"{cls.__module__}.{cls.__qualname__}"
 
 
 def _instantiate(target: str, kwargs: dict, where: str, **extra):
@@ -47,19 +35,23 @@ def _instantiate(target: str, kwargs: dict, where: str, **extra):
         raise cause from None
 
 
+def _prefixed(where: str, err: Exception) -> str:
+    """The first line of ``err``, led by ``where`` unless it already names it."""
+    line = str(err).splitlines()[0]
+    return line if line.startswith(where) else f"{where}: {line}"
+
+
 def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
     """The POMDP model of ``env.model._target_`` (configs saved without one: the model named by
     ``env.name``) with the other keys of ``env.model`` as keyword arguments."""
     model_cfg = env_cfg.get("model") or {}
     target = model_cfg.get("_target_")
     if target is None:
-        if env_cfg.name not in MODELS:
-            raise ConfigError(f"env.name: unknown environment '{env_cfg.name}'; choose one of {sorted(MODELS)}")
-        target = _target(MODELS[env_cfg.name])
+        target = registry.target("model", env_cfg.name)
     try:
         return _instantiate(target, _kwargs(model_cfg, exclude=("_target_",)), "env.model", device=device)
-    except TypeError as err:
-        raise ConfigError(f"env.model: {err}") from None
+    except (TypeError, ValueError) as err:
+        raise ConfigError(_prefixed("env.model", err)) from None
 
 
 def build_filter(filter_cfg: DictConfig):
@@ -68,14 +60,11 @@ def build_filter(filter_cfg: DictConfig):
     (``name`` labels a configuration, e.g. ``escort_nocorr``)."""
     target = filter_cfg.get("_target_")
     if target is None:
-        kind = filter_cfg.get("kind", filter_cfg.name)
-        if kind not in FILTERS:
-            raise ConfigError(f"filter.kind: unknown filter '{kind}'; choose one of {sorted(FILTERS)}")
-        target = _target(FILTERS[kind])
+        target = registry.target("filter", filter_cfg.get("kind", filter_cfg.name))
     try:
         return _instantiate(target, _kwargs(filter_cfg, exclude=("_target_", "name", "kind")), "filter")
     except (TypeError, ValueError) as err:
-        raise ConfigError(f"filter: {str(err).splitlines()[0]}") from None
+        raise ConfigError(_prefixed("filter", err)) from None
 
 
 def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None, action_repeat: int = 1) -> TransformedEnv:

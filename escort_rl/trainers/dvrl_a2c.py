@@ -42,6 +42,7 @@ from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
 from escort_rl.modules import DVRL, DVRLPolicy
 from escort_rl.modules.dvrl_networks import StateReadout
+from escort_rl.trainers.algorithm import Algorithm
 from escort_rl.trainers.builders import build_model, input_scaling
 from escort_rl.trainers.checkpointing import load_checkpoint
 from escort_rl.trainers.scaffold import episode_stats
@@ -121,22 +122,26 @@ def a2c_loss(window: TensorDictBase, bootstrap: torch.Tensor, gamma: float, entr
 
 
 # ------------------------------------------------------------------------------------ training
-class DVRLA2C:
+class DVRLA2C(Algorithm):
     """DVRL's A2C plus the ELBO with truncated BPTT, as an algorithm of the training scaffold
-    (:func:`escort_rl.trainers.scaffold.run_training`; see the module docstring for one iteration)."""
+    (:func:`escort_rl.trainers.scaffold.run_training`; see the module docstring for one iteration).
+    It steps its envs itself (no collector). Components: ``actor`` (the DVRL policy with its
+    readout), ``optimizer`` and ``readout_optimizer``."""
 
     def __init__(self, cfg: DictConfig, model) -> None:
         validate_dvrl_config(cfg)
+        super().__init__(cfg, model)
         t = cfg.trainer
-        self.cfg, self.model = cfg, model
         self.policy = build_dvrl_policy(cfg, model)
         self.optimizer = torch.optim.Adam(self.policy.dvrl.parameters(), lr=float(t.lr))
         self.readout_optimizer = torch.optim.Adam(self.policy.readout.parameters(), lr=float(t.readout_lr))
-        self.components = {"actor": self.policy, "optimizer": self.optimizer,
-                           "readout_optimizer": self.readout_optimizer}
         # built here, not at the first iteration: building it draws from the global generator (the
         # primer's module), which must not shift the seeded iterations of a resumed run
         self.env = make_dvrl_env(cfg, int(t.num_envs), seed=int(cfg.seed))
+
+    @property
+    def components(self) -> dict:
+        return {"actor": self.policy, "optimizer": self.optimizer, "readout_optimizer": self.readout_optimizer}
 
     def iteration(self, index: int, seed: int) -> dict:
         t, loss_cfg = self.cfg.trainer, self.cfg.dvrl.loss

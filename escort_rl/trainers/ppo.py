@@ -21,11 +21,17 @@ and an iteration runs ``⌈env.max_steps / k⌉`` decisions per env. The ``frame
 steps. On Light-Dark one push moves the position by about 0.1 over some 20 steps, so with ``k = 4``
 a decision's effect on the return is four times larger and the horizon in decisions four times
 shorter, and each update trains on a quarter as many frames per env step.
+
+The iteration and the update are :class:`PPOBase`'s, shared with recurrent PPO
+(:class:`escort_rl.trainers.recurrent_ppo.RecurrentPPO`); a variant gives its networks, its envs
+and the hooks where the two differ (how a batch is laid out, how minibatches are drawn, the mode
+the loss runs in).
 """
 
 from __future__ import annotations
 
 import time
+from abc import abstractmethod
 
 import torch
 from omegaconf import DictConfig
@@ -36,7 +42,7 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory, trained_action_repeat
-from escort_rl.trainers.scaffold import StagedCollector, episode_stats, in_warm_start, make_collector
+from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, in_warm_start, make_collector
 
 
 def make_ppo_loss(actor, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:
@@ -55,30 +61,40 @@ def make_ppo_loss(actor, critic, cfg: DictConfig, critic_keys: list | None = Non
     return loss
 
 
-class PPO:
-    """Clipped PPO with GAE on the belief particles (see the module docstring)."""
+class PPOBase(CollectorAlgorithm):
+    """Clipped PPO's iteration and update on a TorchRL collector, shared by :class:`PPO` and
+    recurrent PPO.
 
-    def __init__(self, cfg: DictConfig, model) -> None:
+    A subclass builds its networks, then calls ``super().__init__(cfg, model, policy, loss,
+    repeat)`` with ``policy`` (what the collector runs; it writes ``action`` and
+    ``action_log_prob``) and ``loss`` (a ``ClipPPOLoss`` with GAE as its value estimator). This sets
+    the optimiser (Adam over ``loss.parameters()``), the batch sizes and the collectors. The hooks:
+
+    - :meth:`make_env_factory` ``(cfg, num_envs, seed)``: a picklable zero-argument factory of the
+      ``num_envs`` training envs (required);
+    - :meth:`prepare` ``(batch) -> [E, T]``: a collected batch as env rows by time;
+    - :meth:`estimate_advantages` ``(batch [E, T])``: write ``advantage`` and ``value_target``;
+    - :meth:`fill` ``(batch [E, T]) -> source``: what an update's epochs draw from (required);
+    - :meth:`minibatches` ``(source) -> iterable of tensordicts``: one epoch's minibatches (required);
+    - :meth:`loss_terms` ``(minibatch) -> tensordict``: the loss's ``loss_objective``,
+      ``loss_critic``, ``loss_entropy`` (and ``entropy``, ``clip_fraction`` where it gives them).
+
+    Attributes: ``repeat`` (env steps per decision), ``rollout_steps`` (decisions per env and batch,
+    never past one episode), ``batches`` (PPO updates per iteration), ``frames_per_batch``
+    (``num_envs × rollout_steps``), ``epochs`` (this iteration's, see :meth:`epochs_for`)."""
+
+    def __init__(self, cfg: DictConfig, model, policy, loss: ClipPPOLoss, repeat: int = 1) -> None:
+        super().__init__(cfg, model, lambda c: make_collector(
+            c, lambda n, s: self.make_env_factory(c, n, s), self.policy, self.frames_per_batch,
+            reset_at_each_iter=False))
         t = cfg.trainer
-        self.cfg, self.model = cfg, model
-        self.actor = build_actor(cfg, model.state_dim, model.n_actions)
-        self.critic, critic_keys = build_critic(cfg, model)
-        self.loss = make_ppo_loss(self.actor, self.critic, cfg, critic_keys)
-        self.policy = make_deepsets_policy(self.actor, *belief_keys(cfg))  # what the collector runs
+        self.policy, self.loss, self.repeat = policy, loss, int(repeat)
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
-        self.components = {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
-        self.epochs = int(t.epochs)  # this iteration's (see epochs_for)
-        self.repeat = trained_action_repeat(cfg)
+        self.epochs = int(t.epochs)
         decisions = -(-int(cfg.env.max_steps) // self.repeat)  # per env and episode
         self.rollout_steps = min(int(t.rollout_steps), decisions)  # never past one episode
         self.batches = -(-decisions // self.rollout_steps)  # PPO updates per iteration
-        frames = int(t.num_envs) * self.rollout_steps
-        self.minibatch = max(1, frames // int(t.minibatches))
-        self.buffer = ReplayBuffer(storage=LazyTensorStorage(frames), sampler=SamplerWithoutReplacement(),
-                                   batch_size=self.minibatch)
-        self.collectors = StagedCollector(cfg, lambda c: make_collector(
-            c, lambda n, s: env_factory(c, n, seed=s, action_repeat=self.repeat), self.policy, frames,
-            reset_at_each_iter=False))
+        self.frames_per_batch = int(t.num_envs) * self.rollout_steps
 
     def epochs_for(self, index: int) -> int:
         """The epochs of iteration ``index``'s updates: ``trainer.warm_start_epochs`` during the warm
@@ -88,7 +104,11 @@ class PPO:
         warm = self.cfg.trainer.get("warm_start_epochs", None)
         return int(warm) if warm is not None and in_warm_start(self.cfg, index) else int(self.cfg.trainer.epochs)
 
-    # The hooks a variant overrides (RecurrentPPO: whole env rows, recurrent mode).
+    # ------------------------------------------------------------------ the hooks
+    @abstractmethod
+    def make_env_factory(self, cfg: DictConfig, num_envs: int, seed: int | None):
+        """A picklable zero-argument factory of ``num_envs`` training envs of ``cfg``, seeded ``seed``."""
+
     def prepare(self, batch):
         """A collected batch as ``[E, T]``."""
         return batch.reshape(-1, batch.shape[-1])
@@ -98,50 +118,29 @@ class PPO:
         with torch.no_grad():
             self.loss.value_estimator(batch)
 
+    @abstractmethod
     def fill(self, batch):
-        """What the epochs draw minibatches from: the batch's frames in the replay buffer."""
-        self.buffer.empty()
-        self.buffer.extend(batch.reshape(-1))
-        return self.buffer
+        """What the epochs draw minibatches from, given the batch ``[E, T]`` with its advantages."""
 
+    @abstractmethod
     def minibatches(self, source):
-        """One epoch's minibatches: ``minibatches`` shuffled draws of frames without replacement."""
-        return (source.sample() for _ in range(int(self.cfg.trainer.minibatches)))
+        """One epoch's minibatches drawn from ``source`` (what :meth:`fill` returned)."""
 
     def loss_terms(self, minibatch):
+        """The loss's terms on one minibatch."""
         return self.loss(minibatch)
-
-    def subsample_particles(self, batch):
-        """The batch the epochs train on: with ``trainer.update_particles = M`` below the belief's
-        ``N``, each frame keeps M of its particles drawn without replacement (with their log-weights;
-        pooling renormalises them), and ``action_log_prob`` is recomputed on that subset, so that the
-        PPO ratio compares the new and the old policy on the same input. The policy still acts on all
-        N particles; the update's cost, mostly the per-particle encoder, falls by ``N / M``."""
-        m = self.cfg.trainer.get("update_particles")
-        if m is None:
-            return batch
-        particles_key, log_weights_key = belief_keys(self.cfg)
-        x = batch[particles_key]  # [E, T, N, d]
-        if int(m) >= x.shape[-2]:
-            return batch
-        keep = torch.rand(x.shape[:-1], device=x.device).argsort(-1)[..., : int(m)]  # [E, T, M]
-        batch = batch.clone(False)
-        batch[particles_key] = x.gather(-2, keep.unsqueeze(-1).expand(*keep.shape, x.shape[-1]))
-        batch[log_weights_key] = batch[log_weights_key].gather(-1, keep)
-        with torch.no_grad():
-            batch["action_log_prob"] = self.policy.get_dist(batch).log_prob(batch["action"])
-        return batch
 
     def total_loss(self, minibatch, out):
         """What one Adam step minimises."""
         return out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
 
+    # ------------------------------------------------------------------ the shared update
     def update(self, batch) -> dict:
         """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled): GAE, then ``epochs`` passes
         of one Adam step per minibatch; returns the mean losses."""
         t = self.cfg.trainer
         self.estimate_advantages(batch)
-        source = self.fill(self.subsample_particles(batch))
+        source = self.fill(batch)
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
                 "clip_fraction": 0.0, "grad_norm": 0.0}
         steps = 0
@@ -182,5 +181,56 @@ class PPO:
         episodes = episode_stats(torch.cat(seen, dim=1), self.model)
         return {"frames": frames, **episodes, **stats, "fps": frames / max(collect_s, 1e-9)}
 
-    def close(self) -> None:
-        self.collectors.close()
+
+class PPO(PPOBase):
+    """Clipped PPO with GAE on the belief particles (see the module docstring). Components:
+    ``actor`` and ``critic`` (DeepSets networks) and ``optimizer``."""
+
+    def __init__(self, cfg: DictConfig, model) -> None:
+        self.actor = build_actor(cfg, model.state_dim, model.n_actions)
+        self.critic, critic_keys = build_critic(cfg, model)
+        loss = make_ppo_loss(self.actor, self.critic, cfg, critic_keys)
+        policy = make_deepsets_policy(self.actor, *belief_keys(cfg))  # what the collector runs
+        super().__init__(cfg, model, policy, loss, repeat=trained_action_repeat(cfg))
+        self.minibatch = max(1, self.frames_per_batch // int(cfg.trainer.minibatches))
+        self.buffer = ReplayBuffer(storage=LazyTensorStorage(self.frames_per_batch),
+                                   sampler=SamplerWithoutReplacement(), batch_size=self.minibatch)
+
+    @property
+    def components(self) -> dict:
+        return {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
+
+    def make_env_factory(self, cfg: DictConfig, num_envs: int, seed: int | None):
+        """The belief envs (:func:`escort_rl.trainers.builders.make_env`) with ``trainer.action_repeat``."""
+        return env_factory(cfg, num_envs, seed=seed, action_repeat=self.repeat)
+
+    def fill(self, batch):
+        """The batch's frames (:meth:`subsample_particles`) in the replay buffer."""
+        self.buffer.empty()
+        self.buffer.extend(self.subsample_particles(batch).reshape(-1))
+        return self.buffer
+
+    def minibatches(self, source):
+        """One epoch's minibatches: ``minibatches`` shuffled draws of frames without replacement."""
+        return (source.sample() for _ in range(int(self.cfg.trainer.minibatches)))
+
+    def subsample_particles(self, batch):
+        """The batch the epochs train on: with ``trainer.update_particles = M`` below the belief's
+        ``N``, each frame keeps M of its particles drawn without replacement (with their log-weights;
+        pooling renormalises them), and ``action_log_prob`` is recomputed on that subset, so that the
+        PPO ratio compares the new and the old policy on the same input. The policy still acts on all
+        N particles; the update's cost, mostly the per-particle encoder, falls by ``N / M``."""
+        m = self.cfg.trainer.get("update_particles")
+        if m is None:
+            return batch
+        particles_key, log_weights_key = belief_keys(self.cfg)
+        x = batch[particles_key]  # [E, T, N, d]
+        if int(m) >= x.shape[-2]:
+            return batch
+        keep = torch.rand(x.shape[:-1], device=x.device).argsort(-1)[..., : int(m)]  # [E, T, M]
+        batch = batch.clone(False)
+        batch[particles_key] = x.gather(-2, keep.unsqueeze(-1).expand(*keep.shape, x.shape[-1]))
+        batch[log_weights_key] = batch[log_weights_key].gather(-1, keep)
+        with torch.no_grad():
+            batch["action_log_prob"] = self.policy.get_dist(batch).log_prob(batch["action"])
+        return batch

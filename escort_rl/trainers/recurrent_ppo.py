@@ -37,8 +37,7 @@ from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
 from escort_rl.modules.recurrent import make_recurrent_actor_critic, make_recurrent_primer
 from escort_rl.trainers.builders import build_model, input_scaling
-from escort_rl.trainers.ppo import PPO
-from escort_rl.trainers.scaffold import StagedCollector, make_collector
+from escort_rl.trainers.ppo import PPOBase
 
 DEFAULT_HIDDEN = 64
 
@@ -138,26 +137,24 @@ def validate_recurrent_ppo_config(cfg: DictConfig) -> None:
 
 
 # ------------------------------------------------------------------------------------ training
-class RecurrentPPO(PPO):
+class RecurrentPPO(PPOBase):
     """Clipped PPO with GAE and a GRU actor-critic on the raw observations (see the module
-    docstring): :class:`~escort_rl.trainers.ppo.PPO`'s update and iteration, with whole env rows as
-    minibatches and the loss in recurrent mode. Components: ``actor`` (the policy), ``critic`` (the
-    value network; it shares the encoder and the GRU with the policy) and ``optimizer``."""
+    docstring): :class:`~escort_rl.trainers.ppo.PPOBase`'s update and iteration, with whole env rows
+    as minibatches and the loss in recurrent mode. Components: ``actor`` (the policy), ``critic``
+    (the value network; it shares the encoder and the GRU with the policy) and ``optimizer``."""
 
-    def __init__(self, cfg: DictConfig, model) -> None:  # noqa: D107 - no call to PPO.__init__: other networks
+    def __init__(self, cfg: DictConfig, model) -> None:
         validate_recurrent_ppo_config(cfg)
-        t = cfg.trainer
-        self.cfg, self.model = cfg, model
-        self.policy, self.value, _ = build_recurrent_actor_critic(cfg, model)
-        self.loss = make_recurrent_ppo_loss(self.policy, self.value, cfg)
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
-        self.components = {"actor": self.policy, "critic": self.value, "optimizer": self.optimizer}
-        self.rollout_steps = min(int(t.rollout_steps), int(cfg.env.max_steps))  # never past one episode
-        self.batches = -(-int(cfg.env.max_steps) // self.rollout_steps)  # PPO updates per iteration
-        frames = int(t.num_envs) * self.rollout_steps
-        self.collectors = StagedCollector(cfg, lambda c: make_collector(
-            c, lambda n, s: recurrent_env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=False))
-        self.repeat = 1
+        policy, self.value, _ = build_recurrent_actor_critic(cfg, model)
+        super().__init__(cfg, model, policy, make_recurrent_ppo_loss(policy, self.value, cfg), repeat=1)
+
+    @property
+    def components(self) -> dict:
+        return {"actor": self.policy, "critic": self.value, "optimizer": self.optimizer}
+
+    def make_env_factory(self, cfg: DictConfig, num_envs: int, seed: int | None):
+        """The raw-observation envs of :func:`make_recurrent_env`."""
+        return recurrent_env_factory(cfg, num_envs, seed=seed)
 
     def prepare(self, batch: TensorDictBase) -> TensorDictBase:
         batch = batch.reshape(-1, batch.shape[-1])  # [E, T]; a MultiSyncCollector's is [K, E/K, T]

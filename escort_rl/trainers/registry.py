@@ -23,7 +23,7 @@ def algorithm(cfg: DictConfig) -> str:
 
 
 def build_algorithm(cfg: DictConfig, model):
-    """The algorithm object of ``cfg`` for ``model`` (see :mod:`escort_rl.trainers.scaffold`)."""
+    """The :class:`~escort_rl.trainers.algorithm.Algorithm` of ``cfg`` for ``model``."""
     name = algorithm(cfg)
     if name == "ppo":
         from escort_rl.trainers.ppo import PPO

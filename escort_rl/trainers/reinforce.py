@@ -26,7 +26,7 @@ from torchrl.objectives import ReinforceLoss, ValueEstimators
 
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import belief_keys, build_actor, env_factory
-from escort_rl.trainers.scaffold import StagedCollector, episode_stats, make_collector
+from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
 
 
 class TimeBaseline(nn.Module):
@@ -58,12 +58,15 @@ class TimeBaseline(nn.Module):
         self.table.copy_(torch.where(counts > 0, sums / counts.clamp_min(1), self.table))
 
 
-class Reinforce:
-    """REINFORCE + entropy on ``ReinforceLoss`` (see the module docstring)."""
+class Reinforce(CollectorAlgorithm):
+    """REINFORCE + entropy on ``ReinforceLoss`` (see the module docstring). Components: ``actor``,
+    ``critic`` (the learned or the time baseline) and ``optimizer``."""
 
     def __init__(self, cfg: DictConfig, model) -> None:
+        frames = int(cfg.trainer.num_envs) * int(cfg.env.max_steps)  # num_envs full episodes
+        super().__init__(cfg, model, lambda c: make_collector(
+            c, lambda n, s: env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=True))
         t = cfg.trainer
-        self.cfg, self.model = cfg, model
         particles_key, log_weights_key = belief_keys(cfg)
         self.actor = build_actor(cfg, model.state_dim, model.n_actions)
         self.policy = make_deepsets_policy(self.actor, particles_key=particles_key, log_weights_key=log_weights_key)
@@ -79,10 +82,10 @@ class Reinforce:
         params = list(self.actor.parameters()) + list(self.critic.parameters())
         self.params = params
         self.optimizer = torch.optim.Adam(params, lr=float(t.lr))
-        self.components = {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
-        frames = int(cfg.trainer.num_envs) * int(cfg.env.max_steps)
-        self.collectors = StagedCollector(cfg, lambda c: make_collector(
-            c, lambda n, s: env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=True))
+
+    @property
+    def components(self) -> dict:
+        return {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
 
     def update(self, batch) -> dict:
         """One policy-gradient step on ``batch`` ``[E, T]`` of full episodes; returns scalar stats."""
@@ -127,6 +130,3 @@ class Reinforce:
         if int(self.cfg.collector.workers) > 1:
             self.collectors.update_policy_weights()
         return {"frames": batch.numel(), **episodes, **stats, "fps": batch.numel() / max(collect_s, 1e-9)}
-
-    def close(self) -> None:
-        self.collectors.close()

@@ -1,23 +1,18 @@
 """The training scaffold: one loop that owns a run, whatever the algorithm.
 
 The scaffold owns the run directory (``config.yaml``, ``checkpoints/``, ``logs/``, ``history.json``),
-per-iteration seeding, resume, checkpoint rotation, the logger, the progress bar and the history
-(kept once, in the trainer state that every checkpoint carries). An algorithm is a small object with
-
-- ``components``: the modules and optimisers a checkpoint holds (``{"actor": ..., "optimizer": ...}``);
-- ``iteration(index, seed) -> dict``: collect and learn for iteration ``index`` (0-based), seeded
-  with ``seed``; return its scalars, with
-  ``"frames"`` (this iteration's frames) and the episode statistics of :func:`episode_stats`;
-- ``close()``: shut collectors and envs down.
-
-An algorithm that collects through a :class:`StagedCollector` keeps it as ``collectors``, so that a
-collector worker process that dies ends the run with one line naming the worker and the last
-checkpoint (:class:`CollectorWorkerDied`).
+per-iteration seeding, checkpoint rotation, the logger, the progress bar and the history (kept
+once, in the trainer state that every checkpoint carries). It drives an
+:class:`~escort_rl.trainers.algorithm.Algorithm`: ``components`` (what a checkpoint holds),
+``iteration(index, seed) -> dict`` and ``close()`` (see :mod:`escort_rl.trainers.algorithm` for
+what each receives and returns). :class:`CollectorAlgorithm` is the base of the algorithms that
+collect through a :class:`StagedCollector`, so that a collector worker process that dies ends the
+run with one line naming the worker and the last checkpoint (:class:`CollectorWorkerDied`).
 
 Every iteration ``i`` is seeded with :func:`iteration_seed` (torch's global generator and the
 envs), so a resumed run collects exactly the data an uninterrupted run would have, and reaches the
-same parameters. A resume writes into the run directory that holds its checkpoint (never the
-``output_dir`` saved in a moved or copied run). Every start removes the temporary folders of a
+same parameters. Where a run starts from (a new run, or a checkpoint and its run directory) is
+decided by :mod:`escort_rl.trainers.resume`. Every start removes the temporary folders of a
 checkpoint write that a kill interrupted, and cuts the logs back to the iteration it starts from, so
 that every iteration is logged once. Checkpoints are verified before they are read (see
 :mod:`escort_rl.trainers.checkpointing`).
@@ -25,7 +20,7 @@ that every iteration is logged once. Checkpoints are verified before they are re
 Example::
 
     >>> algorithm = PPO(cfg, model)                       # doctest: +SKIP
-    >>> run_dir = run_training(cfg, algorithm, model)     # doctest: +SKIP
+    >>> run_dir = run_training(cfg, algorithm)            # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -37,8 +32,6 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Protocol
-
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
@@ -47,23 +40,9 @@ from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.record.loggers import TensorboardLogger
 from tqdm import tqdm
 
-from escort_rl.trainers.checkpointing import (
-    checkpoint_dir,
-    load_checkpoint,
-    remove_interrupted_writes,
-    run_dir_of,
-    save_checkpoint,
-)
-
-
-class Algorithm(Protocol):
-    """What :func:`run_training` drives (see the module docstring)."""
-
-    components: dict
-
-    def iteration(self, index: int, seed: int) -> dict: ...
-
-    def close(self) -> None: ...
+from escort_rl.trainers.algorithm import Algorithm
+from escort_rl.trainers.checkpointing import checkpoint_dir, remove_interrupted_writes, save_checkpoint
+from escort_rl.trainers.resume import restore
 
 
 def iteration_seed(base: int, iteration: int) -> int:
@@ -232,6 +211,21 @@ class StagedCollector:
             self.collector = None
 
 
+class CollectorAlgorithm(Algorithm):
+    """The base of an algorithm that collects through a :class:`StagedCollector` (PPO, recurrent
+    PPO, REINFORCE): ``collectors`` is built from ``build_collector(cfg) -> collector`` (called on
+    first use for each stage, with the stage's config: :func:`collection_config`), and
+    :meth:`close` shuts the current collector down. Building it draws nothing from torch's
+    generator, so a subclass may build it before or after its networks."""
+
+    def __init__(self, cfg: DictConfig, model, build_collector) -> None:
+        super().__init__(cfg, model)
+        self.collectors = StagedCollector(cfg, build_collector)
+
+    def close(self) -> None:
+        self.collectors.close()
+
+
 def episode_stats(batch: TensorDictBase, model) -> dict:
     """Mean return, final distance to goal and success rate of the episodes that end in ``batch``
     ``[E, T]`` (episode returns by one ``index_add`` over episode ids; an episode that started before
@@ -256,10 +250,6 @@ def episode_stats(batch: TensorDictBase, model) -> dict:
         "success_rate": float(batch["next", "terminated"].squeeze(-1)[rows, steps].float().mean()),
         "episodes": int(rows.numel()),
     }
-
-
-def _fresh_state() -> dict:
-    return {"iteration": 0, "frames": 0, "seconds": 0.0, "history": []}
 
 
 class CollectorWorkerDied(RuntimeError):
@@ -322,26 +312,6 @@ def raise_if_worker_died(algorithm: Algorithm, iteration: int, last_checkpoint: 
         time.sleep(0.02)
 
 
-def resumed_run_dir(cfg: DictConfig, checkpoint: str | Path) -> Path:
-    """The directory a resume writes into: the run directory that holds ``checkpoint``, never the
-    ``output_dir`` saved with the run (a moved or copied run must not write into the original).
-    ``cfg.output_dir`` must name that directory; another one raises ``ConfigError``."""
-    from escort_rl.config import ConfigError
-
-    run_dir = run_dir_of(checkpoint)
-    if output_path(cfg.output_dir).resolve() != run_dir.resolve():
-        raise ConfigError(f"output_dir: '{cfg.output_dir}' is not the run directory being resumed ('{run_dir}'); "
-                          "a resume writes into the run it continues: drop output_dir, or copy the run "
-                          "directory and resume the copy")
-    return run_dir
-
-
-def output_path(output_dir: str) -> Path:
-    """The run directory that ``output_dir`` names: ``~`` is the home folder, as in a shell (every
-    file of the run, checkpoints included, goes there)."""
-    return Path(str(output_dir)).expanduser()
-
-
 def make_run_dir(run_dir: Path) -> None:
     """Create ``run_dir`` (and its parents); a folder that cannot be created raises ``ConfigError``
     naming ``output_dir``."""
@@ -352,19 +322,6 @@ def make_run_dir(run_dir: Path) -> None:
     except OSError as err:
         raise ConfigError(f"output_dir: cannot create '{run_dir}' ({err.strerror or type(err).__name__}); pass a "
                           "folder you can write to") from None
-
-
-def restore(cfg: DictConfig, components: dict, resume_state: dict | None) -> tuple[dict, Path, Path | None]:
-    """The trainer state a run starts from, its run directory and the checkpoint it resumes (``None``
-    for a new run). ``resume_state["path"]`` (a checkpoint or a run directory) restores
-    ``components`` in place; see :func:`escort_rl.trainers.checkpointing.load_checkpoint`."""
-    if resume_state is None:
-        return _fresh_state(), output_path(cfg.output_dir), None
-    loaded = load_checkpoint(resume_state["path"], **components)
-    saved = loaded["trainer_state"]
-    state = {**_fresh_state(), **{k: saved[k] for k in ("iteration", "frames", "history") if k in saved},
-             "seconds": float(saved.get("seconds", 0.0))}
-    return state, resumed_run_dir(cfg, loaded["path"]), Path(loaded["path"])
 
 
 def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | None = None, progress: bool = True,
@@ -386,6 +343,9 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
     A collector worker process that dies ends the run with :class:`CollectorWorkerDied`, one line
     naming the worker and the last checkpoint.
     """
+    if not isinstance(algorithm, Algorithm):
+        raise TypeError(f"run_training: {type(algorithm).__name__} is not an escort_rl.trainers.algorithm.Algorithm; "
+                        "derive it from Algorithm (or CollectorAlgorithm) and give it components, iteration and close")
     components = algorithm.components
     state, run_dir, last_checkpoint = restore(cfg, components, resume_state)
     make_run_dir(run_dir)

@@ -26,8 +26,13 @@ Example:
     >>> model = LightDark10D()
     >>> env = TransformedEnv(POMDPEnv(model, batch_size=(8,), seed=0, max_steps=500),
     ...                      Compose(BeliefTransform(model, SIRFilter(), 100), ActionRepeat(4)))
+    >>> import torch
+    >>> _ = torch.manual_seed(0)       # the rollout's random actions
     >>> td = env.rollout(10)           # 10 decisions, 40 env steps, 40 belief updates per env
-    >>> td["next", "repeats"].sum(1)   # [8, 1]: 40 each (fewer where an episode ended)
+    >>> td["next", "repeats"].shape
+    torch.Size([8, 10, 1])
+    >>> td["next", "repeats"].sum(1).squeeze(-1).tolist()  # 40 each (fewer where an episode ended)
+    [40, 40, 40, 40, 40, 40, 40, 40]
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ trajectories, timed per update and compared with the reference posterior at ever
   anything on the model protocol.
 
 **The reference** is the exact posterior where the model has one
-(:func:`~escort_rl.bench.reference.has_exact_posterior`): the linear-Gaussian family's Kalman filter,
+(:func:`~escort_rl.metrics.reference.has_exact_posterior`): the linear-Gaussian family's Kalman filter,
 computed in each cell; a Gaussian sum (the synthetic tracking family), computed once by
 :class:`FrontierReferenceCell` with ``exact=True``. Otherwise a large SIR reference
 (:class:`FrontierReferenceCell`). A reference cell runs once per seed block and every cell loads its
@@ -27,8 +27,9 @@ from pathlib import Path
 
 import torch
 
-from escort_rl.bench.reference import Reference, ReferenceCell, exact_reference, has_exact_posterior
+from escort_rl.bench.reference_cell import ReferenceCell
 from escort_rl.bench.core.runner import Cell
+from escort_rl.metrics.reference import Reference, exact_reference, has_exact_posterior
 
 FILTER_METHODS = ("sir", "enkf", "svgd", "escort")
 """The frontier's filters: SIR and EnKF cost N; SVGD and ESCORT cost N × K."""
@@ -95,6 +96,10 @@ def make_filter(method: str, num_steps: int = 0, compile: bool = False, filter_a
         return classes[method](**kwargs)
     except TypeError as err:
         raise ValueError(f"--variant: {classes[method].__name__} does not take {sorted(kwargs)} ({err})") from None
+    except ValueError as err:
+        if not filter_args:
+            raise
+        raise ValueError(f"--variant: {err}") from None
 
 
 VARIANT_SYNTAX = "--variant NAME filter=METHOD filter.KEY=VALUE [filter.KEY=VALUE ...]"
@@ -119,13 +124,13 @@ def parse_variant(item) -> tuple[str, str, tuple]:
 
 @dataclass(frozen=True)
 class FrontierReferenceCell(ReferenceCell):
-    """The SIR reference posterior (:class:`~escort_rl.bench.reference.ReferenceCell`) of a frontier
+    """The SIR reference posterior (:class:`~escort_rl.bench.reference_cell.ReferenceCell`) of a frontier
     model: ``domain`` is the model's label, ``model_spec``/``model_args`` build it."""
 
     model_spec: str = ""
     model_args: tuple = ()
     exact: bool = False
-    """The model's exact posterior (a Gaussian sum, :func:`~escort_rl.bench.reference.exact_reference`),
+    """The model's exact posterior (a Gaussian sum, :func:`~escort_rl.metrics.reference.exact_reference`),
     computed once and saved, instead of SIR with ``particles``."""
 
     def model(self):
@@ -202,7 +207,8 @@ class FrontierCell(Cell):
         return ref
 
     def run(self) -> dict:
-        from escort_rl.bench.trajectories import belief_failures, derived_seed, generate_trajectories, initial_beliefs
+        from escort_rl.belief.seeding import derived_seed, initial_beliefs
+        from escort_rl.bench.trajectories import belief_failures, generate_trajectories
 
         model = build_model(self.model, tuple(self.model_args))
         seeds = list(self.seeds)

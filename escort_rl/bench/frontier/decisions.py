@@ -8,7 +8,7 @@ the action that brings the belief mean closest to the origin after the noise-fre
 which, for a reward ``−‖s_{t+1}‖`` and additive noise, is the myopic choice on the belief's first
 moment: the expected squared distance ``E‖s + u_a‖² = ‖m̂ + u_a‖² + tr Σ`` depends on the belief
 only through its mean. The rows differ by their beliefs alone. Where the model has an exact
-posterior (:func:`~escort_rl.bench.reference.has_exact_posterior`), an ``exact`` row acts on its mean:
+posterior (:func:`~escort_rl.metrics.reference.has_exact_posterior`), an ``exact`` row acts on its mean:
 the best any filter can do with this rule.
 
 The ``E`` episodes of a row run as one batch, their starts and noise drawn from one generator seeded
@@ -31,8 +31,8 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench.frontier.cells import FILTER_METHODS, ITERATIVE, build_model, make_filter, model_label
-from escort_rl.bench.reference import exact_posterior_start, exact_posterior_update
 from escort_rl.bench.core.runner import Cell, CellStore, InProcessBackend, run_cells
+from escort_rl.metrics.reference import exact_posterior_start, exact_posterior_update
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
 

@@ -16,8 +16,8 @@ from escort_rl.bench.frontier.cells import (
 )
 from escort_rl.bench.frontier.pareto import best_at_budgets, pareto_front
 from escort_rl.bench.methods import check_choices
-from escort_rl.bench.reference import Reference, has_exact_posterior
 from escort_rl.bench.core.runner import CellStore, InProcessBackend, run_cells
+from escort_rl.metrics.reference import Reference, has_exact_posterior
 from escort_rl.reporting.stats import mean_se
 
 DEFAULT_PARTICLES = {"sir": (100, 300, 1000, 3000, 10_000, 30_000, 100_000),
@@ -97,7 +97,7 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
     used = set(methods) | {m for m, _ in variants.values()}
     particles = {m: tuple((particles or {}).get(m, DEFAULT_PARTICLES[m])) for m in used}
     built = build_model(model, tuple(model_args))
-    from escort_rl.bench.reference import state_parts
+    from escort_rl.metrics.reference import state_parts
 
     part = next(iter(state_parts(built)))
     store = CellStore(Path(output) / "cells") if output is not None else None

@@ -31,11 +31,11 @@ from dataclasses import dataclass
 
 import torch
 
+from escort_rl import metrics
 from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
 from escort_rl.belief.importance import effective_sample_size
 from escort_rl.belief.prior import silverman_factor
 from escort_rl.belief.sir import systematic_resample_indices
-from escort_rl.bench import metrics
 from escort_rl.bench.core.runner import Cell
 from escort_rl.bench.targets import (
     GaussianMixture,
@@ -181,7 +181,7 @@ def score_particles(x: torch.Tensor, target: GaussianMixture, seeds: list[int], 
     c_true = target.correlation()
     keys = ("mmd2", "w1", "sliced_w1", "mode_coverage", "mode_coverage_ball", "corr_error", "rmse")
     out: dict[str, list[float]] = {k: [] for k in keys}
-    proj = metrics.random_projections(num_projections, d, torch.Generator().manual_seed(12345)).to(torch.float64)
+    proj = metrics.sphere_directions(num_projections, d, torch.Generator().manual_seed(12345)).to(torch.float64)
     coverage = metrics.mode_coverage_mahalanobis(x, target.means, target.covariances)
     for s in range(x.shape[0]):
         out["mmd2"].append(float(metrics.mmd_squared(x[s], ref[s], gamma=0.5)))

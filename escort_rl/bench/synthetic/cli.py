@@ -65,13 +65,13 @@ def filter_arguments(overrides) -> dict:
     """Positional ``filter.KEY=VALUE ...`` overrides as ESCORT/SVGD constructor arguments, each value read as OmegaConf reads a dotlist value
     (``4`` an int, ``0.5`` a float, ``true`` a bool); a key the constructor does not take is an error
     naming it and the keys it does take, and a bad value is the constructor's error naming the key."""
-    import inspect
+    import dataclasses
 
     from omegaconf import OmegaConf
 
     from escort_rl.bench.core.options import filter_overrides
 
-    known = [k for k in inspect.signature(ESCORTFilter.__init__).parameters if k != "self"]
+    known = [f.name for f in dataclasses.fields(ESCORTFilter.Params)]
     out = {}
     for key, value in filter_overrides(overrides):
         if key not in known:

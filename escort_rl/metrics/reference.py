@@ -1,14 +1,14 @@
 """Protocol (a)'s reference posterior, and each belief's distance to it.
 
-**The reference** is a bootstrap particle filter with many particles (``--reference-particles``,
-default 10⁵): propagate through the model's transition, weight by its observation likelihood,
-resample systematically when ESS/N < 0.5, no roughening. It filters the same shared trajectories as
-the methods, from its own draw of the same prior, and converges to the exact filtering posterior as
-N grows. The benchmark checks that: it runs the reference again at 2N and reports (i) the distance
-between the two references (the floor under every figure) and (ii) how much each method's figures
-move when the 2N reference replaces the N one.
+**The reference** is a bootstrap particle filter with many particles (the domain benchmark's
+``--reference-particles``, default 10⁵): propagate through the model's transition, weight by its
+observation likelihood, resample systematically when ESS/N < 0.5, no roughening. It filters the
+same shared trajectories as the methods, from its own draw of the same prior, and converges to the
+exact filtering posterior as N grows. The benchmark checks that: it runs the reference again at 2N
+and reports (i) the distance between the two references (the floor under every figure) and (ii) how
+much each method's figures move when the 2N reference replaces the N one.
 
-A :class:`ReferenceCell` filters a block of seeds in chunks of at most :data:`CHUNK_ROWS` particle
+:func:`reference_posterior` filters a block of seeds in chunks of at most :data:`CHUNK_ROWS` particle
 rows (seeds × N), so memory stays bounded whatever N. For every seed, step ``t = 0..T`` and part of
 the state (``position``: the model's ``position_dims``; ``velocity``: its ``velocity_dims``) it keeps
 
@@ -20,14 +20,15 @@ the state (``position``: the model's ``position_dims``; ``velocity``: its ``velo
 - :data:`PROJECTIONS` unit directions per part, seeded by the domain and the part alone, so every
   reference of a domain slices along the same directions.
 
-It writes them to a tensor file named by the cell's key under ``folder``, and returns the file's
-name and a hash of its tensors; a method cell recomputes that hash when it loads the file, so a
-damaged or replaced file is detected, not read.
+The benchmark's reference cell writes them to a tensor file and records a hash of its tensors
+(:func:`content_hash`); :meth:`Reference.load` recomputes that hash, so a damaged or replaced file is
+detected, not read.
 
 **The distances** (:meth:`Reference.compare`) of a belief (particles ``x``, weights ``w``) at step
 ``t``, per part:
 
-- ``w1``: sliced W1 along the reference's directions (:func:`~escort_rl.bench.metrics.weighted_sliced_wasserstein`);
+- ``w1``: sliced W1 along the reference's directions
+  (:func:`~escort_rl.metrics.distances.weighted_sliced_wasserstein`);
 - ``mmd2``: MMD² with the reference's γ (the biased V-statistic, weighted);
 - ``mean``: ``‖E_b[s_part] − E_ref[s_part]‖₂``;
 - ``cov``: ``‖Cov_b[s_part] − Cov_ref[s_part]‖_F`` (weighted, normalised by Σw = 1, as the reference's).
@@ -36,15 +37,15 @@ damaged or replaced file is detected, not read.
 from __future__ import annotations
 
 import hashlib
-import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from escort_rl.bench.metrics import kernel_mean, random_projections, weighted_sliced_wasserstein
-from escort_rl.bench.core.runner import Cell
+from escort_rl.belief.seeding import derived_seed, initial_beliefs, tensor_hash
+from escort_rl.belief.sir import SIRFilter, systematic_resample_indices
+from escort_rl.metrics.distances import kernel_mean, median_gamma, sphere_directions, weighted_sliced_wasserstein
+from escort_rl.metrics.moments import weighted_moments
 
 CHUNK_ROWS = 400_000
 """Particle rows (seeds × N) a reference filters at once: 10⁵ particles go 4 seeds at a time. Multi-Target
@@ -73,8 +74,6 @@ def state_parts(model) -> dict[str, tuple[int, ...]]:
 def content_hash(data: dict) -> str:
     """SHA-256 (16 hex digits) of every tensor in ``data`` (nested dicts), in key order, with shapes
     and dtypes: the same tensors give the same hash whatever the file's bytes."""
-    from escort_rl.bench.trajectories import tensor_hash
-
     h = hashlib.sha256()
 
     def walk(d, prefix=""):
@@ -91,41 +90,12 @@ def content_hash(data: dict) -> str:
     return h.hexdigest()[:16]
 
 
-def weighted_moments(x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
-    """Mean ``Σ w_i x_i`` ``[..., d]`` and covariance ``Σ w_i (x_i − m)(x_i − m)ᵀ`` ``[..., d, d]`` of
-    particles ``x`` ``[..., N, d]`` with normalised weights ``w`` ``[..., N]`` (accumulated in float64)."""
-    x64, w64 = x.double(), w.double()
-    m = (w64[..., None] * x64).sum(-2)
-    xc = x64 - m[..., None, :]
-    return m, (w64[..., None] * xc).transpose(-1, -2) @ xc
-
-
-def median_gamma(y: Tensor) -> Tensor:
-    """``γ = 1 / (2 med²)`` for ``k(a, b) = exp(−γ‖a − b‖²)``, with ``med`` the median of the
-    pairwise distances ``‖y_i − y_j‖``, ``i < j``, of ``y`` ``[..., M, d]`` (floored at 1e-12)."""
-    m = y.shape[-2]
-    i, j = torch.triu_indices(m, m, 1)
-    sq = ((y[..., i, :] - y[..., j, :]) ** 2).sum(-1)
-    med2 = sq.median(-1).values.clamp_min(1e-12)
-    return 0.5 / med2
-
-
-def systematic_indices(log_w: Tensor, m: int, generator: torch.Generator | None) -> Tensor:
-    """``m`` systematic draws ``[..., m]`` from the normalised weights ``softmax(log_w)`` ``[..., N]``."""
-    w = torch.softmax(log_w.double(), -1)
-    cdf = torch.cumsum(w, -1)
-    cdf = cdf / cdf[..., -1:]
-    u = torch.rand((*log_w.shape[:-1], 1), generator=generator, dtype=torch.float64)
-    positions = ((u + torch.arange(m, dtype=torch.float64)) / m).clamp_max(1.0 - 1e-15)
-    return torch.searchsorted(cdf.contiguous(), positions.contiguous(), right=True).clamp_max(log_w.shape[-1] - 1)
-
-
 def step_summary(particles: Tensor, log_w: Tensor, parts: dict, sample: int, generator) -> dict:
     """One step of the reference: per part ``mean`` ``[B, dp]``, ``cov`` ``[B, dp, dp]``, ``sample``
     ``[B, M, dp]``, ``gamma`` ``[B]`` and ``kyy`` ``[B]``; and ``ess`` ``[B]``, the effective sample size of
     the weights after the update (and its resampling, when ESS/N fell below 0.5)."""
     w = torch.softmax(log_w.double(), -1)
-    idx = systematic_indices(log_w, sample, generator)
+    idx = systematic_resample_indices(log_w.double(), generator, sample)
     out = {"ess": 1.0 / (w ** 2).sum(-1)}
     for name, dims in parts.items():
         x = particles[..., list(dims)]
@@ -198,8 +168,6 @@ def exact_reference(model, traj: dict, seeds: list[int], sample: int = SAMPLE, b
     ``sample`` exact draws (a component by its weight, then its Gaussian; seeded by the first seed);
     ``ess`` is NaN (no weights) and ``dropped_mass`` ``[S, T+1]`` the mass a pruned sum cut at each step
     (0 for Kalman)."""
-    from escort_rl.bench.trajectories import derived_seed
-
     parts = state_parts(model)
     b = len(seeds)
     g = torch.Generator().manual_seed(derived_seed("exact-reference-sample", base_seed, seeds[0]))
@@ -225,7 +193,7 @@ def exact_reference(model, traj: dict, seeds: list[int], sample: int = SAMPLE, b
     out = _stack(steps)
     for part, dims in parts.items():
         gp = torch.Generator().manual_seed(derived_seed(f"reference-projections/{name}/{part}", 0, 0))
-        out[part]["projections"] = random_projections(PROJECTIONS, len(dims), gp, dtype=torch.float32)
+        out[part]["projections"] = sphere_directions(PROJECTIONS, len(dims), gp, dtype=torch.float32)
         out[part]["dims"] = torch.tensor(dims, dtype=torch.int64)
     return out
 
@@ -268,8 +236,6 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
     seeds the directions of the sliced W1. A chunk of at least :data:`COMPILE_ROWS` rows runs the
     model compiled.
     """
-    from escort_rl.belief import SIRFilter
-    from escort_rl.bench.trajectories import derived_seed, initial_beliefs
 
     parts = state_parts(model)
     filt = SIRFilter(resample_threshold=0.5)
@@ -302,73 +268,9 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
                else {kk: torch.cat([c[k][kk] for c in chunks]) for kk in v}) for k, v in chunks[0].items()}
     for part, dims in parts.items():
         g = torch.Generator().manual_seed(derived_seed(f"reference-projections/{name}/{part}", 0, 0))
-        out[part]["projections"] = random_projections(PROJECTIONS, len(dims), g, dtype=torch.float32)
+        out[part]["projections"] = sphere_directions(PROJECTIONS, len(dims), g, dtype=torch.float32)
         out[part]["dims"] = torch.tensor(dims, dtype=torch.int64)
     return out
-
-
-@dataclass(frozen=True)
-class ReferenceCell(Cell):
-    """The reference posterior of one domain's shared trajectories of ``seeds`` at ``particles``.
-
-    Its tensors go to ``<folder>/<key>.pt``; the result names the file (relative to ``folder``) and
-    the hash of its tensors. ``folder`` is where the file lives, not what it holds, so it is left
-    out of :meth:`spec`: two runs in different folders have the same cells.
-    """
-
-    domain: str
-    particles: int
-    steps: int
-    seeds: tuple
-    base_seed: int = 0
-    sample: int = SAMPLE
-    folder: str = ""
-
-    def key(self) -> str:
-        return (f"reference/{self.domain}/N{self.particles}-M{self.sample}-T{self.steps}-"
-                f"seeds{self.seeds[0]}-{self.seeds[-1]}")
-
-    def spec(self) -> dict:
-        spec = super().spec()
-        spec.pop("folder")
-        return spec
-
-    def model(self):
-        """The model whose posterior this is: the domain's (a subclass may build another)."""
-        from escort_rl.bench.methods import build_domain
-
-        return build_domain(self.domain)[0]
-
-    def posterior(self, model, traj: dict, seeds: list[int]) -> dict:
-        """The reference's tensors (:func:`reference_posterior`; a subclass may compute another)."""
-        return reference_posterior(model, traj, seeds, self.particles, self.base_seed, self.sample, name=self.domain)
-
-    def run(self) -> dict:
-        from escort_rl.bench.trajectories import generate_trajectories
-
-        model = self.model()
-        seeds = list(self.seeds)
-        traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
-        t0 = time.perf_counter()
-        data = self.posterior(model, traj, seeds)
-        seconds = time.perf_counter() - t0
-        data["input_hashes"] = list(traj["hashes"])
-        name = f"{self.key()}.pt"
-        path = Path(self.folder) / name
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".pt.tmp")
-        torch.save(data, tmp)
-        tmp.replace(path)
-        return {"file": name, "hash": content_hash(data), "input_hashes": data["input_hashes"],
-                "timing": {"seconds": seconds}}
-
-    def valid(self, result: dict) -> bool:
-        """Whether the file of a saved ``result`` is there and holds what the result says."""
-        try:
-            Reference.load(Path(self.folder) / result["file"], result["hash"])
-        except (OSError, ValueError, KeyError, RuntimeError):
-            return False
-        return True
 
 
 class DamagedReferenceError(ValueError):
@@ -413,7 +315,7 @@ class Reference:
         m = next(iter(self.parts.values()))["sample"].shape[-2]
         thin = None
         if n > m:  # MMD² of a large belief on m systematic draws (same draws for every part)
-            thin = systematic_indices(log_weights, m, torch.Generator().manual_seed(THIN_SEED + t))
+            thin = systematic_resample_indices(log_weights.double(), torch.Generator().manual_seed(THIN_SEED + t), m)
         for name, ref in self.parts.items():
             x = particles[..., ref["dims"].tolist()]
             y = ref["sample"][rows, t].to(x.dtype)
@@ -462,3 +364,4 @@ def summarize_series(series: dict, steps: int) -> dict:
         v = torch.as_tensor(v, dtype=torch.float64)
         out[k] = {"final": v[:, -1].tolist(), "mean": (v[:, 1:].mean(1) if steps > 0 else v[:, 0]).tolist()}
     return out
+

@@ -1,0 +1,80 @@
+"""The one map from the names a config uses to the classes they build.
+
+A config names a model by its env group (``env=lightdark10d``), a filter by its family
+(``filter.kind: escort``) and a trainer by ``trainer.algorithm``. This module maps each name to the
+dotted path of its class, and imports the class only when asked (:func:`resolve`), in the way
+Hydra's ``_target_`` does: configuration sits below the models, filters and trainers it names, and
+importing it loads none of them.
+
+Examples:
+    >>> target("filter", "sir")
+    'escort_rl.belief.SIRFilter'
+    >>> resolve("filter", "escort").__name__
+    'ESCORTFilter'
+    >>> names("trainer")
+    ['dvrl_a2c', 'ppo', 'recurrent_ppo', 'reinforce']
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from escort_rl.config.errors import ConfigError
+
+REGISTRY: dict[str, dict[str, str]] = {
+    "model": {
+        "lightdark10d": "escort_rl.models.LightDark10D",
+        "kidnapped20d": "escort_rl.models.KidnappedRobot20D",
+        "mtt20d": "escort_rl.models.MultiTargetTracking20D",
+        "linear_gaussian": "escort_rl.models.LinearGaussian",
+        "lightdark1d": "escort_rl.models.LightDark1D",
+    },
+    "filter": {
+        "sir": "escort_rl.belief.SIRFilter",
+        "enkf": "escort_rl.belief.EnKFFilter",
+        "svgd": "escort_rl.belief.SVGDFilter",
+        "escort": "escort_rl.belief.ESCORTFilter",
+    },
+    "trainer": {
+        "ppo": "escort_rl.trainers.ppo.PPO",
+        "reinforce": "escort_rl.trainers.reinforce.Reinforce",
+        "dvrl_a2c": "escort_rl.trainers.dvrl_a2c.DVRLA2C",
+        "recurrent_ppo": "escort_rl.trainers.recurrent_ppo.RecurrentPPO",
+    },
+}
+"""kind -> name -> the class's dotted path. ``model`` names are env groups (``configs/env/``; the
+1-D planning problem ``lightdark1d`` has none), ``filter`` names are filter families
+(``filter.kind``), ``trainer`` names are ``trainer.algorithm``."""
+
+_FIELD = {"model": "env.name", "filter": "filter.kind", "trainer": "trainer.algorithm"}
+
+
+def names(kind: str) -> list[str]:
+    """The registered names of ``kind`` (``model``, ``filter`` or ``trainer``), sorted."""
+    return sorted(_table(kind))
+
+
+def target(kind: str, name: str) -> str:
+    """The dotted path of the class registered as ``name``; a :class:`ConfigError` naming the config
+    field and the choices for an unknown name."""
+    table = _table(kind)
+    if name not in table:
+        raise ConfigError(f"{_FIELD[kind]}: unknown {kind} '{name}'; choose one of {', '.join(sorted(table))}")
+    return table[name]
+
+
+def resolve(kind: str, name: str) -> type:
+    """The class registered as ``name`` (imported now)."""
+    return import_target(target(kind, name))
+
+
+def import_target(path: str) -> type:
+    """The object at the dotted path ``package.module.Name``."""
+    module, _, attr = path.rpartition(".")
+    return getattr(importlib.import_module(module), attr)
+
+
+def _table(kind: str) -> dict[str, str]:
+    if kind not in REGISTRY:
+        raise ValueError(f"kind: expected one of {', '.join(REGISTRY)}, got {kind!r}")
+    return REGISTRY[kind]

@@ -1,0 +1,72 @@
+"""The base class of every training algorithm: the hooks that the training scaffold
+(:func:`escort_rl.trainers.scaffold.run_training`) calls, and what each receives and returns.
+
+The scaffold drives an :class:`Algorithm` through three hooks, in this order:
+
+1. :attr:`Algorithm.components`, read once before the first iteration: ``{name: object}``, the
+   modules and optimisers (and any object with ``state_dict`` / ``load_state_dict``) that a
+   checkpoint holds. A resume restores each in place; every checkpoint saves each under its name.
+   The names are the checkpoint's keys, so they never change (old checkpoints must load):
+   ``actor``, ``critic``, ``optimizer``, ``readout_optimizer``, ``games``.
+2. :meth:`Algorithm.iteration` ``(index, seed) -> dict``, once per iteration ``index`` (0-based,
+   from the iteration the run starts at), with torch's global generator already seeded with
+   ``seed``. It collects and learns, and returns the iteration's record: ``"frames"`` (an int, the
+   env steps it took, which the scaffold sums), the scalars to log (floats: its loss terms, whose
+   names start with ``loss`` where they must be finite, ``"fps"``, and the episode statistics of
+   :func:`escort_rl.trainers.scaffold.episode_stats`).
+3. :meth:`Algorithm.close`, once, when the run ends or fails: shut collectors and envs down.
+
+An algorithm that collects through a :class:`~escort_rl.trainers.scaffold.StagedCollector` keeps it
+as ``collectors`` (``None`` otherwise, as set here): when an iteration fails, the scaffold reads it
+to name a collector worker process that died.
+
+Every attribute a method reads is set in the ``__init__`` of the class that defines the method or of
+one of its bases, and every ``__init__`` calls its parent's: the base sets ``cfg``, ``model`` and
+``collectors``. A subclass that lacks a hook cannot be instantiated (``TypeError`` naming it).
+
+Example::
+
+    >>> class Mine(Algorithm):                                       # doctest: +SKIP
+    ...     def __init__(self, cfg, model):
+    ...         super().__init__(cfg, model)
+    ...         self.actor = ...; self.optimizer = ...
+    ...     @property
+    ...     def components(self):
+    ...         return {"actor": self.actor, "optimizer": self.optimizer}
+    ...     def iteration(self, index, seed):
+    ...         ...
+    ...         return {"frames": frames, "loss": loss, "episode_return": mean_return}
+    ...     def close(self):
+    ...         ...
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+from omegaconf import DictConfig
+
+
+class Algorithm(ABC):
+    """A training algorithm of the scaffold (see the module docstring for the hooks).
+
+    ``cfg``: the run config; ``model``: the POMDP model trained on (``None`` for an algorithm that
+    has none, e.g. Atari's A2C)."""
+
+    def __init__(self, cfg: DictConfig, model=None) -> None:
+        self.cfg, self.model = cfg, model
+        self.collectors = None  # a StagedCollector, for an algorithm that collects through one
+
+    @property
+    @abstractmethod
+    def components(self) -> dict:
+        """``{name: module | optimizer | object with state_dict}``: what a checkpoint holds."""
+
+    @abstractmethod
+    def iteration(self, index: int, seed: int) -> dict:
+        """Collect and learn for iteration ``index`` (0-based), seeded with ``seed``; return
+        ``{"frames": int, **scalars}``."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Shut the algorithm's collectors and envs down (called once, also after a failure)."""
