@@ -91,7 +91,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _train(overrides: list[str], quiet: bool = False) -> Path:
-    from escort_rl.trainers.registry import train
+    from escort_rl.trainers.training import train
     from escort_rl.trainers.resume import train_config
 
     cfg, saved = train_config(overrides)

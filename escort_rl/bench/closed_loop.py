@@ -141,7 +141,7 @@ def train_run(cfg, progress: bool = False) -> dict:
     iterations, training seconds (summed over sessions) and the iteration it resumed from."""
     from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint, resolve_checkpoint
     from escort_rl.reporting.paths import display_path
-    from escort_rl.trainers.registry import train
+    from escort_rl.trainers.training import train
 
     run_dir = Path(cfg.output_dir)
     saved = None
