@@ -81,7 +81,8 @@ def _parser() -> argparse.ArgumentParser:
                         "filter's belief (where the domain has one) and a uniform-random policy on the same seeded "
                         "episodes; writes summary.md, metrics.json and PNG plots.")
     ev.add_argument("--checkpoint", required=True, help="a run directory, its checkpoints/ folder or a checkpoint")
-    ev.add_argument("--episodes", type=int, default=None, help="number of episodes (default: the config's evaluate.episodes)")
+    ev.add_argument("--episodes", type=int, default=None,
+                    help="number of episodes (default: the config's evaluate.episodes)")
     ev.add_argument("--output", default=None, help="output folder (default: RUN_DIR/evaluation)")
     ev.add_argument("--greedy", action=argparse.BooleanOptionalAction, default=None,
                     help="--greedy: the most probable action; --no-greedy: sample from the policy "
@@ -104,8 +105,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _train(overrides: list[str], quiet: bool = False) -> Path:
-    from escort_rl.trainers.registry import train
     from escort_rl.trainers.resume import train_config
+    from escort_rl.trainers.training import train
 
     cfg, saved = train_config(overrides)
     if saved is not None:

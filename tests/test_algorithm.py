@@ -18,7 +18,7 @@ from escort_rl.trainers.algorithm import Algorithm
 from escort_rl.trainers.ppo import PPO, PPOBase
 from escort_rl.trainers.recurrent_ppo import RecurrentPPO
 from escort_rl.trainers.reinforce import Reinforce
-from escort_rl.trainers.registry import train
+from escort_rl.trainers.training import train
 from escort_rl.trainers.scaffold import CollectorAlgorithm, StagedCollector, run_training
 
 TINY_PPO = ["trainer=ppo", "filter=sir", "trainer.num_envs=4", "trainer.rollout_steps=6", "env.max_steps=12",

@@ -270,7 +270,7 @@ def test_output_dir_with_a_tilde_puts_the_whole_run_in_the_home_folder(tmp_path,
     """``output_dir='~/run'`` used to put the checkpoints in $HOME/run but config.yaml, the logs and
     history.json in a folder literally named '~' under the working directory."""
     from escort_rl.config import compose
-    from escort_rl.trainers.registry import train
+    from escort_rl.trainers.training import train
 
     home, cwd = tmp_path / "home", tmp_path / "cwd"
     home.mkdir()

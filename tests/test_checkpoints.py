@@ -32,7 +32,7 @@ from escort_rl.trainers.checkpointing import (
     list_checkpoints,
     load_checkpoint,
 )
-from escort_rl.trainers.registry import build_algorithm, train
+from escort_rl.trainers.training import build_algorithm, train
 from escort_rl.trainers.scaffold import (
     CollectorWorkerDied,
     make_logger,
@@ -400,6 +400,6 @@ def test_cli_prints_a_dead_worker_as_one_line(monkeypatch, capsys):
     def dies(*args, **kwargs):
         raise CollectorWorkerDied(worker_death_message(0, 9, -9, 2, Path("r/checkpoints/c"), Path("r")))
 
-    monkeypatch.setattr("escort_rl.trainers.registry.train", dies)
+    monkeypatch.setattr("escort_rl.trainers.training.train", dies)
     assert main(["train", "--quiet", *TINY]) == 2
     assert _one_line(capsys.readouterr().err).startswith("error: collector: worker 0 (pid 9) killed by SIGKILL")

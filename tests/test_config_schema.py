@@ -192,8 +192,8 @@ def test_a_yaml_key_the_schema_lacks_is_named(config_copy):
         fh.write("new_knob: 1\n")
     assert _error(["trainer=ppo"]).startswith("config: trainer.new_knob: a key of the yaml that its schema "
                                               "PPOConfig lacks")
-    text = (config_copy / "trainer" / "reinforce.yaml").read_text()
-    (config_copy / "trainer" / "reinforce.yaml").write_text(text.replace("iterations: 20", "iterations: many"))
+    with open(config_copy / "trainer" / "reinforce.yaml", "a") as fh:
+        fh.write("iterations: many\n")
     assert _error(["trainer=reinforce"]).startswith("config: trainer.iterations: expected an int, got 'many'")
 
 
@@ -423,17 +423,28 @@ def _parent_values(group: str, raw) -> dict:
     """What an option's first ``defaults`` entry composes to: a schema's defaults or another option."""
     parent = raw["defaults"][0]
     if parent.endswith("_schema"):
-        node = {"filter": schema.FILTER_SCHEMAS, "env": schema.ENV_SCHEMAS}[group][parent[: -len("_schema")]]
+        node = {"filter": schema.FILTER_SCHEMAS, "env": schema.ENV_SCHEMAS,
+                "trainer": schema.TRAINER_SCHEMAS}[group][parent[: -len("_schema")]]
         return OmegaConf.to_container(OmegaConf.structured(node), resolve=False)
     return _option_values(group, parent)
 
 
-@pytest.mark.parametrize("option", FILTERS)
-def test_a_filter_yaml_holds_only_what_differs_from_its_parent(option):
-    raw = OmegaConf.to_container(OmegaConf.load(config_dir() / "filter" / f"{option}.yaml"))
-    parent = _parent_values("filter", raw)
+@pytest.mark.parametrize("group, option", [*(("filter", o) for o in FILTERS), *(("trainer", o) for o in TRAINERS)])
+def test_a_group_yaml_holds_only_what_differs_from_its_parent(group, option):
+    raw = OmegaConf.to_container(OmegaConf.load(config_dir() / group / f"{option}.yaml"))
+    parent = _parent_values(group, raw)
     same = [k for k, v in raw.items() if k != "defaults" and parent.get(k) == v]
-    assert not same, f"filter/{option}.yaml repeats its parent's {same}"
+    assert not same, f"{group}/{option}.yaml repeats its parent's {same}"
+
+
+@pytest.mark.parametrize("kind", ["model", "filter", "trainer"])
+def test_every_registered_class_owns_the_params_its_schema_is_made_from(kind):
+    from escort_rl.config import registry
+
+    for name in registry.names(kind):
+        cls = registry.resolve(kind, name)
+        assert dataclasses.is_dataclass(cls.Params) and cls.Params.__dataclass_params__.frozen, name
+        assert registry.params(kind, name) is cls.Params, name
 
 
 @pytest.mark.parametrize("option", ENVS)

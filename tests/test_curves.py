@@ -6,7 +6,7 @@ import json
 
 from escort_rl.cli import main
 from escort_rl.config import compose
-from escort_rl.trainers.registry import train
+from escort_rl.trainers.training import train
 
 
 def test_curves_of_a_dvrl_and_a_deepsets_run(tmp_path, capsys):

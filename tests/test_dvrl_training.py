@@ -13,7 +13,7 @@ from escort_rl.config import ConfigError, compose
 from escort_rl.modules.dvrl_networks import StateReadout
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 from escort_rl.trainers.dvrl_a2c import a2c_loss, build_dvrl_policy, window_returns
-from escort_rl.trainers.registry import algorithm, train
+from escort_rl.trainers.training import algorithm, train
 
 SMALL = ["trainer=dvrl_a2c", "trainer.num_envs=4", "env.max_steps=30", "dvrl.module.num_particles=16",
          "dvrl.module.hidden=16", "dvrl.module.encoding_dim=16", "dvrl.module.summary_dim=16",

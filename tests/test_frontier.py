@@ -87,8 +87,9 @@ def test_a_variant_is_a_row_of_its_own_and_leaves_the_filters_cells_alone(tmp_pa
 
     assert parse_variant(["enkf_loc", "filter=enkf", "filter.localisation_radius=2", "filter.inflation=1.1"]) == (
         "enkf_loc", "enkf", ("localisation_radius=2", "inflation=1.1"))
-    for bad in (["x", "filter=escort"], ["x", "filter=nope", "filter.a=1"], ["sir", "filter=sir", "filter.roughening=0.1"],
-                ["1x", "filter=sir", "filter.roughening=0.1"], ["x", "filter=sir", "filter.roughening"],
+    for bad in (["x", "filter=escort"], ["x", "filter=nope", "filter.a=1"],
+                ["sir", "filter=sir", "filter.roughening=0.1"], ["1x", "filter=sir", "filter.roughening=0.1"],
+                ["x", "filter=sir", "filter.roughening"],
                 ["x", "filter.roughening=0.1"], ["x", "filter=sir", "filter=enkf", "filter.roughening=0.1"],
                 ["x", "filter=sir", "roughening=0.1"]):
         try:
@@ -102,8 +103,8 @@ def test_a_variant_is_a_row_of_its_own_and_leaves_the_filters_cells_alone(tmp_pa
     assert "variant" not in own.spec() and "filter_args" not in own.spec()
     out = tmp_path / "v"
     argv = ["bench", "frontier", "env=linear_gaussian", "env.model.state_dim=3", "--quick", "--methods", "enkf",
-            "--enkf-particles", "40", "--steps", "3", "--variant", "enkf_loc", "filter=enkf", "filter.localisation_radius=1",
-            "--output", str(out)]
+            "--enkf-particles", "40", "--steps", "3", "--variant", "enkf_loc", "filter=enkf",
+            "filter.localisation_radius=1", "--output", str(out)]
     assert main(argv) == 0
     rows = json.loads((out / "frontier.json").read_text())["rows"]
     assert [(r["method"], r["base"], r["settings"]) for r in rows] == [

@@ -11,7 +11,7 @@ from escort_rl.config import compose
 from escort_rl.modules import DeepSetsActor
 from escort_rl.trainers.checkpointing import load_checkpoint
 from escort_rl.trainers.ppo import make_ppo_loss
-from escort_rl.trainers.registry import train
+from escort_rl.trainers.training import train
 
 TINY_PPO = ["trainer=ppo", "filter=sir", "trainer.num_envs=4", "trainer.rollout_steps=6", "env.max_steps=12",
             "num_particles=8", "actor.hidden=8", "trainer.minibatches=2", "trainer.epochs=2",

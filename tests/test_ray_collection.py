@@ -42,7 +42,7 @@ def test_remote_collectors_get_the_policy_weights_and_stack_their_batches(local_
 @pytest.mark.slow
 def test_a_run_trains_on_ray_collectors(tmp_path, local_ray):
     from escort_rl.trainers.checkpointing import load_checkpoint
-    from escort_rl.trainers.registry import train
+    from escort_rl.trainers.training import train
 
     run = tmp_path / "run"
     train(compose(tiny_overrides("trainer.iterations=2", "collector.backend=ray", "collector.workers=2",

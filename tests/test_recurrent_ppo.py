@@ -180,7 +180,7 @@ def _params(run, cfg) -> dict:
 
 
 def _train(cfg, resume_state=None):
-    """What ``escort_rl.trainers.registry.train`` does for this algorithm."""
+    """What ``escort_rl.trainers.training.train`` does for this algorithm."""
     torch.manual_seed(int(cfg.seed))  # the networks' initial weights
     return run_training(cfg, RecurrentPPO(cfg, build_model(cfg.env)), resume_state=resume_state, progress=False)
 

@@ -9,7 +9,7 @@ from tensordict import TensorDict
 from escort_rl.config import compose
 from escort_rl.models import LightDark10D
 from escort_rl.trainers.checkpointing import load_checkpoint
-from escort_rl.trainers.registry import train
+from escort_rl.trainers.training import train
 from escort_rl.trainers.reinforce import Reinforce, TimeBaseline
 
 TINY_RF = ["trainer=reinforce", "filter=sir", "trainer.num_envs=4", "env.max_steps=12", "num_particles=8",

@@ -16,7 +16,7 @@ from escort_rl.cli import main
 from escort_rl.config import ConfigError, compose
 from escort_rl.modules import DeepSetsActor
 from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint
-from escort_rl.trainers.registry import train
+from escort_rl.trainers.training import train
 
 # The default job's filter (ESCORT) at a tiny size; eager, because compiling in every test process
 # would dominate the test time (tests/test_escort.py checks that compiled and eager updates agree).

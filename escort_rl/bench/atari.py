@@ -23,8 +23,13 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option, add_runner_options,
-                                          add_seeds_option)
+from escort_rl.bench.core.options import (
+    add_output_option,
+    add_overrides_argument,
+    add_quick_option,
+    add_runner_options,
+    add_seeds_option,
+)
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
 from escort_rl.bench.methods import check_choices
 from escort_rl.reporting.paths import write_results
@@ -255,7 +260,8 @@ def register(subparsers) -> None:
     p.add_argument("--games", nargs="+", default=None, help="of pong icehockey mspacman asteroids (default: pong)")
     p.add_argument("--agents", nargs="+", default=["dvrl", "escort_latent", "gru"], help="of dvrl escort_latent gru")
     p.add_argument("--frames", type=int, default=None,
-                   help=f"frames (agent steps) per run; required but for --quick (default: none; --quick: {QUICK_FRAMES})")
+                   help=f"frames (agent steps) per run; required but for --quick (default: none; --quick: "
+                   f"{QUICK_FRAMES})")
     add_seeds_option(p, 1, "seeds 0..N-1 per game and agent")
     p.add_argument("--device", default="cpu", help="torch device of the networks")
     add_quick_option(p, f"pong, every agent, {QUICK_FRAMES} frames per run")

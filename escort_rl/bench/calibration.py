@@ -124,12 +124,12 @@ def fixed_point_table(iterations=(100, 1000), emit=print) -> None:
 
 def main(args) -> None:
     from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
-    from escort_rl.config import compose
-    from escort_rl.trainers.builders import build_filter
 
     # the default training job's filter exactly as configs/filter/escort_train.yaml sets it (eager:
     # compiling changes nothing but the speed)
     from escort_rl.bench.core.options import set_threads
+    from escort_rl.config import compose
+    from escort_rl.trainers.builders import build_filter
 
     set_threads(args)
     lines = []

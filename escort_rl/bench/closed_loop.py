@@ -58,8 +58,8 @@ import torch
 from omegaconf import OmegaConf
 
 from escort_rl.bench import methods as registry
-from escort_rl.bench.methods import RANDOM, SECTIONS, applied_filter_set, check_at_least_one, check_names
 from escort_rl.bench.core.runner import Cell, backend_from_args, run_cells
+from escort_rl.bench.methods import RANDOM, SECTIONS, applied_filter_set, check_at_least_one, check_names
 from escort_rl.bench.trajectories import belief_failures
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.plots import plot_curves
@@ -139,9 +139,9 @@ def _comparable(config: dict) -> dict:
 def train_run(cfg, progress: bool = False) -> dict:
     """Train (or resume, or skip when finished) the run in ``cfg.output_dir``. Returns the frames,
     iterations, training seconds (summed over sessions) and the iteration it resumed from."""
-    from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint, resolve_checkpoint
     from escort_rl.reporting.paths import display_path
-    from escort_rl.trainers.registry import train
+    from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoint, resolve_checkpoint
+    from escort_rl.trainers.training import train
 
     run_dir = Path(cfg.output_dir)
     saved = None

@@ -193,8 +193,12 @@ def update_cost_markdown(result: dict) -> str:
 
 def register(subparsers) -> None:
     """Add ``bench cost`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option,
-                                              add_threads_option)
+    from escort_rl.bench.core.options import (
+        add_output_option,
+        add_overrides_argument,
+        add_quick_option,
+        add_threads_option,
+    )
 
     cost = subparsers.add_parser("cost", help="time one belief update: ESCORT vs SVGD vs SIR over d, N, B",
                                  description="Times one update for d, N and B, ESCORT, SVGD and SIR in the same "
@@ -228,8 +232,8 @@ def register(subparsers) -> None:
 def main(args) -> None:
     from pathlib import Path
 
-    from escort_rl.reporting.paths import write_results
     from escort_rl.config.schema import check_device
+    from escort_rl.reporting.paths import write_results
 
     problem = check_device(args.device)
     if problem is not None:

@@ -30,8 +30,14 @@ from pathlib import Path
 
 import torch
 
-from escort_rl.bench.core.options import (add_labelled_option, add_output_option, add_overrides_argument,
-                                          add_quick_option, add_runner_options, labelled)
+from escort_rl.bench.core.options import (
+    add_labelled_option,
+    add_output_option,
+    add_overrides_argument,
+    add_quick_option,
+    add_runner_options,
+    labelled,
+)
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.plots import plot_curves

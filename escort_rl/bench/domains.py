@@ -36,14 +36,26 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench import methods as registry
-from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option, add_runner_options,
-                                          add_seeds_option, filter_overrides)
+from escort_rl.bench.core.options import (
+    add_output_option,
+    add_overrides_argument,
+    add_quick_option,
+    add_runner_options,
+    add_seeds_option,
+    filter_overrides,
+)
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_groups, seed_blocks
 from escort_rl.bench.methods import applied_filter_set, build_domain, check_at_least_one, check_names
 from escort_rl.bench.reference_cell import ReferenceCell
-from escort_rl.bench.trajectories import (BEHAVIOUR_POLICY, NonFiniteBeliefError, filter_trajectories,
-                                          generate_trajectories, learned_trajectories, position_error_label,
-                                          time_per_step)
+from escort_rl.bench.trajectories import (
+    BEHAVIOUR_POLICY,
+    NonFiniteBeliefError,
+    filter_trajectories,
+    generate_trajectories,
+    learned_trajectories,
+    position_error_label,
+    time_per_step,
+)
 from escort_rl.metrics.reference import METRIC_LABELS, METRICS, SAMPLE, Reference, state_parts, summarize_series
 from escort_rl.reporting.paths import display_path, write_results
 from escort_rl.reporting.plots import plot_curve_panels, plot_curves

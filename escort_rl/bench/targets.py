@@ -198,14 +198,16 @@ def _config_path() -> Path:
 
 @lru_cache(maxsize=1)
 def _load_yaml(path: str) -> dict:
-    import yaml
+    from omegaconf import OmegaConf
 
-    with open(path, encoding="utf-8") as fh:
-        return yaml.safe_load(fh)
+    from escort_rl.config.schema import SyntheticBenchConfig, load_typed
+
+    return OmegaConf.to_container(load_typed(path, SyntheticBenchConfig), resolve=True)
 
 
 def synthetic_config() -> dict:
-    """The parsed ``configs/bench/synthetic.yaml`` (a fresh deep copy)."""
+    """``configs/bench/synthetic.yaml``, checked against
+    :class:`escort_rl.config.schema.SyntheticBenchConfig` (a fresh deep copy)."""
     import copy
 
     return copy.deepcopy(_load_yaml(str(_config_path())))

@@ -51,8 +51,12 @@ QUICK = dict(collector_workers=[1], num_envs=4, steps=10, batches=1)
 
 def register(subparsers) -> None:
     """Add ``bench throughput`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option,
-                                              add_threads_option)
+    from escort_rl.bench.core.options import (
+        add_output_option,
+        add_overrides_argument,
+        add_quick_option,
+        add_threads_option,
+    )
 
     thr = subparsers.add_parser("throughput", help="collector frames/s with the belief transform",
                                 description="Env frames per second through the training's collector: Collector "

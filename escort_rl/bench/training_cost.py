@@ -39,7 +39,7 @@ def training_throughput(filter_name: str, num_envs: int, output_dir: str | Path,
     ``{"filter", "B", "frames_per_second", "first_iteration_seconds", "frames", "seconds"}``, where
     frames per second are over iterations ``2..iterations`` (the first one compiles)."""
     from escort_rl.config import compose
-    from escort_rl.trainers.registry import train
+    from escort_rl.trainers.training import train
 
     if filter_name not in TRAINING_FILTERS:
         raise ValueError(f"filter: '{filter_name}' is not one of {sorted(TRAINING_FILTERS)}")

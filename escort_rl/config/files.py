@@ -14,3 +14,11 @@ def config_dir() -> Path:
 def option_names(group: str) -> list[str]:
     """The options of a Hydra group: the yaml files in ``configs/<group>/``."""
     return sorted(p.stem for p in (config_dir() / group).glob("*.yaml"))
+
+
+def check_filter_name(value: str | None) -> str | None:
+    """``None`` or the name of a ``configs/filter/`` option (a field ``check``)."""
+    if value is None:
+        return None
+    names = option_names("filter")
+    return None if value in names else f"no filter config '{value}'; choose one of {', '.join(names)}"

@@ -41,6 +41,8 @@ from typing import Any, Callable, Dict, List
 from escort_rl.config.errors import ConfigError
 
 MISSING = dataclasses.MISSING
+# Adam's first step moves a float32 parameter by lr / (1 - beta1) = 10 lr: a larger rate overflows
+MAX_LR = 1e37
 
 
 def param(default: Any = MISSING, **meta) -> Any:

@@ -46,6 +46,15 @@ REGISTRY: dict[str, dict[str, str]] = {
 1-D planning problem ``lightdark1d`` has none), ``filter`` names are filter families
 (``filter.kind``), ``trainer`` names are ``trainer.algorithm``."""
 
+TRAINER_PARAMS: dict[str, str] = {
+    "ppo": "escort_rl.trainers.params.PPOParams",
+    "reinforce": "escort_rl.trainers.params.ReinforceParams",
+    "dvrl_a2c": "escort_rl.trainers.params.DVRLA2CParams",
+    "recurrent_ppo": "escort_rl.trainers.params.RecurrentPPOParams",
+}
+"""The trainers' parameter classes (each trainer's ``Params``), from a light module: composing a
+config reads them without importing TorchRL."""
+
 _FIELD = {"model": "env.name", "filter": "filter.kind", "trainer": "trainer.algorithm"}
 
 
@@ -66,6 +75,14 @@ def target(kind: str, name: str) -> str:
 def resolve(kind: str, name: str) -> type:
     """The class registered as ``name`` (imported now)."""
     return import_target(target(kind, name))
+
+
+def params(kind: str, name: str) -> type:
+    """The parameters dataclass of the class registered as ``name`` (its ``Params``)."""
+    if kind == "trainer":
+        target(kind, name)  # an unknown name is named
+        return import_target(TRAINER_PARAMS[name])
+    return resolve(kind, name).Params
 
 
 def import_target(path: str) -> type:

@@ -44,8 +44,8 @@ from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingManda
 
 from escort_rl.config import registry
 from escort_rl.config.errors import ConfigError
-from escort_rl.config.files import option_names
-from escort_rl.config.params import describe_type, param, value_problem
+from escort_rl.config.files import check_filter_name
+from escort_rl.config.params import MAX_LR, describe_type, param, value_problem
 
 
 _f = param
@@ -58,8 +58,6 @@ def _sub(cls) -> Any:
 # seeds are signed 64-bit ints (what torch.manual_seed takes); the env and iteration seeds derived
 # from them stay in range
 SEED_MIN, SEED_END = -(2**63), 2**63
-# Adam's first step moves a float32 parameter by lr / (1 - beta1) = 10 lr: a larger rate overflows
-MAX_LR = 1e37
 
 
 # ------------------------------------------------------------------------------------- checks
@@ -104,14 +102,6 @@ def check_output_dir(value: str) -> str | None:
     return None
 
 
-def check_filter_name(value: str | None) -> str | None:
-    """``None`` or the name of a ``configs/filter/`` option."""
-    if value is None:
-        return None
-    names = option_names("filter")
-    return None if value in names else f"no filter config '{value}'; choose one of {', '.join(names)}"
-
-
 def check_nonempty(value: str) -> str | None:
     return None if value else "must not be empty"
 
@@ -125,12 +115,11 @@ def check_number_or_list(value) -> str | None:
 
 
 # ------------------------------------------------------------------- schemas of classes
-def class_schema(cls: type, schema_name: str, head: list[tuple] = ()) -> type:
-    """The Hydra schema of ``cls``'s parameters: a dataclass with the fields of ``cls.Params``,
-    defaults and range metadata included, after the fields of ``head`` (``(name, type, field)``
-    triples, e.g. ``_target_``). A mapping field has no default (``???``): OmegaConf merges mappings
-    key by key, so a default would keep the keys a yaml leaves out."""
-    params = cls.Params
+def params_schema(params: type, schema_name: str, head: list[tuple] = ()) -> type:
+    """The Hydra schema of a parameters dataclass: a dataclass with its fields, defaults and range
+    metadata included, after the fields of ``head`` (``(name, type, field)`` triples, e.g.
+    ``_target_``). A mapping field has no default (``???``): OmegaConf merges mappings key by key,
+    so a default would keep the keys a yaml leaves out."""
     hints = typing.get_type_hints(params)
     specs = list(head)
     for f in dataclasses.fields(params):
@@ -153,7 +142,7 @@ def _target_field(kind: str, name: str) -> tuple:
 
 def model_schema(name: str, schema_name: str) -> type:
     """The schema of the model registered as ``name`` (``env.model``)."""
-    return class_schema(registry.resolve("model", name), schema_name, [_target_field("model", name)])
+    return params_schema(registry.params("model", name), schema_name, [_target_field("model", name)])
 
 
 def filter_schema(kind: str, schema_name: str) -> type:
@@ -161,7 +150,13 @@ def filter_schema(kind: str, schema_name: str) -> type:
     ``kind`` names the family (the class of configs saved without ``_target_``)."""
     head = [_target_field("filter", kind), ("name", str, field(default=kind)),
             ("kind", str, field(default=kind, metadata={"choices": [kind]}))]
-    return class_schema(registry.resolve("filter", kind), schema_name, head)
+    return params_schema(registry.params("filter", kind), schema_name, head)
+
+
+def trainer_schema(algorithm: str, schema_name: str) -> type:
+    """The schema of a trainer (``configs/trainer/*.yaml``): ``algorithm`` names it."""
+    head = [("algorithm", str, field(default=algorithm, metadata={"choices": [algorithm]}))]
+    return params_schema(registry.params("trainer", algorithm), schema_name, head)
 
 
 # ------------------------------------------------------------------------------- env (models)
@@ -322,74 +317,10 @@ FILTER_SCHEMAS = {"sir": SIRConfig, "enkf": EnKFConfig, "svgd": SVGDConfig, "esc
 
 
 # ----------------------------------------------------------------------------------- trainers
-@dataclass
-class TrainerConfig:
-    """The keys every trainer reads: an iteration is ``num_envs`` episodes of ``env.max_steps`` steps."""
-
-    algorithm: str = MISSING
-    iterations: int = _f(MISSING, ge=1)
-    num_envs: int = _f(MISSING, ge=1)
-    lr: float = _f(MISSING, gt=0, lt=MAX_LR)
-    gamma: float = _f(MISSING, gt=0, le=1)
-    entropy_coef: float = _f(MISSING, ge=0)
-    max_grad_norm: float = _f(MISSING, gt=0)
-    checkpoint_every: int = _f(MISSING, ge=1)
-    keep_checkpoints: int = _f(MISSING, ge=1)
-
-
-@dataclass
-class BeliefTrainerConfig(TrainerConfig):
-    """The keys of the trainers that collect on a belief filter's beliefs (PPO, REINFORCE)."""
-
-    reward_scale: float = _f(MISSING, gt=0)
-    exploring_starts: bool = _f(False)
-    warm_start_filter: Optional[str] = _f(None, check=check_filter_name)
-    warm_start_iterations: int = _f(0, ge=0)
-
-
-@dataclass
-class ReinforceConfig(BeliefTrainerConfig):
-    """``configs/trainer/reinforce.yaml``."""
-
-    algorithm: str = _f("reinforce", choices=["reinforce"])
-    # checked before training only: a config naming another baseline still composes
-    baseline: str = _f(MISSING, choices=["time", "learned"], stage="train")
-    minibatch_size: int = _f(MISSING, ge=1)
-
-
-@dataclass
-class PPOConfig(BeliefTrainerConfig):
-    """``configs/trainer/ppo.yaml``."""
-
-    algorithm: str = _f("ppo", choices=["ppo"])
-    rollout_steps: int = _f(MISSING, ge=1)
-    gae_lambda: float = _f(MISSING, ge=0, le=1)
-    clip_epsilon: float = _f(MISSING, gt=0)
-    epochs: int = _f(MISSING, ge=1)
-    warm_start_epochs: Optional[int] = _f(None, ge=1)
-    minibatches: int = _f(MISSING, ge=1)
-    critic_coef: float = _f(MISSING, ge=0)
-    critic_input: str = _f("belief", choices=["belief", "state"])
-    action_repeat: int = _f(1, ge=1)
-    update_particles: Optional[int] = _f(None, ge=1)
-
-
-@dataclass
-class DVRLA2CConfig(TrainerConfig):
-    """``configs/trainer/dvrl_a2c.yaml``."""
-
-    algorithm: str = _f("dvrl_a2c", choices=["dvrl_a2c"])
-    readout_lr: float = _f(MISSING, gt=0, lt=MAX_LR)
-
-
-@dataclass
-class RecurrentPPOConfig(PPOConfig):
-    """``configs/trainer/recurrent_ppo.yaml``."""
-
-    algorithm: str = _f("recurrent_ppo", choices=["recurrent_ppo"])
-    hidden: int = _f(MISSING, ge=1)
-
-
+ReinforceConfig = trainer_schema("reinforce", "ReinforceConfig")
+PPOConfig = trainer_schema("ppo", "PPOConfig")
+DVRLA2CConfig = trainer_schema("dvrl_a2c", "DVRLA2CConfig")
+RecurrentPPOConfig = trainer_schema("recurrent_ppo", "RecurrentPPOConfig")
 TRAINER_SCHEMAS = {"reinforce": ReinforceConfig, "ppo": PPOConfig, "dvrl_a2c": DVRLA2CConfig,
                    "recurrent_ppo": RecurrentPPOConfig}
 

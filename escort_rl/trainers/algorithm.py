@@ -44,18 +44,33 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
+
+from escort_rl.config.params import build_params
+
+
+def trainer_params(params: type, trainer_cfg):
+    """``params`` (a trainer's parameters dataclass) from a config's ``trainer`` group, checked;
+    errors name ``trainer.<key>``."""
+    values = OmegaConf.to_container(trainer_cfg, resolve=True) if OmegaConf.is_config(trainer_cfg) else dict(trainer_cfg)
+    values.pop("algorithm", None)
+    return build_params(params, None, values, owner="trainer")
 
 
 class Algorithm(ABC):
     """A training algorithm of the scaffold (see the module docstring for the hooks).
 
     ``cfg``: the run config; ``model``: the POMDP model trained on (``None`` for an algorithm that
-    has none, e.g. Atari's A2C)."""
+    has none, e.g. Atari's A2C). An algorithm whose class names a ``Params`` dataclass
+    (:mod:`escort_rl.trainers.params`) owns ``self.params``, built from ``cfg.trainer`` and checked
+    (a key the config lacks takes its default; an unknown key is an error naming it)."""
+
+    Params: type | None = None
 
     def __init__(self, cfg: DictConfig, model=None) -> None:
         self.cfg, self.model = cfg, model
         self.collectors = None  # a StagedCollector, for an algorithm that collects through one
+        self.params = None if self.Params is None else trainer_params(self.Params, cfg.trainer)
 
     @property
     @abstractmethod

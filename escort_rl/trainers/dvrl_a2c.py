@@ -47,6 +47,7 @@ from escort_rl.trainers.builders import build_model, input_scaling
 from escort_rl.trainers.checkpointing import load_checkpoint
 from escort_rl.trainers.scaffold import episode_stats
 from escort_rl.trainers.validation import validate_train_config
+from escort_rl.trainers.params import DVRLA2CParams
 
 EPISODE_KEYS = (("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "true_state"))
 
@@ -127,6 +128,8 @@ class DVRLA2C(Algorithm):
     (:func:`escort_rl.trainers.scaffold.run_training`; see the module docstring for one iteration).
     It steps its envs itself (no collector). Components: ``actor`` (the DVRL policy with its
     readout), ``optimizer`` and ``readout_optimizer``."""
+
+    Params = DVRLA2CParams
 
     def __init__(self, cfg: DictConfig, model) -> None:
         validate_dvrl_config(cfg)

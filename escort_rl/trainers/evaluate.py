@@ -21,7 +21,7 @@ from escort_rl.planners import ScriptedBeliefController
 from escort_rl.trainers.builders import belief_keys, build_actor, build_model, make_env, trained_action_repeat
 from escort_rl.transforms import action_repeat_of
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
-from escort_rl.trainers.registry import algorithm
+from escort_rl.trainers.training import algorithm
 
 
 def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor | None = None) -> dict:

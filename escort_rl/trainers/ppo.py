@@ -43,6 +43,7 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory, trained_action_repeat
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, in_warm_start, make_collector
+from escort_rl.trainers.params import PPOParams
 
 
 def make_ppo_loss(actor, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:
@@ -185,6 +186,8 @@ class PPOBase(CollectorAlgorithm):
 class PPO(PPOBase):
     """Clipped PPO with GAE on the belief particles (see the module docstring). Components:
     ``actor`` and ``critic`` (DeepSets networks) and ``optimizer``."""
+
+    Params = PPOParams
 
     def __init__(self, cfg: DictConfig, model) -> None:
         self.actor = build_actor(cfg, model.state_dim, model.n_actions)

@@ -38,6 +38,7 @@ from escort_rl.envs import POMDPEnv
 from escort_rl.modules.recurrent import make_recurrent_actor_critic, make_recurrent_primer
 from escort_rl.trainers.builders import build_model, input_scaling
 from escort_rl.trainers.ppo import PPOBase
+from escort_rl.trainers.params import RecurrentPPOParams
 
 DEFAULT_HIDDEN = 64
 
@@ -142,6 +143,8 @@ class RecurrentPPO(PPOBase):
     docstring): :class:`~escort_rl.trainers.ppo.PPOBase`'s update and iteration, with whole env rows
     as minibatches and the loss in recurrent mode. Components: ``actor`` (the policy), ``critic``
     (the value network; it shares the encoder and the GRU with the policy) and ``optimizer``."""
+
+    Params = RecurrentPPOParams
 
     def __init__(self, cfg: DictConfig, model) -> None:
         validate_recurrent_ppo_config(cfg)

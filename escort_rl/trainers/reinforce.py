@@ -27,6 +27,7 @@ from torchrl.objectives import ReinforceLoss, ValueEstimators
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import belief_keys, build_actor, env_factory
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
+from escort_rl.trainers.params import ReinforceParams
 
 
 class TimeBaseline(nn.Module):
@@ -61,6 +62,8 @@ class TimeBaseline(nn.Module):
 class Reinforce(CollectorAlgorithm):
     """REINFORCE + entropy on ``ReinforceLoss`` (see the module docstring). Components: ``actor``,
     ``critic`` (the learned or the time baseline) and ``optimizer``."""
+
+    Params = ReinforceParams
 
     def __init__(self, cfg: DictConfig, model) -> None:
         frames = int(cfg.trainer.num_envs) * int(cfg.env.max_steps)  # num_envs full episodes

@@ -143,8 +143,8 @@ class ProcessBackend:
         self.workers, self.pool = workers, None
 
     def map(self, cells: list[Cell]):
-        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
         import multiprocessing as mp
+        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
         if self.pool is None:
             self.pool = ProcessPoolExecutor(self.workers, mp_context=mp.get_context("spawn"))

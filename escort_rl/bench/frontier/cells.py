@@ -27,8 +27,8 @@ from pathlib import Path
 
 import torch
 
-from escort_rl.bench.reference_cell import ReferenceCell
 from escort_rl.bench.core.runner import Cell
+from escort_rl.bench.reference_cell import ReferenceCell
 from escort_rl.metrics.reference import Reference, exact_reference, has_exact_posterior
 
 FILTER_METHODS = ("sir", "enkf", "svgd", "escort")

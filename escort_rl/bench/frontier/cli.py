@@ -106,9 +106,9 @@ def write_frontier(out: Path, result: dict, echo: bool = True) -> None:
 
 
 def main(args) -> None:
-    from escort_rl.bench.frontier.run import label
     from escort_rl.bench.core.options import compile_override
     from escort_rl.bench.core.runner import backend_from_args
+    from escort_rl.bench.frontier.run import label
 
     model, model_args = model_spec(args)
     compile = compile_override([o for o in args.overrides if o.startswith("filter.")])

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import torch
 
-from escort_rl.bench.frontier.cells import FILTER_METHODS, ITERATIVE, build_model, make_filter, model_label
 from escort_rl.bench.core.runner import Cell, CellStore, InProcessBackend, run_cells
+from escort_rl.bench.frontier.cells import FILTER_METHODS, ITERATIVE, build_model, make_filter, model_label
 from escort_rl.metrics.reference import exact_posterior_start, exact_posterior_update
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
@@ -171,7 +171,8 @@ def register(subparsers) -> None:
                    help="the rows, the first the baseline of the differences, e.g. sir:10000 enkf:1000 escort:300:50")
     p.add_argument("--episodes", type=int, default=None,
                    help=f"closed-loop episodes per row (default: 50; --quick: {QUICK['episodes']})")
-    p.add_argument("--steps", type=int, default=None, help=f"steps per episode (default: 20; --quick: {QUICK['steps']})")
+    p.add_argument("--steps", type=int, default=None,
+                   help=f"steps per episode (default: 20; --quick: {QUICK['steps']})")
     add_quick_option(p, f"{QUICK['episodes']} episodes of {QUICK['steps']} steps")
     add_output_option(p, "outputs/bench/frontier_decisions", "frontier_decisions.md and frontier_decisions.json")
     add_runner_options(p, seeds_per_cell=False)

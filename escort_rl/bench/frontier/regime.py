@@ -92,9 +92,15 @@ QUICK = dict(dims=[2, 4], obs_std=[1.0])
 
 
 def register(subparsers) -> None:
-    from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option,
-                                              add_runner_options, add_seeds_option)
-    from escort_rl.bench.frontier.cli import QUICK as FRONTIER_QUICK, add_method_options
+    from escort_rl.bench.core.options import (
+        add_output_option,
+        add_overrides_argument,
+        add_quick_option,
+        add_runner_options,
+        add_seeds_option,
+    )
+    from escort_rl.bench.frontier.cli import QUICK as FRONTIER_QUICK
+    from escort_rl.bench.frontier.cli import add_method_options
 
     quick = {**FRONTIER_QUICK, **QUICK}
 
@@ -131,13 +137,13 @@ def register(subparsers) -> None:
 
 
 def main(args) -> None:
-    from escort_rl.bench.frontier.cells import FILTER_METHODS
-    from escort_rl.bench.frontier.run import DEFAULT_ITERATIONS, DEFAULT_PARTICLES
-    from escort_rl.bench.core.runner import backend_from_args
-    from escort_rl.reporting.paths import write_results
-
     from escort_rl.bench.core.options import compile_override
-    from escort_rl.bench.frontier.cli import QUICK as FRONTIER_QUICK, frontier_variants
+    from escort_rl.bench.core.runner import backend_from_args
+    from escort_rl.bench.frontier.cells import FILTER_METHODS
+    from escort_rl.bench.frontier.cli import QUICK as FRONTIER_QUICK
+    from escort_rl.bench.frontier.cli import frontier_variants
+    from escort_rl.bench.frontier.run import DEFAULT_ITERATIONS, DEFAULT_PARTICLES
+    from escort_rl.reporting.paths import write_results
 
     quick = {**FRONTIER_QUICK, **QUICK} if args.quick else {}
     full = dict(dims=[10, 20, 50, 100, 200], obs_std=[0.1, 1.0], seeds=5, steps=20, reference_particles=100_000)

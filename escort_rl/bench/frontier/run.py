@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from escort_rl.bench.core.runner import CellStore, InProcessBackend, run_cells
 from escort_rl.bench.frontier.cells import (
     FILTER_METHODS,
     ITERATIVE,
@@ -16,7 +17,6 @@ from escort_rl.bench.frontier.cells import (
 )
 from escort_rl.bench.frontier.pareto import best_at_budgets, pareto_front
 from escort_rl.bench.methods import check_choices
-from escort_rl.bench.core.runner import CellStore, InProcessBackend, run_cells
 from escort_rl.metrics.reference import Reference, has_exact_posterior
 from escort_rl.reporting.stats import mean_se
 

@@ -14,8 +14,13 @@ from escort_rl.bench.synthetic.tracking import STEPS
 
 def register(subparsers) -> None:
     """Add ``bench synthetic`` and ``bench scaling`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import (add_output_option, add_overrides_argument, add_quick_option,
-                                              add_runner_options, add_seeds_option)
+    from escort_rl.bench.core.options import (
+        add_output_option,
+        add_overrides_argument,
+        add_quick_option,
+        add_runner_options,
+        add_seeds_option,
+    )
     from escort_rl.bench.targets import SCALABILITY_STRUCTURES
 
     syn = subparsers.add_parser("synthetic", help="the paper's GMM targets (Table 2): ESCORT, NoCorr, SVGD, SIR, "
@@ -62,9 +67,10 @@ def register(subparsers) -> None:
 
 
 def filter_arguments(overrides) -> dict:
-    """Positional ``filter.KEY=VALUE ...`` overrides as ESCORT/SVGD constructor arguments, each value read as OmegaConf reads a dotlist value
-    (``4`` an int, ``0.5`` a float, ``true`` a bool); a key the constructor does not take is an error
-    naming it and the keys it does take, and a bad value is the constructor's error naming the key."""
+    """Positional ``filter.KEY=VALUE ...`` overrides as ESCORT/SVGD constructor arguments, each value
+    read as OmegaConf reads a dotlist value (``4`` an int, ``0.5`` a float, ``true`` a bool); a key
+    the constructor does not take is an error naming it and the keys it does take, and a bad value
+    is the constructor's error naming the key."""
     import dataclasses
 
     from omegaconf import OmegaConf

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import torch
 
-from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices
 from escort_rl.bench.core.runner import CellStore, InProcessBackend, run_groups, seed_blocks
+from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices
 from escort_rl.bench.synthetic.cells import INITS, TRACKING_METHODS, SyntheticCell, TrackingCell
 from escort_rl.bench.synthetic.tracking import STEPS
 from escort_rl.bench.targets import SCALABILITY_STRUCTURES, load_target

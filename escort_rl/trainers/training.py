@@ -1,5 +1,5 @@
-"""The training algorithms by name (``trainer.algorithm``), and :func:`train`, which runs one on the
-training scaffold."""
+"""Training a run: the algorithm a config names (``trainer.algorithm``, looked up in
+:mod:`escort_rl.config.registry`), and :func:`train`, which runs it on the training scaffold."""
 
 from __future__ import annotations
 
@@ -8,38 +8,20 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
-from escort_rl.config import ConfigError
-
-ALGORITHMS = ("ppo", "reinforce", "dvrl_a2c", "recurrent_ppo")
+from escort_rl.config import registry
 
 
 def algorithm(cfg: DictConfig) -> str:
-    """``cfg.trainer.algorithm``; configs saved before the key existed are ``reinforce``."""
+    """``cfg.trainer.algorithm``, a registered trainer (configs saved before the key existed are
+    ``reinforce``); an unknown name raises a ``ConfigError`` naming the choices."""
     name = cfg.trainer.get("algorithm", "reinforce")
-    if name not in ALGORITHMS:
-        raise ConfigError(f"trainer.algorithm: unknown '{name}'; choose one of {list(ALGORITHMS)} "
-                          "(trainer=ppo, trainer=reinforce, trainer=dvrl_a2c or trainer=recurrent_ppo)")
+    registry.target("trainer", name)
     return name
 
 
 def build_algorithm(cfg: DictConfig, model):
     """The :class:`~escort_rl.trainers.algorithm.Algorithm` of ``cfg`` for ``model``."""
-    name = algorithm(cfg)
-    if name == "ppo":
-        from escort_rl.trainers.ppo import PPO
-
-        return PPO(cfg, model)
-    if name == "dvrl_a2c":
-        from escort_rl.trainers.dvrl_a2c import DVRLA2C
-
-        return DVRLA2C(cfg, model)
-    if name == "recurrent_ppo":
-        from escort_rl.trainers.recurrent_ppo import RecurrentPPO
-
-        return RecurrentPPO(cfg, model)
-    from escort_rl.trainers.reinforce import Reinforce
-
-    return Reinforce(cfg, model)
+    return registry.resolve("trainer", algorithm(cfg))(cfg, model)
 
 
 def train(cfg: DictConfig, resume_state: dict | None = None, progress: bool = True) -> Path:

@@ -1,0 +1,161 @@
+"""The trainers' parameters (``trainer.*``): one frozen dataclass per algorithm, with its ranges.
+
+Each trainer class names its dataclass as ``Params`` (``PPO.Params is PPOParams``); Hydra's schema of
+``configs/trainer/<name>.yaml`` is made from it, so the yaml holds only what differs from these
+defaults. They live in this light module, apart from the trainers' code, so that composing a config
+does not import TorchRL. An iteration is ``num_envs`` episodes of ``env.max_steps`` steps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+from escort_rl.config.files import check_filter_name
+from escort_rl.config.params import MAX_LR, param
+
+@dataclass(frozen=True)
+class TrainerParams:
+    """The parameters every trainer reads.
+
+    Attributes:
+        iterations: training iterations.
+        num_envs: environments collected in parallel.
+        lr: the optimiser's learning rate.
+        gamma: the discount per decision.
+        entropy_coef: the entropy bonus's weight.
+        max_grad_norm: gradients are clipped to this norm.
+        checkpoint_every: iterations between checkpoints (and one at the end).
+        keep_checkpoints: the newest checkpoints kept.
+    """
+
+    iterations: int = param(20, ge=1)
+    num_envs: int = param(16, ge=1)
+    lr: float = param(1e-3, gt=0, lt=MAX_LR)
+    gamma: float = param(0.99, gt=0, le=1)
+    entropy_coef: float = param(0.01, ge=0)
+    max_grad_norm: float = param(0.5, gt=0)
+    checkpoint_every: int = param(5, ge=1)
+    keep_checkpoints: int = param(3, ge=1)
+
+
+@dataclass(frozen=True)
+class BeliefTrainerParams(TrainerParams):
+    """The parameters of the trainers that collect on a belief filter's beliefs.
+
+    Attributes:
+        reward_scale: rewards are multiplied by this before the losses (the critic fits returns of
+            order one to ten instead of hundreds).
+        exploring_starts: the training envs start from the env group's ``exploring_starts`` (a start
+            box that covers the goal), the evaluation from the env's own start distribution.
+        warm_start_filter: the first ``warm_start_iterations`` iterations collect on this filter's
+            beliefs (a ``configs/filter/`` name), the rest on the run's filter; ``None``: every
+            iteration on the run's filter. Policies over particles move between filters, and an SIR
+            update costs about a hundredth of an ESCORT one.
+        warm_start_iterations: see ``warm_start_filter``.
+    """
+
+    reward_scale: float = param(0.1, gt=0)
+    exploring_starts: bool = param(False)
+    warm_start_filter: Optional[str] = param(None, check=check_filter_name)
+    warm_start_iterations: int = param(0, ge=0)
+
+
+@dataclass(frozen=True)
+class ReinforceParams(BeliefTrainerParams):
+    """REINFORCE (:class:`escort_rl.trainers.reinforce.Reinforce`).
+
+    Attributes:
+        baseline: ``time`` (the mean return-to-go per time step) or ``learned`` (a DeepSets critic);
+            checked before training only, so that a config naming another baseline still composes.
+        minibatch_size: samples per backward pass (gradients are accumulated over a batch).
+    """
+
+    lr: float = param(3e-3, gt=0, lt=MAX_LR)
+    max_grad_norm: float = param(1.0, gt=0)
+    reward_scale: float = param(0.01, gt=0)
+    baseline: str = param("time", choices=["time", "learned"], stage="train")
+    minibatch_size: int = param(4000, ge=1)
+
+
+@dataclass(frozen=True)
+class PPOParams(BeliefTrainerParams):
+    """PPO (:class:`escort_rl.trainers.ppo.PPO`): TorchRL's ``ClipPPOLoss`` with GAE, minibatch
+    epochs from a replay buffer. An iteration runs ``env.max_steps`` steps in every env (episodes
+    reset on their own inside it), as ``env.max_steps / rollout_steps`` PPO updates on batches of
+    ``num_envs × rollout_steps`` frames. The defaults are the default job's: 30 iterations on SIR
+    beliefs (the warm start), then 3 on the run's filter.
+
+    Attributes:
+        rollout_steps: steps per env in one PPO batch (64 × 125 = 8000 frames).
+        gae_lambda: GAE's λ.
+        clip_epsilon: PPO's clip ε.
+        epochs: passes over each batch on the run's filter (ESCORT: collection is dear).
+        warm_start_epochs: the passes during the warm start (SIR: collection is cheap); ``None``:
+            ``epochs``.
+        minibatches: minibatches per batch (1000-frame minibatches: 32 Adam steps per batch).
+        critic_coef: the value loss's weight.
+        critic_input: ``belief``: the critic is a DeepSets network on the particles, like the policy;
+            ``state``: an MLP on the simulator's true state (asymmetric actor-critic: only training
+            reads it, the policy acts on beliefs).
+        action_repeat: env steps per decision (:class:`escort_rl.transforms.ActionRepeat`; the belief
+            is updated at every step); ``rollout_steps`` counts decisions and ``gamma`` discounts per
+            decision.
+        update_particles: particles per frame in the update (``None``: all): the epochs train on a
+            random subset of M of each frame's N particles, with the old log-probabilities recomputed
+            on it; the policy acts on all N. 25 of 100 halved a 64-env iteration on SIR beliefs and
+            learned as fast per frame as all 100 did.
+    """
+
+    iterations: int = param(33, ge=1)
+    num_envs: int = param(64, ge=1)
+    entropy_coef: float = param(0.001, ge=0)  # 0.01 kept the policy near 1.9 nats; both learn alike
+    exploring_starts: bool = param(True)
+    warm_start_filter: Optional[str] = param("sir_rough", check=check_filter_name)
+    warm_start_iterations: int = param(30, ge=0)
+    rollout_steps: int = param(125, ge=1)
+    gae_lambda: float = param(0.95, ge=0, le=1)
+    clip_epsilon: float = param(0.2, gt=0)
+    epochs: int = param(8, ge=1)
+    warm_start_epochs: Optional[int] = param(4, ge=1)
+    minibatches: int = param(8, ge=1)
+    critic_coef: float = param(0.5, ge=0)
+    critic_input: str = param("state", choices=["belief", "state"])
+    action_repeat: int = param(1, ge=1)
+    update_particles: Optional[int] = param(25, ge=1)
+
+
+@dataclass(frozen=True)
+class RecurrentPPOParams(PPOParams):
+    """Recurrent PPO (:class:`escort_rl.trainers.recurrent_ppo.RecurrentPPO`): a GRU on the raw
+    observations, no belief.
+
+    Attributes:
+        hidden: width of the observation encoder, the GRU's hidden state and the heads.
+    """
+
+    iterations: int = param(60, ge=1)
+    entropy_coef: float = param(0.01, ge=0)
+    exploring_starts: bool = param(False)
+    warm_start_filter: Optional[str] = param(None, check=check_filter_name)
+    warm_start_iterations: int = param(0, ge=0)
+    epochs: int = param(3, ge=1)
+    warm_start_epochs: Optional[int] = param(None, ge=1)
+    minibatches: int = param(4, ge=1)  # groups of num_envs / minibatches whole rows
+    critic_input: str = param("belief", choices=["belief", "state"])
+    update_particles: Optional[int] = param(None, ge=1)
+    hidden: int = param(64, ge=1)
+
+
+@dataclass(frozen=True)
+class DVRLA2CParams(TrainerParams):
+    """DVRL by A2C (:class:`escort_rl.trainers.dvrl_a2c.DVRLA2C`); the module's sizes are the
+    ``dvrl`` group's. Values marked (original) are DVRL's.
+
+    Attributes:
+        lr: Adam's rate (ours; the original used RMSprop at 2e-4 with 16 Atari envs).
+        readout_lr: the state readout's Adam (ours: a probe for the position error).
+    """
+
+    lr: float = param(5e-4, gt=0, lt=MAX_LR)
+    readout_lr: float = param(1e-3, gt=0, lt=MAX_LR)
