@@ -12,13 +12,13 @@ import torch
 from conftest import gen
 from omegaconf import OmegaConf
 
+from escort_rl.config import ConfigError
 from escort_rl.models.multi_target import (
     MultiTargetTracking20D,
     MultiTargetTracking20DParams,
     describe_correlations,
     paper_correlations,
 )
-from escort_rl.config import ConfigError
 from escort_rl.models.protocol import POMDPModel, check_model
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "env" / "mtt20d.yaml"

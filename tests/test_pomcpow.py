@@ -17,8 +17,13 @@ from escort_rl.config import ConfigError
 from escort_rl.models import DOMAINS, check_model
 from escort_rl.models.light_dark_1d import DECLARE, LightDark1D
 from escort_rl.planners import pomcpow as pomcpow_module
-from escort_rl.planners.planner_config import LIGHTDARK1D_PLANNER
-from escort_rl.planners.planner_config import build_planner, load_planner_config, planner_domains, zero_leaf_value
+from escort_rl.planners.planner_config import (
+    LIGHTDARK1D_PLANNER,
+    build_planner,
+    load_planner_config,
+    planner_domains,
+    zero_leaf_value,
+)
 from escort_rl.planners.policy import POMCPOWPolicy
 from escort_rl.planners.pomcpow import POMCPOW, ActionNode, BeliefNode, POMCPOWParams
 from escort_rl.trainers.builders import make_env

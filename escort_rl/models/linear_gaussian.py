@@ -81,9 +81,11 @@ class LinearGaussian(HasParams):
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         f32 = dict(dtype=torch.float32, device=self.device)
         eye = torch.eye(d, **f32)
-        self.F = torch.as_tensor(transition_matrix, **f32) if transition_matrix is not None else p.transition_scale * eye
+        self.F = (torch.as_tensor(transition_matrix, **f32) if transition_matrix is not None
+                  else p.transition_scale * eye)
         self.Q = torch.as_tensor(process_cov, **f32) if process_cov is not None else p.process_std**2 * eye
-        self.H = torch.as_tensor(observation_matrix, **f32) if observation_matrix is not None else torch.eye(m, d, **f32)
+        self.H = (torch.as_tensor(observation_matrix, **f32) if observation_matrix is not None
+                  else torch.eye(m, d, **f32))
         self.R = (torch.as_tensor(observation_cov, **f32) if observation_cov is not None
                   else p.obs_std**2 * torch.eye(m, **f32))
         if controls is None:

@@ -56,6 +56,7 @@ LIGHTDARK1D_PLANNER = dict(max_depth=5, exploration_constant=100.0, k_action=3.0
                            k_observation=2.0, alpha_observation=0.1, discount=0.9, leaf_value=zero_leaf_value)
 """POMCPOW's settings (all its arguments but ``n_sim`` and ``time_budget_s``) for the 1-D test
 problem :class:`escort_rl.models.LightDark1D`, used by the tests and by ``escort-rl bench
-planner-budget``: depth 5 reaches the light and comes back; an exploration constant of the order of the rewards; all three actions at once (``k_a = 3``,
-``α_a = 0``); few observation children (``k_o = 2``, ``α_o = 0.1``) so that each holds many weighted
-particles; and a zero leaf value, since random rollouts (which declare at random) mostly add noise."""
+planner-budget``: depth 5 reaches the light and comes back; an exploration constant of the order of
+the rewards; all three actions at once (``k_a = 3``, ``α_a = 0``); few observation children
+(``k_o = 2``, ``α_o = 0.1``) so that each holds many weighted particles; and a zero leaf value,
+since random rollouts (which declare at random) mostly add noise."""
