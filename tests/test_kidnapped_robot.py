@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import inspect
+import dataclasses
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -13,9 +13,11 @@ import yaml
 from conftest import gen
 from omegaconf import OmegaConf
 
+from escort_rl.config import ConfigError
 from escort_rl.models import POMDPModel, check_model
 from escort_rl.models.kidnapped_robot import (
     KidnappedRobot20D,
+    KidnappedRobot20DParams,
     describe_correlations,
     paper_correlations,
 )
@@ -66,8 +68,9 @@ def _plain(value):
 def test_yaml_matches_constructor_defaults_and_builds_the_model():
     raw = yaml.safe_load(CONFIG.read_text())
     assert raw["name"] == "kidnapped20d" and isinstance(raw["max_steps"], int) and raw["max_steps"] > 0
-    params = {k: p.default for k, p in inspect.signature(KidnappedRobot20D).parameters.items() if k != "device"}
-    assert set(raw["model"]) == set(params), "the yaml and the constructor list different fields"
+    defaults = KidnappedRobot20DParams()
+    params = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(defaults)}
+    assert set(raw["model"]) == set(params), "the yaml and the parameters list different fields"
     for key, default in params.items():
         assert _plain(raw["model"][key]) == pytest.approx(_plain(default)) if isinstance(default, float) \
             else _plain(raw["model"][key]) == _plain(default), key
@@ -102,8 +105,21 @@ def test_yaml_matches_constructor_defaults_and_builds_the_model():
     ],
 )
 def test_bad_constructor_input_names_the_field(kwargs, field):
-    with pytest.raises(ValueError, match=field):
+    with pytest.raises(ValueError, match=rf"^KidnappedRobot20D\.{field}"):
         KidnappedRobot20D(**kwargs)
+
+
+def test_parameters_are_one_checked_dataclass():
+    with pytest.raises(ConfigError, match=r"^KidnappedRobot20D\.detection_prob: must be < 1, got 1.0$"):
+        KidnappedRobot20D(detection_prob=1.0)
+    with pytest.raises(ConfigError, match=r"^KidnappedRobot20D\.sensor_range: expected a number, got 'x'$"):
+        KidnappedRobot20D(sensor_range="x")
+    with pytest.raises(ConfigError, match=r"^KidnappedRobot20D: unknown parameter 'sensor_rang'"):
+        KidnappedRobot20D(sensor_rang=5.0)
+    params = dataclasses.replace(KidnappedRobot20DParams(), sensor_range=4.0, map_seed=2)
+    model = KidnappedRobot20D(params)
+    assert model.params == params and model.sensor_range == 4.0 and model.map_seed == 2
+    assert KidnappedRobot20D(cluster_centres=((5, 5), (15, 15))).n_clusters == 2  # tuples of ints read as lists
 
 
 # ---------------------------------------------------------------------------------------------

@@ -564,5 +564,22 @@ def test_linear_gaussian_family_from_config_by_dimension_and_sharpness():
     assert model.state_dim == model.obs_dim == 50 and model.n_actions == 100
     torch.testing.assert_close(model.R, 0.01 * torch.eye(50))
     torch.testing.assert_close(model.Q, 0.1 * torch.eye(50))
-    with pytest.raises(ValueError, match="LinearGaussian.obs_std: must be a positive finite number"):
+    with pytest.raises(ValueError, match=r"^LinearGaussian.obs_std: must be > 0, got 0.0$"):
         LinearGaussian(obs_std=0.0)
+
+
+def test_linear_gaussian_and_light_dark_1d_own_their_parameters():
+    from escort_rl.models import LightDark1D, LightDark1DParams, LinearGaussianParams
+
+    with pytest.raises(ValueError, match=r"^LinearGaussian.state_dim: expected an int, got '2.5'$"):
+        LinearGaussian(state_dim=2.5)
+    # the scalar family and the matrices together: a given matrix replaces its scalar default
+    model = LinearGaussian(LinearGaussianParams(state_dim=3, obs_std=0.2), process_cov=0.5 * torch.eye(3))
+    torch.testing.assert_close(model.Q, 0.5 * torch.eye(3))
+    torch.testing.assert_close(model.R, 0.04 * torch.eye(3))
+    assert model.obs_std == 0.2 and model.n_actions == 6
+    with pytest.raises(ValueError, match=r"^LightDark1D.noise_slope: must be >= 0, got -1.0$"):
+        LightDark1D(noise_slope=-1.0)
+    with pytest.raises(ValueError, match=r"^LightDark1D.start_low: must be < start_high, got 1.0 >= 1.0$"):
+        LightDark1D(start_low=1.0, start_high=1.0)
+    assert LightDark1D(LightDark1DParams(step_size=2.0)).step_size == 2.0

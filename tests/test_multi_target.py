@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import inspect
+import dataclasses
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -12,8 +12,10 @@ import torch
 from conftest import gen
 from omegaconf import OmegaConf
 
+from escort_rl.config import ConfigError
 from escort_rl.models.multi_target import (
     MultiTargetTracking20D,
+    MultiTargetTracking20DParams,
     describe_correlations,
     paper_correlations,
 )
@@ -72,8 +74,9 @@ def _plain(value):
 def test_yaml_matches_defaults_and_builds_the_model():
     cfg = OmegaConf.to_container(OmegaConf.load(CONFIG), resolve=True)
     assert cfg["name"] == "mtt20d" and isinstance(cfg["max_steps"], int) and cfg["max_steps"] > 0
-    params = {k: p.default for k, p in inspect.signature(MultiTargetTracking20D).parameters.items() if k != "device"}
-    assert set(cfg["model"]) == set(params), "the yaml and the constructor must list the same fields"
+    defaults = MultiTargetTracking20DParams()
+    params = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(defaults)}
+    assert set(cfg["model"]) == set(params), "the yaml and the parameters must list the same fields"
     for key, default in params.items():
         assert _plain(cfg["model"][key]) == _plain(default), key
     built = MultiTargetTracking20D(**cfg["model"])
@@ -110,6 +113,21 @@ def test_yaml_matches_defaults_and_builds_the_model():
 def test_bad_constructor_input_names_the_field(kwargs, field):
     with pytest.raises(ValueError, match=rf"MultiTargetTracking20D\.{field}:"):
         MultiTargetTracking20D(**kwargs)
+
+
+def test_parameters_are_one_checked_dataclass():
+    with pytest.raises(ConfigError, match=r"^MultiTargetTracking20D\.zone_visibility: must be <= 1, got 1.5$"):
+        MultiTargetTracking20D(zone_visibility={"clear": 1.5, "limited": 0.3, "confusion": 0.7, "blind": 0.0})
+    with pytest.raises(ConfigError, match=r"^MultiTargetTracking20D\.dt: expected a number, got 'x'$"):
+        MultiTargetTracking20D(dt="x")
+    with pytest.raises(ConfigError, match=r"^MultiTargetTracking20D\.zone_noise_std: must have the same zones"):
+        MultiTargetTracking20D(zone_noise_std={"clear": 0.1})
+    # tuples, tensors and OmegaConf lists read as plain lists; a ready parameters object works too
+    model = MultiTargetTracking20D(goal=(8, 8), actions=torch.tensor([[1.0, 0.0], [0.0, 1.0]]),
+                                   **{"zone_x_edges": OmegaConf.create([5.0])})
+    assert model.params.goal == [8, 8] and model.n_actions == 2 and model.goal.tolist() == [8.0, 8.0]
+    params = dataclasses.replace(MultiTargetTracking20DParams(), accel=0.3)
+    assert MultiTargetTracking20D(params).accel == 0.3
 
 
 # ---------------------------------------------------------------------------------------------

@@ -17,10 +17,15 @@ from escort_rl.config import ConfigError
 from escort_rl.models import DOMAINS, check_model
 from escort_rl.models.light_dark_1d import DECLARE, LightDark1D
 from escort_rl.planners import pomcpow as pomcpow_module
-from escort_rl.planners.planner_config import LIGHTDARK1D_PLANNER
-from escort_rl.planners.planner_config import build_planner, load_planner_config, planner_domains
+from escort_rl.planners.planner_config import (
+    LIGHTDARK1D_PLANNER,
+    build_planner,
+    load_planner_config,
+    planner_domains,
+    zero_leaf_value,
+)
 from escort_rl.planners.policy import POMCPOWPolicy
-from escort_rl.planners.pomcpow import POMCPOW, ActionNode, BeliefNode
+from escort_rl.planners.pomcpow import POMCPOW, ActionNode, BeliefNode, POMCPOWParams
 from escort_rl.trainers.builders import make_env
 
 LEFT, RIGHT = 0, 2  # the light (x = 2) is to the right of the goal (x = 0)
@@ -327,6 +332,21 @@ def test_planner_configs_hold_the_paper_values():
         build_planner("lightdark10d", n_simulations=10)
     with pytest.raises(ConfigError, match="domain"):
         load_planner_config("gridworld")
+
+
+def test_planner_settings_are_checked_against_the_parameters():
+    from escort_rl.planners.planner_config import check_planner_settings
+
+    where = "configs/planner/lightdark10d.yaml"
+    assert check_planner_settings(load_planner_config("lightdark10d"), where) == POMCPOWParams(n_sim=50)
+    with pytest.raises(ConfigError, match=rf"^{where}: POMCPOW.max_depth: must be >= 1, got 0$"):
+        check_planner_settings({"max_depth": 0}, where)
+    with pytest.raises(ConfigError, match=rf"^{where}: POMCPOW: unknown parameter 'leaf_value'"):
+        check_planner_settings({"leaf_value": "zero"}, where)  # a callable is set in code, not in a file
+    with pytest.raises(ConfigError, match=r"^build_planner: POMCPOW.discount: must be <= 1, got 2.0$"):
+        build_planner("lightdark10d", discount=2.0)
+    planner = build_planner("lightdark10d", leaf_value=zero_leaf_value)
+    assert planner.leaf_value is zero_leaf_value and planner.params == POMCPOWParams(n_sim=50)
 
 
 def test_policy_drives_env_rollout(tiny_config):

@@ -67,18 +67,22 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from types import MappingProxyType
+from dataclasses import dataclass
+from typing import Dict, List
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from escort_rl.config.errors import ConfigError
+from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.gaussian import (
     AdditiveGaussianTransition,
     GaussianNoise,
     make_positive_definite,
     nearest_correlation_matrix,
 )
+from escort_rl.models.plain import plain_values
 
 N_CALIBRATION = 5
 N_FEATURES = 10
@@ -87,17 +91,6 @@ STATE_NAMES: tuple[str, ...] = (
     + tuple(f"c{i + 1}" for i in range(N_CALIBRATION))
     + tuple(f"f{i + 1}" for i in range(N_FEATURES))
 )
-
-# Defaults: identical to configs/env/kidnapped20d.yaml (a test checks it).
-DEFAULT_CLUSTER_CENTRES: tuple[tuple[float, float], ...] = ((5.0, 5.0), (15.0, 5.0), (5.0, 15.0), (15.0, 15.0))
-DEFAULT_CLUSTER_OFFSETS: tuple[tuple[float, float], ...] = ((-2.0, -1.0), (0.5, -1.5), (1.5, 1.0), (-1.0, 1.5))
-DEFAULT_CLUSTER_TYPES: tuple[str, ...] = ("house", "house", "shop", "warehouse")
-DEFAULT_TYPE_PROTOTYPES: Mapping[str, tuple[float, ...]] = MappingProxyType({
-    "house": (0.8, 0.6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-    "shop": (0.5, 0.3, 0.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-    "warehouse": (0.2, 0.3, 0.4, 0.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-})
-DEFAULT_REFERENCE_DESCRIPTOR: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 # state indices
 X, Y, THETA, V, STEER = 0, 1, 2, 3, 4
@@ -138,69 +131,163 @@ def paper_correlations(
     return c
 
 
-def _positive(name: str, value: float) -> float:
-    value = float(value)
-    if not value > 0 or not math.isfinite(value):
-        raise ValueError(f"KidnappedRobot20D.{name}: must be a finite number > 0, got {value}")
-    return value
-
-
 def _points(name: str, value: Sequence[Sequence[float]]) -> Tensor:
+    """``KidnappedRobot20D.<name>`` as a ``[n, 2]`` float64 tensor; raises unless it is a non-empty
+    list of finite (x, y) pairs."""
     try:
         t = torch.tensor([[float(v) for v in row] for row in value], dtype=torch.float64)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"KidnappedRobot20D.{name}: expected a list of (x, y) pairs ({err})") from None
+        raise ConfigError(f"KidnappedRobot20D.{name}: expected a list of (x, y) pairs ({err})") from None
     if t.ndim != 2 or t.shape[0] == 0 or t.shape[1] != 2 or not torch.isfinite(t).all():
-        raise ValueError(f"KidnappedRobot20D.{name}: expected a non-empty list of finite (x, y) pairs, "
-                         f"got shape {tuple(t.shape)}")
+        raise ConfigError(f"KidnappedRobot20D.{name}: expected a non-empty list of finite (x, y) pairs, "
+                          f"got shape {tuple(t.shape)}")
     return t
 
 
 def _descriptor(name: str, value: Sequence[float]) -> Tensor:
+    """``KidnappedRobot20D.<name>`` normalised, as a ``[10]`` float64 tensor; raises unless it is
+    ten finite numbers, not all zero."""
     try:
         t = torch.tensor([float(v) for v in value], dtype=torch.float64)
     except (TypeError, ValueError) as err:
-        raise ValueError(f"KidnappedRobot20D.{name}: expected {N_FEATURES} numbers ({err})") from None
+        raise ConfigError(f"KidnappedRobot20D.{name}: expected {N_FEATURES} numbers ({err})") from None
     if t.shape != (N_FEATURES,) or not torch.isfinite(t).all() or t.norm() < 1e-8:
-        raise ValueError(f"KidnappedRobot20D.{name}: expected {N_FEATURES} finite numbers, not all zero, "
-                         f"got {value!r}")
+        raise ConfigError(f"KidnappedRobot20D.{name}: expected {N_FEATURES} finite numbers, not all zero, "
+                          f"got {value!r}")
     return t / t.norm()
 
 
-class KidnappedRobot20D(AdditiveGaussianTransition):
+def _prototypes(cluster_types: Sequence[str], type_prototypes: Mapping[str, Sequence[float]],
+                n_slots: int) -> dict[str, Tensor]:
+    """The normalised descriptor prototype of each type; raises unless ``cluster_types`` names one
+    known type per cluster offset and ``type_prototypes`` is a non-empty mapping."""
+    if len(cluster_types) != n_slots:
+        raise ConfigError(f"KidnappedRobot20D.cluster_types: expected one type name per cluster offset "
+                          f"({n_slots}), got {list(cluster_types)!r}")
+    if not type_prototypes:
+        raise ConfigError(f"KidnappedRobot20D.type_prototypes: expected a mapping type name -> "
+                          f"{N_FEATURES} numbers, got {type_prototypes!r}")
+    protos = {str(k): _descriptor(f"type_prototypes[{k}]", v) for k, v in type_prototypes.items()}
+    for t in cluster_types:
+        if t not in protos:
+            raise ConfigError(f"KidnappedRobot20D.cluster_types: unknown type '{t}'; "
+                              f"type_prototypes has {sorted(protos)}")
+    return protos
+
+
+@dataclass(frozen=True)
+class KidnappedRobot20DParams:
+    """:class:`KidnappedRobot20D`'s parameters (paper, Appendix "Domains: Kidnapped Robot Problem").
+    Values the paper gives are marked (paper); the others are choices the paper leaves open, with
+    the reason.
+
+    Attributes:
+        map_size: side of the square map (paper: 20, positions in ``[0, 20]²``).
+        cluster_centres: ``C`` cluster centres ``(x, y)``. Four copies of one cluster on a 2×2 grid,
+            10 apart: twice the sensor range, so at most one copy of a landmark is ever in range, and
+            every observation fits four places (aliasing).
+        cluster_offsets: ``K`` landmark offsets ``(dx, dy)`` of the repeated cluster template: four
+            landmarks within 2.3 of the centre, in an irregular layout so that the heading can be
+            read off the cluster once it is seen.
+        cluster_types: the type of each template landmark (``K`` names, keys of ``type_prototypes``;
+            paper: houses, shops and warehouses). Two houses, so that the template also aliases
+            within itself.
+        type_prototypes: type name -> 10-D descriptor prototype (normalised here), chosen so that
+            their cosine similarity with the reference descriptor is about 0.8, 0.5 and 0.2: the
+            types are told apart by similarity, while copies of one landmark differ only by the
+            perturbation below.
+        descriptor_perturbation_std: std of the per-landmark descriptor perturbation (paper: 0.1,
+            "similar feature vectors with small perturbations").
+        map_seed: seed of the descriptor perturbations; it fixes them, so every run sees the same map.
+        reference_descriptor: the centre of the start distribution of the robot's own feature
+            descriptor ``f`` (normalised here): the robot was kidnapped, its appearance model was not.
+        sensor_range: (paper: 5).
+        field_of_view_deg: (paper: 90), in (0, 360).
+        range_softness, fov_softness: τ_r and τ_θ (radians), the widths of the soft range and
+            field-of-view edges. Visibility is a smooth gate so that ``observation_log_prob`` is
+            differentiable in the state: 0.2 units and 0.05 rad (3 degrees), narrow next to the range
+            and the 90 degree cone, and wide enough that scores near the edges stay moderate.
+        detection_prob: p_det, the detection probability well inside the cone, in (0, 1): a landmark
+            there is missed 5% of the time. Sensors miss, and p < 1 keeps the log-likelihood of "not
+            seen" finite everywhere (1 would make a missed detection impossible, log 0).
+        distance_noise_std, similarity_noise_std: σ_r and σ_s of the two measurements. The paper
+            gives none: 0.2 units of range (4% of the range) and 0.05 of similarity, a little under
+            the copy-to-copy spread of similarities (~0.08), so one look barely tells copies apart
+            and the belief stays multi-modal for a while.
+        turn_rate: heading change of the turn actions (paper: ±0.1).
+        dt: time step Δt. The paper gives none for this domain: Light-Dark's 0.1.
+        nominal_speed: v_nom. 2 units/s at dt 0.1 is 0.2 units a step, and a turning circle of
+            radius 2 at 0.1 rad a step: a cluster (radius ~2.3) is crossed in about 20 steps.
+        velocity_reversion: κ in [0, 1], the pull of v to v_nom and of s to 0 per step. The paper
+            gives dynamics for x, y and θ only; speed and steering relax to (nominal_speed, 0) by 10%
+            a step, so that they stay bounded over long episodes; calibration is a random walk
+            (sensor drift) and f is renormalised to unit norm.
+        position_noise_std, heading_noise_std, velocity_noise_std, steering_noise_std,
+            calibration_noise_std, feature_noise_std: per-step process-noise stds. The paper gives
+            the correlations but not the scales: small next to the 0.2-unit motion and the 0.1-rad
+            turns, and a slow drift of calibration and features.
+        rho_position_heading, rho_position_velocity, rho_calibration, rho_calibration_feature:
+            the paper's correlations (paper: 0.6, 0.8, 0.4, 0.3), each in (-1, 1). As stated they
+            are not PSD (smallest eigenvalue -0.467), so the model uses the nearest correlation
+            matrix (Higham 2002): see :func:`describe_correlations`.
+        start_speed_std, start_steering_std, start_calibration_std, start_feature_std: spread of
+            the start distribution around (v_nom, 0, 0, reference_descriptor). The start position is
+            uniform over the map and the heading uniform in [0, 2π) (paper: kidnapped), for the true
+            state and the prior alike; a calibration error of 0.05 is 0.25 units at the sensor range.
+    """
+
+    map_size: float = param(20.0, gt=0)
+    cluster_centres: List[List[float]] = param([[5.0, 5.0], [15.0, 5.0], [5.0, 15.0], [15.0, 15.0]])
+    cluster_offsets: List[List[float]] = param([[-2.0, -1.0], [0.5, -1.5], [1.5, 1.0], [-1.0, 1.5]])
+    cluster_types: List[str] = param(["house", "house", "shop", "warehouse"])
+    type_prototypes: Dict[str, List[float]] = param({
+        "house": [0.8, 0.6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        "shop": [0.5, 0.3, 0.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        "warehouse": [0.2, 0.3, 0.4, 0.8, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+    })
+    descriptor_perturbation_std: float = param(0.1, ge=0)
+    map_seed: int = param(0)
+    reference_descriptor: List[float] = param([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    sensor_range: float = param(5.0, gt=0)
+    field_of_view_deg: float = param(90.0, gt=0, lt=360)
+    range_softness: float = param(0.2, gt=0)
+    fov_softness: float = param(0.05, gt=0)
+    detection_prob: float = param(0.95, gt=0, lt=1)
+    distance_noise_std: float = param(0.2, gt=0)
+    similarity_noise_std: float = param(0.05, gt=0)
+    turn_rate: float = param(0.1, ge=0)
+    dt: float = param(0.1, gt=0)
+    nominal_speed: float = param(2.0, ge=0)
+    velocity_reversion: float = param(0.1, ge=0, le=1)
+    position_noise_std: float = param(0.02, gt=0)
+    heading_noise_std: float = param(0.02, gt=0)
+    velocity_noise_std: float = param(0.05, gt=0)
+    steering_noise_std: float = param(0.02, gt=0)
+    calibration_noise_std: float = param(0.005, gt=0)
+    feature_noise_std: float = param(0.01, gt=0)
+    rho_position_heading: float = param(0.6, gt=-1, lt=1)
+    rho_position_velocity: float = param(0.8, gt=-1, lt=1)
+    rho_calibration: float = param(0.4, gt=-1, lt=1)
+    rho_calibration_feature: float = param(0.3, gt=-1, lt=1)
+    start_speed_std: float = param(0.1, ge=0)
+    start_steering_std: float = param(0.05, ge=0)
+    start_calibration_std: float = param(0.05, ge=0)
+    start_feature_std: float = param(0.1, ge=0)
+
+
+class KidnappedRobot20D(HasParams, AdditiveGaussianTransition):
     """The 20-D Kidnapped Robot localisation POMDP. All tensors are float32 on ``device``.
 
-    Paper values are marked (paper); the others are open choices, documented with their reason in
-    ``configs/env/kidnapped20d.yaml`` (whose values are the defaults here).
-
-    Args:
-        map_size: side of the square map (paper: 20).
-        cluster_centres: ``C`` cluster centres ``(x, y)``.
-        cluster_offsets: ``K`` landmark offsets ``(dx, dy)`` of the repeated cluster template.
-        cluster_types: the type of each template landmark (``K`` names, keys of ``type_prototypes``).
-        type_prototypes: type name -> 10-D descriptor prototype (normalised here).
-        descriptor_perturbation_std: std of the per-landmark descriptor perturbation (paper: 0.1).
-        map_seed: seed of the descriptor perturbations.
-        reference_descriptor: the centre of the start distribution of ``f`` (normalised here).
-        sensor_range: (paper: 5). field_of_view_deg: (paper: 90).
-        range_softness: τ_r, width of the soft range edge. fov_softness: τ_θ (radians), width of the
-            soft field-of-view edge. detection_prob: p_det < 1, detection probability well inside.
-        distance_noise_std, similarity_noise_std: σ_r and σ_s of the two measurements.
-        turn_rate: heading change of the turn actions (paper: 0.1). dt: time step Δt.
-        nominal_speed: v_nom. velocity_reversion: κ, the pull of v to v_nom and of s to 0 per step.
-        position_noise_std, heading_noise_std, velocity_noise_std, steering_noise_std,
-            calibration_noise_std, feature_noise_std: per-step process-noise stds.
-        rho_position_heading, rho_position_velocity, rho_calibration, rho_calibration_feature:
-            the paper's correlations (0.6, 0.8, 0.4, 0.3), made PSD.
-        start_speed_std, start_steering_std, start_calibration_std, start_feature_std: spread of
-            the start distribution around (v_nom, 0, 0, reference_descriptor).
-        device: where the model's constant tensors live.
+    Takes :class:`KidnappedRobot20DParams` (or its fields as keyword arguments; lists may be tuples
+    or OmegaConf lists) and ``device``, where the model's constant tensors live.
 
     Attributes a filter or benchmark uses: ``position_dims = (0, 1)`` (the position error is
     ``‖E_b[s[..., 0:2]] − s_true[..., 0:2]‖``), ``n_pos = 2``, :meth:`position`,
     ``landmark_positions`` ``[K, C, 2]``, ``landmark_descriptors`` ``[K, C, 10]``, ``n_slots = K``,
     ``n_clusters = C``, ``correlation`` (float64, used) and ``noise_covariance``.
     """
+
+    Params = KidnappedRobot20DParams
 
     state_dim = 20
     n_actions = 4
@@ -209,135 +296,65 @@ class KidnappedRobot20D(AdditiveGaussianTransition):
     velocity_dims: tuple[int, ...] = (3,)  # the speed v
     state_names = STATE_NAMES
 
-    def __init__(
-        self,
-        map_size: float = 20.0,
-        cluster_centres: Sequence[Sequence[float]] = DEFAULT_CLUSTER_CENTRES,
-        cluster_offsets: Sequence[Sequence[float]] = DEFAULT_CLUSTER_OFFSETS,
-        cluster_types: Sequence[str] = DEFAULT_CLUSTER_TYPES,
-        type_prototypes: Mapping[str, Sequence[float]] = DEFAULT_TYPE_PROTOTYPES,
-        descriptor_perturbation_std: float = 0.1,
-        map_seed: int = 0,
-        reference_descriptor: Sequence[float] = DEFAULT_REFERENCE_DESCRIPTOR,
-        sensor_range: float = 5.0,
-        field_of_view_deg: float = 90.0,
-        range_softness: float = 0.2,
-        fov_softness: float = 0.05,
-        detection_prob: float = 0.95,
-        distance_noise_std: float = 0.2,
-        similarity_noise_std: float = 0.05,
-        turn_rate: float = 0.1,
-        dt: float = 0.1,
-        nominal_speed: float = 2.0,
-        velocity_reversion: float = 0.1,
-        position_noise_std: float = 0.02,
-        heading_noise_std: float = 0.02,
-        velocity_noise_std: float = 0.05,
-        steering_noise_std: float = 0.02,
-        calibration_noise_std: float = 0.005,
-        feature_noise_std: float = 0.01,
-        rho_position_heading: float = 0.6,
-        rho_position_velocity: float = 0.8,
-        rho_calibration: float = 0.4,
-        rho_calibration_feature: float = 0.3,
-        start_speed_std: float = 0.1,
-        start_steering_std: float = 0.05,
-        start_calibration_std: float = 0.05,
-        start_feature_std: float = 0.1,
-        device: torch.device | str | None = None,
-    ) -> None:
+    def __init__(self, params: KidnappedRobot20DParams | None = None, *,
+                 device: torch.device | str | None = None, **kwargs) -> None:
+        self.params = p = build_params(KidnappedRobot20DParams, params, plain_values(kwargs),
+                                       owner=type(self).__name__)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
-        self.map_size = _positive("map_size", map_size)
-        for name, value in (
-            ("sensor_range", sensor_range), ("range_softness", range_softness),
-            ("fov_softness", fov_softness), ("distance_noise_std", distance_noise_std),
-            ("similarity_noise_std", similarity_noise_std), ("dt", dt),
-            ("position_noise_std", position_noise_std), ("heading_noise_std", heading_noise_std),
-            ("velocity_noise_std", velocity_noise_std), ("steering_noise_std", steering_noise_std),
-            ("calibration_noise_std", calibration_noise_std), ("feature_noise_std", feature_noise_std),
-        ):
-            _positive(name, value)
-        for name, value in (
-            ("descriptor_perturbation_std", descriptor_perturbation_std), ("turn_rate", turn_rate),
-            ("nominal_speed", nominal_speed), ("start_speed_std", start_speed_std),
-            ("start_steering_std", start_steering_std), ("start_calibration_std", start_calibration_std),
-            ("start_feature_std", start_feature_std),
-        ):
-            if not (math.isfinite(float(value)) and float(value) >= 0):
-                raise ValueError(f"KidnappedRobot20D.{name}: must be a finite number >= 0, got {value}")
-        if not 0.0 < float(field_of_view_deg) < 360.0:
-            raise ValueError(f"KidnappedRobot20D.field_of_view_deg: must be in (0, 360), got {field_of_view_deg}")
-        if not 0.0 < float(detection_prob) < 1.0:
-            raise ValueError(f"KidnappedRobot20D.detection_prob: must be in (0, 1) (1 would make a missed "
-                             f"detection impossible, log 0), got {detection_prob}")
-        if not 0.0 <= float(velocity_reversion) <= 1.0:
-            raise ValueError(f"KidnappedRobot20D.velocity_reversion: must be in [0, 1], got {velocity_reversion}")
-        for name, value in (
-            ("rho_position_heading", rho_position_heading), ("rho_position_velocity", rho_position_velocity),
-            ("rho_calibration", rho_calibration), ("rho_calibration_feature", rho_calibration_feature),
-        ):
-            if not -1.0 < float(value) < 1.0:
-                raise ValueError(f"KidnappedRobot20D.{name}: a correlation must be in (-1, 1), got {value}")
+        self._set_scalars(p)
+        self._build_map(p)
+        self._build_process_noise(p)
+        # actions: heading change and whether the robot moves
+        self._dtheta = torch.tensor([self.turn_rate, -self.turn_rate, 0.0, 0.0], device=self.device)
+        self._moves = torch.tensor([1.0, 1.0, 1.0, 0.0], device=self.device)
 
-        centres = _points("cluster_centres", cluster_centres)  # [C, 2]
-        offsets = _points("cluster_offsets", cluster_offsets)  # [K, 2]
-        types = [str(t) for t in cluster_types] if not isinstance(cluster_types, str) else None
-        if types is None or len(types) != offsets.shape[0]:
-            raise ValueError(f"KidnappedRobot20D.cluster_types: expected one type name per cluster offset "
-                             f"({offsets.shape[0]}), got {cluster_types!r}")
-        if not isinstance(type_prototypes, Mapping) or not type_prototypes:
-            raise ValueError(f"KidnappedRobot20D.type_prototypes: expected a mapping type name -> "
-                             f"{N_FEATURES} numbers, got {type_prototypes!r}")
-        protos = {str(k): _descriptor(f"type_prototypes[{k}]", v) for k, v in type_prototypes.items()}
-        for t in types:
-            if t not in protos:
-                raise ValueError(f"KidnappedRobot20D.cluster_types: unknown type '{t}'; "
-                                 f"type_prototypes has {sorted(protos)}")
-        reference = _descriptor("reference_descriptor", reference_descriptor)
-
-        self.n_slots, self.n_clusters = offsets.shape[0], centres.shape[0]
-        self.obs_dim = 3 * self.n_slots
-        self.cluster_types = tuple(types)
-        self.sensor_range, self.field_of_view_deg = float(sensor_range), float(field_of_view_deg)
-        self.range_softness, self.fov_softness = float(range_softness), float(fov_softness)
-        self.detection_prob = float(detection_prob)
-        self.distance_noise_std, self.similarity_noise_std = float(distance_noise_std), float(similarity_noise_std)
-        self.turn_rate, self.dt = float(turn_rate), float(dt)
-        self.nominal_speed, self.velocity_reversion = float(nominal_speed), float(velocity_reversion)
-        self.start_speed_std, self.start_steering_std = float(start_speed_std), float(start_steering_std)
-        self.start_calibration_std, self.start_feature_std = float(start_calibration_std), float(start_feature_std)
+    def _set_scalars(self, p: KidnappedRobot20DParams) -> None:
+        """The scalar parameters as floats (an int in a config reads as the float it stands for),
+        and the constants of the visibility gate."""
+        for name in ("map_size", "sensor_range", "field_of_view_deg", "range_softness", "fov_softness",
+                     "detection_prob", "distance_noise_std", "similarity_noise_std", "turn_rate", "dt",
+                     "nominal_speed", "velocity_reversion", "start_speed_std", "start_steering_std",
+                     "start_calibration_std", "start_feature_std"):
+            setattr(self, name, float(getattr(p, name)))
         half = math.radians(self.field_of_view_deg) / 2
         self._cos_half_fov = math.cos(half)
         self._fov_scale = math.sin(half) * self.fov_softness  # cos Δ − cos(fov/2) ≈ sin(fov/2)·(fov/2 − |Δ|)
         self._log_p_det = math.log(self.detection_prob)
 
-        # map: landmark (k, c) at centre_c + offset_k, descriptor normalize(prototype + σ ε)
-        g = torch.Generator().manual_seed(int(map_seed))
+    def _build_map(self, p: KidnappedRobot20DParams) -> None:
+        """Landmark ``(k, c)`` at ``centre_c + offset_k``, descriptor ``normalize(prototype + σ ε)``."""
+        centres = _points("cluster_centres", p.cluster_centres)  # [C, 2]
+        offsets = _points("cluster_offsets", p.cluster_offsets)  # [K, 2]
+        types = [str(t) for t in p.cluster_types]
+        protos = _prototypes(types, p.type_prototypes, offsets.shape[0])
+        reference = _descriptor("reference_descriptor", p.reference_descriptor)
+
+        self.n_slots, self.n_clusters = offsets.shape[0], centres.shape[0]
+        self.obs_dim = 3 * self.n_slots
+        self.cluster_types = tuple(types)
+        g = torch.Generator().manual_seed(int(p.map_seed))
         positions = offsets[:, None, :] + centres[None, :, :]  # [K, C, 2]
         proto = torch.stack([protos[t] for t in types])  # [K, 10]
         noise = torch.randn(self.n_slots, self.n_clusters, N_FEATURES, generator=g, dtype=torch.float64)
-        desc = proto[:, None, :] + float(descriptor_perturbation_std) * noise
+        desc = proto[:, None, :] + float(p.descriptor_perturbation_std) * noise
         desc = desc / desc.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         self.landmark_positions = positions.to(torch.float32).to(self.device)
         self.landmark_descriptors = desc.to(torch.float32).to(self.device)
         self.reference_descriptor = reference.to(torch.float32).to(self.device)
 
-        # process noise
+    def _build_process_noise(self, p: KidnappedRobot20DParams) -> None:
+        """The paper's correlations, the nearest correlation matrix used instead, and ``Σ``."""
         self.paper_correlation = paper_correlations(
-            rho_position_heading, rho_position_velocity, rho_calibration, rho_calibration_feature)
+            p.rho_position_heading, p.rho_position_velocity, p.rho_calibration, p.rho_calibration_feature)
         self.correlation = make_positive_definite(nearest_correlation_matrix(self.paper_correlation))
         stds = torch.tensor(
-            [position_noise_std] * 2 + [heading_noise_std, velocity_noise_std, steering_noise_std]
-            + [calibration_noise_std] * N_CALIBRATION + [feature_noise_std] * N_FEATURES,
+            [p.position_noise_std] * 2 + [p.heading_noise_std, p.velocity_noise_std, p.steering_noise_std]
+            + [p.calibration_noise_std] * N_CALIBRATION + [p.feature_noise_std] * N_FEATURES,
             dtype=torch.float64,
         )
         cov = self.correlation * stds[:, None] * stds[None, :]
         self.noise_covariance = cov.to(torch.float32).to(self.device)
         self._process = GaussianNoise(torch.linalg.cholesky(cov).to(torch.float32).to(self.device))
-
-        # actions: heading change and whether the robot moves
-        self._dtheta = torch.tensor([self.turn_rate, -self.turn_rate, 0.0, 0.0], device=self.device)
-        self._moves = torch.tensor([1.0, 1.0, 1.0, 0.0], device=self.device)
 
     # ------------------------------------------------------------------ helpers
     def position(self, s: Tensor) -> Tensor:

@@ -25,18 +25,23 @@ Reward ``R(s, a, s')`` (zero once ended): ``+correct_reward`` for declaring with
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+from escort_rl.config.errors import ConfigError
+from escort_rl.config.params import HasParams, build_params, param
 
 DECLARE = 1
 """The action that ends the episode (the other two move left and right)."""
 
 
-class LightDark1D:
-    """The 1-D Light-Dark POMDP. All tensors are float32 on ``device``.
+@dataclass(frozen=True)
+class LightDark1DParams:
+    """:class:`LightDark1D`'s parameters.
 
-    Args:
+    Attributes:
         light_position: where observations are sharpest.
         goal_radius: declaring at ``|x| < goal_radius`` earns ``correct_reward``.
         step_size: distance of one move.
@@ -44,52 +49,55 @@ class LightDark1D:
         sigma_min, noise_slope: observation noise ``σ(x) = sigma_min + noise_slope·|x - light_position|``.
         correct_reward, wrong_declare_penalty, step_cost: the reward law (see the module docstring).
         start_low, start_high: the start position is uniform in ``[start_low, start_high]``, for the
-            true state and the prior alike.
-        device: where the model's tensors live.
+            true state and the prior alike (``start_low < start_high``).
+    """
+
+    light_position: float = param(2.0)
+    goal_radius: float = param(0.5, gt=0)
+    step_size: float = param(1.0, gt=0)
+    process_noise_std: float = param(0.05, gt=0)
+    sigma_min: float = param(0.05, gt=0)
+    noise_slope: float = param(1.0, ge=0)
+    correct_reward: float = param(100.0)
+    wrong_declare_penalty: float = param(100.0)
+    step_cost: float = param(5.0)
+    start_low: float = param(-1.5)
+    start_high: float = param(1.5)
+
+
+def check_start_box(p: LightDark1DParams) -> None:
+    """Raise unless the start interval is not empty."""
+    if not p.start_low < p.start_high:
+        raise ConfigError(f"LightDark1D.start_low: must be < start_high, got {p.start_low} >= {p.start_high}")
+
+
+class LightDark1D(HasParams):
+    """The 1-D Light-Dark POMDP. All tensors are float32 on ``device``.
+
+    Takes :class:`LightDark1DParams` (or its fields as keyword arguments) and ``device``, where the
+    model's tensors live.
 
     The status flag moves deterministically, so ``transition_scale_tril`` has a zero on its
     diagonal and ``transition_log_prob`` is ``-inf`` when the flag does not follow the action: the
     model is meant for planners and the SIR filter, not for the filters that invert the process noise.
     """
 
+    Params = LightDark1DParams
+
     state_dim = 2
     obs_dim = 1
     n_actions = 3
     position_dims = (0,)
 
-    def __init__(
-        self,
-        light_position: float = 2.0,
-        goal_radius: float = 0.5,
-        step_size: float = 1.0,
-        process_noise_std: float = 0.05,
-        sigma_min: float = 0.05,
-        noise_slope: float = 1.0,
-        correct_reward: float = 100.0,
-        wrong_declare_penalty: float = 100.0,
-        step_cost: float = 5.0,
-        start_low: float = -1.5,
-        start_high: float = 1.5,
-        device: torch.device | str | None = None,
-    ) -> None:
-        for name, value in (("goal_radius", goal_radius), ("step_size", step_size),
-                            ("process_noise_std", process_noise_std), ("sigma_min", sigma_min)):
-            if not value > 0:
-                raise ValueError(f"LightDark1D.{name}: must be > 0, got {value}")
-        if noise_slope < 0:
-            raise ValueError(f"LightDark1D.noise_slope: must be >= 0, got {noise_slope}")
-        if not start_low < start_high:
-            raise ValueError(f"LightDark1D.start_low: must be < start_high, got {start_low} >= {start_high}")
+    def __init__(self, params: LightDark1DParams | None = None, *, device: torch.device | str | None = None,
+                 **kwargs) -> None:
+        self.params = p = build_params(LightDark1DParams, params, kwargs, owner=type(self).__name__)
+        check_start_box(p)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
-        self.light_position, self.goal_radius, self.step_size = light_position, goal_radius, step_size
-        self.process_noise_std, self.sigma_min, self.noise_slope = process_noise_std, sigma_min, noise_slope
-        self.correct_reward, self.wrong_declare_penalty, self.step_cost = (
-            correct_reward, wrong_declare_penalty, step_cost)
-        self.start_low, self.start_high = start_low, start_high
-        moves = torch.tensor([(a - 1) * step_size for a in range(self.n_actions)], device=self.device)
+        moves = torch.tensor([(a - 1) * p.step_size for a in range(self.n_actions)], device=self.device)
         declares = torch.tensor([float(a == DECLARE) for a in range(self.n_actions)], device=self.device)
         self._action_delta = torch.stack([moves, declares], dim=-1)  # [n_actions, 2]
-        self._noise_scale = torch.tensor([process_noise_std, 0.0], device=self.device)
+        self._noise_scale = torch.tensor([p.process_noise_std, 0.0], device=self.device)
 
     def observation_std(self, x: Tensor) -> Tensor:
         """``σ(x) = sigma_min + noise_slope·|x - light_position|``, elementwise."""

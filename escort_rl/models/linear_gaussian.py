@@ -9,33 +9,63 @@ Actions select a control offset ``u_a`` from a fixed table ``[n_actions, d]``.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Optional
+
 import torch
 from torch import Tensor
 
+from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.gaussian import GaussianNoise
 
 
-class LinearGaussian:
+@dataclass(frozen=True)
+class LinearGaussianParams:
+    """:class:`LinearGaussian`'s scalar family: the sizes and the scales its matrices default to, so
+    that a config can build the model by dimension and observation sharpness
+    (``env=linear_gaussian env.model.state_dim=100 env.model.obs_std=0.1``).
+
+    Attributes:
+        state_dim: ``d``, the state dimension.
+        obs_dim: ``m``, the observation dimension; ``None``: every coordinate is observed (``m = d``).
+        n_actions: the number of actions; ``None``: one per row of the control table (``2d`` by default).
+        transition_scale: ``F = transition_scale·I`` unless a transition matrix is given.
+        process_std: ``Q = process_std²·I`` unless a process covariance is given (default sqrt(0.1)).
+        obs_std: ``R = obs_std²·I`` unless an observation covariance is given.
+        prior_std: ``P_0 = prior_std²·I`` unless a prior covariance is given.
+    """
+
+    state_dim: int = param(4, ge=1)
+    obs_dim: Optional[int] = param(None, ge=1)
+    n_actions: Optional[int] = param(None, ge=1)
+    transition_scale: float = param(0.95)
+    process_std: float = param(0.1 ** 0.5, gt=0)
+    obs_std: float = param(0.5, gt=0)
+    prior_std: float = param(1.0, gt=0)
+
+
+class LinearGaussian(HasParams):
     """Linear-Gaussian model with dense matrices (float32 on ``device``).
 
-    Args:
-        state_dim, obs_dim, n_actions: sizes.
-        transition_matrix: ``F`` ``[d, d]``; default ``transition_scale·I``.
-        process_cov: ``Q`` ``[d, d]``; default ``process_std²·I``.
-        observation_matrix: ``H`` ``[m, d]``; default the first ``m`` coordinates.
-        observation_cov: ``R`` ``[m, m]``; default ``obs_std²·I``.
-        controls: ``u`` ``[n_actions, d]``; default ``±0.5`` along each axis.
-        prior_mean, prior_cov: ``m_0`` ``[d]`` and ``P_0`` ``[d, d]``; default ``0`` and ``prior_std²·I``.
-        transition_scale, process_std, obs_std, prior_std: the scalar family the matrices default to
-            (0.95, sqrt(0.1), 0.5, 1), so a config can build the model by dimension and observation
-            sharpness (``env=linear_gaussian env.model.state_dim=100 env.model.obs_std=0.1``).
+    Takes :class:`LinearGaussianParams` (or its fields as keyword arguments), ``device``, and any of
+    the matrices, which replace the scalar family's defaults (tensors or nested lists, so they are
+    arguments, not config values):
+
+    - ``transition_matrix``: ``F`` ``[d, d]``; default ``transition_scale·I``;
+    - ``process_cov``: ``Q`` ``[d, d]``; default ``process_std²·I``;
+    - ``observation_matrix``: ``H`` ``[m, d]``; default the first ``m`` coordinates;
+    - ``observation_cov``: ``R`` ``[m, m]``; default ``obs_std²·I``;
+    - ``controls``: ``u`` ``[n_actions, d]``; default ``±0.5`` along each axis;
+    - ``prior_mean``, ``prior_cov``: ``m_0`` ``[d]`` and ``P_0`` ``[d, d]``; default ``0`` and ``prior_std²·I``.
     """
+
+    Params = LinearGaussianParams
 
     def __init__(
         self,
-        state_dim: int = 4,
-        obs_dim: int | None = None,
-        n_actions: int | None = None,
+        params: LinearGaussianParams | None = None,
+        *,
+        device: torch.device | str | None = None,
         transition_matrix: Tensor | None = None,
         process_cov: Tensor | None = None,
         observation_matrix: Tensor | None = None,
@@ -43,36 +73,34 @@ class LinearGaussian:
         controls: Tensor | None = None,
         prior_mean: Tensor | None = None,
         prior_cov: Tensor | None = None,
-        device: torch.device | str | None = None,
-        transition_scale: float = 0.95,
-        process_std: float = 0.1 ** 0.5,
-        obs_std: float = 0.5,
-        prior_std: float = 1.0,
+        **kwargs,
     ) -> None:
-        for name, value in (("state_dim", state_dim), ("obs_dim", obs_dim), ("n_actions", n_actions)):
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-                raise ValueError(f"LinearGaussian.{name}: must be an int >= 1, got {value!r}")
-        for name, value in (("process_std", process_std), ("obs_std", obs_std), ("prior_std", prior_std)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value < float("inf"):
-                raise ValueError(f"LinearGaussian.{name}: must be a positive finite number, got {value!r}")
-        d = state_dim
-        m = obs_dim if obs_dim is not None else d
+        self.params = p = build_params(LinearGaussianParams, params, kwargs, owner=type(self).__name__)
+        d = p.state_dim
+        m = p.obs_dim if p.obs_dim is not None else d
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         f32 = dict(dtype=torch.float32, device=self.device)
         eye = torch.eye(d, **f32)
-        self.F = torch.as_tensor(transition_matrix, **f32) if transition_matrix is not None else transition_scale * eye
-        self.Q = torch.as_tensor(process_cov, **f32) if process_cov is not None else process_std**2 * eye
-        self.H = torch.as_tensor(observation_matrix, **f32) if observation_matrix is not None else torch.eye(m, d, **f32)
+        self.F = (torch.as_tensor(transition_matrix, **f32) if transition_matrix is not None
+                  else p.transition_scale * eye)
+        self.Q = torch.as_tensor(process_cov, **f32) if process_cov is not None else p.process_std**2 * eye
+        self.H = (torch.as_tensor(observation_matrix, **f32) if observation_matrix is not None
+                  else torch.eye(m, d, **f32))
         self.R = (torch.as_tensor(observation_cov, **f32) if observation_cov is not None
-                  else obs_std**2 * torch.eye(m, **f32))
+                  else p.obs_std**2 * torch.eye(m, **f32))
         if controls is None:
             eye = torch.eye(d, **f32)
             controls = torch.cat([0.5 * eye, -0.5 * eye], dim=0)
         self.controls = torch.as_tensor(controls, **f32)
         self.m0 = torch.as_tensor(prior_mean, **f32) if prior_mean is not None else torch.zeros(d, **f32)
-        self.P0 = torch.as_tensor(prior_cov, **f32) if prior_cov is not None else prior_std**2 * eye
+        self.P0 = torch.as_tensor(prior_cov, **f32) if prior_cov is not None else p.prior_std**2 * eye
         self.state_dim, self.obs_dim = d, m
-        self.n_actions = n_actions if n_actions is not None else self.controls.shape[0]
+        self.n_actions = p.n_actions if p.n_actions is not None else self.controls.shape[0]
+        self._factorise(f32)
+
+    def _factorise(self, f32: dict) -> None:
+        """The Cholesky factors of ``Q``, ``R`` and ``P_0`` (raising unless each is symmetric positive
+        definite), the noises, and the matrices the methods use."""
         for name, mat in (("process_cov", self.Q), ("observation_cov", self.R), ("prior_cov", self.P0)):
             try:
                 torch.linalg.cholesky(mat)

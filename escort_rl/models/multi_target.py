@@ -68,39 +68,55 @@ correlation matrix (Higham 2002) with eigenvalues floored at 1e-3; :func:`descri
 prints both.
 
 Every choice the paper leaves open (zone geometry, flow field, dt, acceleration, noise scales, start
-distribution, goal, action set, horizon) lives in ``configs/env/mtt20d.yaml`` with its reason; the
-constructor defaults equal the yaml.
+distribution, goal, action set) is a parameter with its reason in
+:class:`~escort_rl.models.multi_target_params.MultiTargetTracking20DParams`; the episode length is
+``max_steps`` in ``configs/env/mtt20d.yaml``.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping, Sequence
-from types import MappingProxyType
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from escort_rl.config.params import HasParams, build_params
 from escort_rl.models.gaussian import (
     AdditiveGaussianTransition,
     GaussianNoise,
     make_positive_definite,
     nearest_correlation_matrix,
 )
+from escort_rl.models.multi_target_params import (
+    N_TARGETS,
+    MultiTargetTracking20DParams,
+    check_actions,
+    check_edges,
+    check_pair,
+    check_target_start_centers,
+    check_zone_grid,
+    check_zone_tables,
+)
+from escort_rl.models.plain import plain_values
+from escort_rl.models.zone_grid import (
+    bin_log_prob_grads,
+    bin_log_probs,
+    bin_log_sinh,
+    cell_constants,
+)
 
-N_TARGETS = 4
 ENTITY_DIM = 4  # [x, y, vx, vy]
 LOG_2PI = math.log(2 * math.pi)
 
-# Defaults: identical to configs/env/mtt20d.yaml (tests/test_multi_target.py checks it).
-DEFAULT_ACTIONS = ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
-DEFAULT_ZONE_GRID = (("clear", "limited"), ("confusion", "blind"))
-DEFAULT_ZONE_VISIBILITY = MappingProxyType({"clear": 1.0, "limited": 0.3, "confusion": 0.7, "blind": 0.0})
-DEFAULT_ZONE_NOISE_STD = MappingProxyType({"clear": 0.1, "limited": 0.5, "confusion": 0.2, "blind": 0.5})
-DEFAULT_ZONE_SWAP_PROB = MappingProxyType({"clear": 0.0, "limited": 0.0, "confusion": 0.3, "blind": 0.0})
-DEFAULT_TARGET_START_CENTERS = ((2.5, 2.5), (7.5, 2.5), (7.5, 7.5), (2.5, 7.5))
+# The scalar parameters, kept on the model as floats.
+_FLOAT_FIELDS = (
+    "map_size", "dt", "damping", "accel", "flow_rate", "flow_radius", "flow_attraction", "flocking_alignment",
+    "repulsion_radius", "repulsion_gain", "wall_gain", "agent_obs_noise_std", "zone_softness", "fov_degrees",
+    "fov_softness", "swap_length_scale", "success_radius", "distance_weight", "step_penalty", "collision_radius",
+    "collision_penalty", "agent_start_halfwidth", "target_start_halfwidth",
+)
 
 
 def paper_correlations() -> Tensor:
@@ -142,11 +158,6 @@ def _state_names() -> list[str]:
     return names
 
 
-def _log_cosh(z: Tensor) -> Tensor:
-    """``log cosh z``, stable for any ``z`` (gradient ``tanh z``)."""
-    return F.softplus(2 * z) - z - math.log(2.0)
-
-
 def _softmax_and_logsumexp(x: Tensor) -> tuple[Tensor, Tensor]:
     """``softmax`` and ``logsumexp`` over a short last dimension in one pass: ``[*S, n]`` ->
     ``[*S, n]`` and ``[*S]``. Each row needs a finite entry (``-inf`` entries get weight 0). On a CPU
@@ -157,41 +168,15 @@ def _softmax_and_logsumexp(x: Tensor) -> tuple[Tensor, Tensor]:
     return e / total, (top + torch.log(total)).squeeze(-1)
 
 
-def _log_sinh(k: float) -> float:
-    """``log sinh k`` for a constant ``k > 0``, without overflow."""
-    return k + math.log(-math.expm1(-2 * k)) - math.log(2.0)
-
-
-class MultiTargetTracking20D(AdditiveGaussianTransition):
+class MultiTargetTracking20D(HasParams, AdditiveGaussianTransition):
     """The 20-D Multi-Target Tracking POMDP. All tensors are float32 on ``device``.
 
-    Args (paper values marked; the rest are the choices documented in ``configs/env/mtt20d.yaml``):
-        map_size: side of the square map ``[0, map_size]²`` (paper: 10).
-        dt: time step Δt. damping: velocity damping λ (paper: 0.1). accel: acceleration per action.
-        actions: unit-ish 2-D acceleration directions, one per action (paper: +x, -x, +y, -y); the
-            normalised direction is also the heading of the field of view.
-        flow_center, flow_rate, flow_radius, flow_attraction: the circular current
-            ``F(p) = ω·(-r_y, r_x) + 2κ·(1 - u)/(1 + u)·r``, ``r = p - c``, ``u = ‖r‖²/R²`` (ω in rad
-            per unit time),
-            that targets are dragged toward.
-        flocking_alignment: gain pulling each target's velocity toward the mean target velocity.
-        repulsion_radius (paper: 1.0), repulsion_gain: collision repulsion between targets.
-        wall_gain: restoring force per unit distance outside the map.
-        position_noise_std, velocity_noise_std: process-noise stds (same for agent and targets).
-        agent_obs_noise_std: std of the agent's own position measurement.
-        zone_x_edges, zone_y_edges: strictly increasing cell edges of the zone grid.
-        zone_grid: zone names per cell, rows = y bins from the bottom, columns = x bins from the left.
-        zone_visibility (paper: clear 1, limited 0.3, confusion 0.7, blind 0), zone_noise_std,
-            zone_swap_prob (paper: confusion 0.3): per-zone observation parameters; same keys.
-        zone_softness: width of the sigmoid zone boundaries.
-        fov_degrees: field of view (paper: 60). fov_softness: width of its edge in ``cos θ`` units.
-        swap_length_scale: ℓ of the proximity weights of the swap partner.
-        goal, success_radius (paper: 0.5), distance_weight α (paper: 0.1), step_penalty β (paper:
-            0.05), collision_radius δ (paper: 0.5), collision_penalty (paper: 1): the reward.
-        agent_start_center, agent_start_halfwidth, target_start_centers, target_start_halfwidth:
-            start positions uniform in these boxes; start velocities zero.
-        device: where the model's constant tensors live.
+    Takes :class:`~escort_rl.models.multi_target_params.MultiTargetTracking20DParams` (or its
+    fields as keyword arguments; lists may be tuples, tensors or OmegaConf lists) and ``device``,
+    where the model's constant tensors live.
     """
+
+    Params = MultiTargetTracking20DParams
 
     state_dim = 20
     obs_dim = 2 + 3 * N_TARGETS
@@ -201,199 +186,56 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
     velocity_dims = tuple(d for i in range(1, N_TARGETS + 1) for d in (4 * i + 2, 4 * i + 3))  # the targets'
     obs_mask_dims = tuple(2 + 3 * i for i in range(N_TARGETS))
 
-    def __init__(
-        self,
-        map_size: float = 10.0,
-        dt: float = 0.1,
-        damping: float = 0.1,
-        accel: float = 0.2,
-        actions: Sequence[Sequence[float]] = DEFAULT_ACTIONS,
-        flow_center: Sequence[float] = (5.0, 5.0),
-        flow_rate: float = 0.3,
-        flow_radius: float = 3.5,
-        flow_attraction: float = 0.2,
-        flocking_alignment: float = 0.05,
-        repulsion_radius: float = 1.0,
-        repulsion_gain: float = 0.1,
-        wall_gain: float = 0.1,
-        position_noise_std: float = 0.05,
-        velocity_noise_std: float = 0.05,
-        agent_obs_noise_std: float = 0.1,
-        zone_x_edges: Sequence[float] = (5.0,),
-        zone_y_edges: Sequence[float] = (5.0,),
-        zone_grid: Sequence[Sequence[str]] = DEFAULT_ZONE_GRID,
-        zone_visibility: Mapping[str, float] = DEFAULT_ZONE_VISIBILITY,
-        zone_noise_std: Mapping[str, float] = DEFAULT_ZONE_NOISE_STD,
-        zone_swap_prob: Mapping[str, float] = DEFAULT_ZONE_SWAP_PROB,
-        zone_softness: float = 0.1,
-        fov_degrees: float = 60.0,
-        fov_softness: float = 0.02,
-        swap_length_scale: float = 2.0,
-        goal: Sequence[float] = (9.0, 9.0),
-        success_radius: float = 0.5,
-        distance_weight: float = 0.1,
-        step_penalty: float = 0.05,
-        collision_radius: float = 0.5,
-        collision_penalty: float = 1.0,
-        agent_start_center: Sequence[float] = (1.0, 1.0),
-        agent_start_halfwidth: float = 0.5,
-        target_start_centers: Sequence[Sequence[float]] = DEFAULT_TARGET_START_CENTERS,
-        target_start_halfwidth: float = 0.5,
-        device: torch.device | str | None = None,
-    ) -> None:
-        cls = type(self).__name__
-
-        def fail(name: str, msg: str) -> None:
-            raise ValueError(f"{cls}.{name}: {msg}")
-
-        for name, value in (
-            ("map_size", map_size), ("dt", dt), ("accel", accel), ("flow_radius", flow_radius),
-            ("repulsion_radius", repulsion_radius), ("position_noise_std", position_noise_std),
-            ("velocity_noise_std", velocity_noise_std), ("agent_obs_noise_std", agent_obs_noise_std),
-            ("zone_softness", zone_softness), ("fov_softness", fov_softness),
-            ("swap_length_scale", swap_length_scale), ("success_radius", success_radius),
-        ):
-            if not (_is_number(value) and value > 0):
-                fail(name, f"must be a finite number > 0, got {value!r}")
-        for name, value in (
-            ("flow_attraction", flow_attraction), ("flocking_alignment", flocking_alignment),
-            ("repulsion_gain", repulsion_gain), ("wall_gain", wall_gain),
-            ("distance_weight", distance_weight), ("step_penalty", step_penalty),
-            ("collision_radius", collision_radius), ("collision_penalty", collision_penalty),
-            ("agent_start_halfwidth", agent_start_halfwidth), ("target_start_halfwidth", target_start_halfwidth),
-        ):
-            if not (_is_number(value) and value >= 0):
-                fail(name, f"must be a finite number >= 0, got {value!r}")
-        if not (_is_number(damping) and 0.0 <= damping <= 1.0):
-            fail("damping", f"must be in [0, 1], got {damping!r}")
-        if not _is_number(flow_rate):
-            fail("flow_rate", f"must be a finite number, got {flow_rate!r}")
-        if not (_is_number(fov_degrees) and 0.0 < fov_degrees < 360.0):
-            fail("fov_degrees", f"must be in (0, 360), got {fov_degrees!r}")
-
-        def vec2(name: str, value) -> Tensor:
-            t = torch.as_tensor(value, dtype=torch.float64) if _is_numeric_seq(value) else None
-            if t is None or t.shape != (2,) or not torch.isfinite(t).all():
-                fail(name, f"must be two finite numbers, got {value!r}")
-            return t
-
-        def edges(name: str, value) -> Tensor:
-            t = torch.as_tensor(list(value), dtype=torch.float64) if _is_numeric_seq(value) else None
-            if (t is None or t.dim() != 1 or not torch.isfinite(t).all()
-                    or (t.numel() > 1 and not bool((t.diff() > 0).all()))):
-                fail(name, f"must be a strictly increasing list of finite numbers, got {value!r}")
-            return t
-
-        act = torch.as_tensor(actions, dtype=torch.float64) if _is_numeric_seq(actions) else None
-        if (act is None or act.dim() != 2 or act.shape[0] < 1 or act.shape[1] != 2
-                or not bool(torch.isfinite(act).all())):
-            fail("actions", f"must be a non-empty list of [ax, ay] pairs, got {actions!r}")
-        if not bool((torch.linalg.vector_norm(act, dim=-1) > 0).all()):
-            fail("actions", "every action needs a non-zero direction (it also sets the camera heading)")
-        flow_c, goal_t = vec2("flow_center", flow_center), vec2("goal", goal)
-        agent_c = vec2("agent_start_center", agent_start_center)
-        tsc = (torch.as_tensor(target_start_centers, dtype=torch.float64)
-               if _is_numeric_seq(target_start_centers) else None)
-        if tsc is None or tsc.shape != (N_TARGETS, 2) or not torch.isfinite(tsc).all():
-            fail("target_start_centers", f"must be {N_TARGETS} pairs [x, y], got {target_start_centers!r}")
-        x_edges, y_edges = edges("zone_x_edges", zone_x_edges), edges("zone_y_edges", zone_y_edges)
-
-        # zone tables
-        for name, table in (("zone_visibility", zone_visibility), ("zone_noise_std", zone_noise_std),
-                            ("zone_swap_prob", zone_swap_prob)):
-            if not isinstance(table, Mapping) or not table:
-                fail(name, f"must be a non-empty mapping zone name -> number, got {table!r}")
-        names = set(zone_visibility)
-        for name, table in (("zone_noise_std", zone_noise_std), ("zone_swap_prob", zone_swap_prob)):
-            if set(table) != names:
-                fail(name, f"must have the same zones as zone_visibility {sorted(names)}, got {sorted(table)}")
-        for z in names:
-            if not (_is_number(zone_visibility[z]) and 0.0 <= zone_visibility[z] <= 1.0):
-                fail("zone_visibility", f"zone '{z}' must be in [0, 1], got {zone_visibility[z]!r}")
-            if not (_is_number(zone_noise_std[z]) and zone_noise_std[z] > 0):
-                fail("zone_noise_std", f"zone '{z}' must be > 0, got {zone_noise_std[z]!r}")
-            if not (_is_number(zone_swap_prob[z]) and 0.0 <= zone_swap_prob[z] < 1.0):
-                fail("zone_swap_prob", f"zone '{z}' must be in [0, 1), got {zone_swap_prob[z]!r}")
-        is_grid = isinstance(zone_grid, Sequence) and not isinstance(zone_grid, str)
-        rows = ([list(r) for r in zone_grid if isinstance(r, Sequence) and not isinstance(r, str)]
-                if is_grid else None)
-        if (rows is None or len(rows) != len(zone_grid) or len(rows) != y_edges.numel() + 1
-                or any(isinstance(r, str) or len(r) != x_edges.numel() + 1 for r in rows)):
-            fail("zone_grid", f"must be {y_edges.numel() + 1} rows (y bins) of {x_edges.numel() + 1} zone names "
-                 f"(x bins), got {zone_grid!r}")
-        for r in rows:
-            for z in r:
-                if z not in names:
-                    fail("zone_grid", f"unknown zone '{z}'; zones are {sorted(names)}")
-        if not any(zone_visibility[z] > 0 for r in rows for z in r):
-            fail("zone_visibility", "every zone in zone_grid is blind; no target could ever be observed")
+    def __init__(self, params: MultiTargetTracking20DParams | None = None, *,
+                 device: torch.device | str | None = None, **kwargs) -> None:
+        self.params = p = build_params(MultiTargetTracking20DParams, params, plain_values(kwargs),
+                                       owner=type(self).__name__)
+        act = check_actions(p.actions)
+        flow_c, goal_t = check_pair("flow_center", p.flow_center), check_pair("goal", p.goal)
+        agent_c = check_pair("agent_start_center", p.agent_start_center)
+        tsc = check_target_start_centers(p.target_start_centers)
+        x_edges, y_edges = check_edges("zone_x_edges", p.zone_x_edges), check_edges("zone_y_edges", p.zone_y_edges)
+        check_zone_tables(p)
+        rows = check_zone_grid(p, x_edges, y_edges)
 
         self.device = torch.device(device) if device is not None else torch.device("cpu")
-        dev = self.device
-
-        def to(x: Tensor) -> Tensor:
-            return x.to(dtype=torch.float32, device=dev)
-
-        for name, value in (
-            ("map_size", map_size), ("dt", dt), ("damping", damping), ("accel", accel), ("flow_rate", flow_rate),
-            ("flow_radius", flow_radius), ("flow_attraction", flow_attraction),
-            ("flocking_alignment", flocking_alignment), ("repulsion_radius", repulsion_radius),
-            ("repulsion_gain", repulsion_gain), ("wall_gain", wall_gain), ("agent_obs_noise_std", agent_obs_noise_std),
-            ("zone_softness", zone_softness), ("fov_degrees", fov_degrees), ("fov_softness", fov_softness),
-            ("swap_length_scale", swap_length_scale), ("success_radius", success_radius),
-            ("distance_weight", distance_weight), ("step_penalty", step_penalty),
-            ("collision_radius", collision_radius), ("collision_penalty", collision_penalty),
-            ("agent_start_halfwidth", agent_start_halfwidth), ("target_start_halfwidth", target_start_halfwidth),
-        ):
-            setattr(self, name, float(value))
-        self._cos_half_fov = math.cos(math.radians(fov_degrees) / 2)
+        to = self._to
+        for name in _FLOAT_FIELDS:  # as floats: an int in a config reads as the float it stands for
+            setattr(self, name, float(getattr(p, name)))
+        self._cos_half_fov = math.cos(math.radians(p.fov_degrees) / 2)
         self.n_actions = int(act.shape[0])
         self.action_directions = to(act)  # [n_actions, 2]
         self.headings = to(act / torch.linalg.vector_norm(act, dim=-1, keepdim=True))  # camera heading per action
         self.flow_center, self.goal = to(flow_c), to(goal_t)
         self.agent_start_center, self.target_start_centers = to(agent_c), to(tsc)
+        self._build_zones(p, rows, x_edges, y_edges)
+        self._build_process_noise(p)
 
-        # ---- zones: a grid of cells with soft edges; per-cell observation constants
-        self.zone_x_edges, self.zone_y_edges = to(x_edges), to(y_edges)
-        self.zone_names = tuple(z for r in rows for z in r)  # cell c = by * n_xbins + bx
-        self.zone_visibility = dict(zone_visibility)
-        self.zone_noise_std = dict(zone_noise_std)
-        self.zone_swap_prob = dict(zone_swap_prob)
-        nu = torch.tensor([float(zone_visibility[z]) for z in self.zone_names], dtype=torch.float64)
-        sig = torch.tensor([float(zone_noise_std[z]) for z in self.zone_names], dtype=torch.float64)
-        q = torch.tensor([float(zone_swap_prob[z]) for z in self.zone_names], dtype=torch.float64)
-        self.cell_visibility, self.cell_noise_std, self.cell_swap_prob = to(nu), to(sig), to(q)
-        self._vis_cells = torch.nonzero(nu > 0).flatten().to(dev)  # cells where a detection can happen
-        self._miss_cells = torch.nonzero(nu < 1).flatten().to(dev)  # cells where a miss can happen
-        self._log_nu_vis = to(torch.log(nu[nu > 0]))
-        self._log_1m_nu_miss = to(torch.log1p(-nu[nu < 1]))
-        self._log_sig = to(torch.log(sig))
-        self._inv_var = to(1.0 / sig**2)
-        # [C] log(1 - q) for the identity component, log q for the swap components (-inf when q = 0)
-        self._log_keep = to(torch.log1p(-q))
-        self._log_swap = to(torch.log(q))
-        self._eye = torch.eye(N_TARGETS, dtype=torch.bool, device=dev)
-        # observation_score splits the visible cells: "plain" ones (q = 0) report their own target,
-        # "swapping" ones (q > 0) mix over the source; cells in the order plain, then swapping. The
-        # constants are the ones above, indexed (not recombined), so both methods round alike.
-        plain, swapping = (nu > 0) & (q == 0), (nu > 0) & (q > 0)
-        score_cells = torch.cat([torch.nonzero(plain).flatten(), torch.nonzero(swapping).flatten()])
-        self._score_cells, self._score_log_nu = score_cells.to(dev), to(torch.log(nu[score_cells]))
-        plain, swapping = plain.to(dev), swapping.to(dev)
-        self._plain_inv_var, self._plain_log_sig = self._inv_var[plain], self._log_sig[plain]
-        self._swap_inv_var, self._swap_log_sig = self._inv_var[swapping], self._log_sig[swapping]
-        self._swap_log_keep, self._swap_log_swap = self._log_keep[swapping], self._log_swap[swapping]
-        self._x_bin_logsinh = [_log_sinh(float(w) / (2 * zone_softness)) for w in x_edges.diff()]
-        self._y_bin_logsinh = [_log_sinh(float(w) / (2 * zone_softness)) for w in y_edges.diff()]
+    def _to(self, x: Tensor) -> Tensor:
+        return x.to(dtype=torch.float32, device=self.device)
 
-        # ---- process noise
+    def _build_zones(self, p: MultiTargetTracking20DParams, rows: list[list[str]], x_edges: Tensor,
+                     y_edges: Tensor) -> None:
+        """The zone grid: cells with soft edges (cell ``c = by·n_xbins + bx``) and the observation
+        constants of each cell (:func:`~escort_rl.models.zone_grid.cell_constants`)."""
+        self.zone_x_edges, self.zone_y_edges = self._to(x_edges), self._to(y_edges)
+        self.zone_names = tuple(z for r in rows for z in r)
+        for name, value in cell_constants(self.zone_names, p.zone_visibility, p.zone_noise_std,
+                                          p.zone_swap_prob, self.device).items():
+            setattr(self, name, value)
+        self._eye = torch.eye(N_TARGETS, dtype=torch.bool, device=self.device)
+        self._x_bin_logsinh = bin_log_sinh(x_edges, p.zone_softness)
+        self._y_bin_logsinh = bin_log_sinh(y_edges, p.zone_softness)
+
+    def _build_process_noise(self, p: MultiTargetTracking20DParams) -> None:
+        """The paper's correlations, the nearest correlation matrix used instead, and ``Σ``."""
         self.paper_correlation = paper_correlations()
         self.correlation = _used_correlations().clone()
-        stds = torch.tensor([position_noise_std, position_noise_std, velocity_noise_std, velocity_noise_std]
+        stds = torch.tensor([p.position_noise_std, p.position_noise_std, p.velocity_noise_std, p.velocity_noise_std]
                             * (N_TARGETS + 1), dtype=torch.float64)
         cov = self.correlation * stds[:, None] * stds[None, :]
-        self.noise_covariance = to(cov)
-        self._process = GaussianNoise(to(torch.linalg.cholesky(cov)))
+        self.noise_covariance = self._to(cov)
+        self._process = GaussianNoise(self._to(torch.linalg.cholesky(cov)))
 
     # ------------------------------------------------------------------ state access
     @staticmethod
@@ -432,19 +274,9 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
 
     # ------------------------------------------------------------------ zones and field of view
     def _bin_log_probs(self, x: Tensor, edges: Tensor, logsinh: list[float]) -> Tensor:
-        """Soft 1-D bins: ``x`` ``[*S]`` -> ``[*S, n_edges + 1]`` log-probabilities summing to 1.
-
-        Bin 0 is ``σ(-(x - e_0)/τ)``, the last ``σ((x - e_last)/τ)``, and bin ``b`` in between
-        ``σ((x - e_{b-1})/τ) - σ((x - e_b)/τ) = sinh(w/2τ) / (2 cosh(a/2) cosh(c/2))``, evaluated
-        in log space (no cancellation, finite gradients)."""
-        if edges.numel() == 0:
-            return torch.zeros(*x.shape, 1, dtype=x.dtype, device=x.device)
-        a = (x.unsqueeze(-1) - edges) / self.zone_softness  # [*S, E]
-        parts = [F.logsigmoid(-a[..., 0])]
-        for b in range(1, edges.numel()):
-            parts.append(logsinh[b - 1] - math.log(2.0) - _log_cosh(a[..., b - 1] / 2) - _log_cosh(a[..., b] / 2))
-        parts.append(F.logsigmoid(a[..., -1]))
-        return torch.stack(parts, dim=-1)
+        """Soft 1-D bins (:func:`~escort_rl.models.zone_grid.bin_log_probs`): ``x`` ``[*S]`` ->
+        ``[*S, n_edges + 1]`` log-probabilities summing to 1."""
+        return bin_log_probs(x, edges, self.zone_softness, logsinh)
 
     def cell_log_probs(self, pos: Tensor) -> Tensor:
         """Soft zone-cell membership ``log π_c(p)``: ``[*S, 2]`` -> ``[*S, C]`` (cells in
@@ -637,23 +469,7 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
         cos = (d * h).sum(-1) * inv_norm
         margin = (cos - self._cos_half_fov) / self.fov_softness  # [*S, 4]
         log_phi, log_1m_phi = F.logsigmoid(margin), F.logsigmoid(-margin)
-        # the detection mixture per visible cell v: a plain cell's report comes from its own target
-        # (κ_ivj = δ_ij); a swapping cell's mixes over the source j, laid out [*S, slot i, cell v, target j]
-        # so that the sums over j run along the last, contiguous dimension
-        diff = oxy.unsqueeze(-2) - tp.unsqueeze(-3)  # [*S, slot i, target j, 2]
-        sq = (diff * diff).sum(-1)  # [*S, i, j]
-        sq_own = torch.diagonal(sq, dim1=-2, dim2=-1).unsqueeze(-1)  # [*S, i, 1]
-        mix_plain = -0.5 * sq_own * self._plain_inv_var - (2 * self._plain_log_sig + LOG_2PI)  # [*S, i, Vp]
-        # swap_log_weights, as softmax and log-softmax
-        tdiff = tp.unsqueeze(-2) - tp.unsqueeze(-3)
-        logits = (-(tdiff * tdiff).sum(-1) / (2 * self.swap_length_scale**2)).masked_fill(self._eye, float("-inf"))
-        weights, log_total = _softmax_and_logsumexp(logits)  # w_ij [*S, i, j], 0 on the diagonal
-        lw = logits - log_total.unsqueeze(-1)
-        norm = -(2 * self._swap_log_sig + LOG_2PI)  # log-normaliser of N(o; p, σ²I₂) [Vs]
-        comp = torch.where(self._eye.unsqueeze(-2), (self._swap_log_keep + norm).unsqueeze(-1),
-                           (self._swap_log_swap + norm).unsqueeze(-1) + lw.unsqueeze(-2))  # [*S, i, Vs, j]
-        joint = comp - 0.5 * sq.unsqueeze(-2) * self._swap_inv_var.unsqueeze(-1)
-        kappa, mix_swap = _softmax_and_logsumexp(joint)  # κ_ivj: the source j of slot i's report; [*S, i, Vs]
+        diff, weights, kappa, mix_plain, mix_swap = self._detection_mixture(oxy, tp)
         mix = torch.cat([mix_plain.expand(*mix_swap.shape[:-1], -1), mix_swap], dim=-1)  # [*S, i, V]
         rho_vis, _ = _softmax_and_logsumexp(log_pi[..., self._score_cells] + self._score_log_nu + mix)
         rho_plain, rho_swap = rho_vis.split([self._plain_inv_var.numel(), self._swap_inv_var.numel()], dim=-1)
@@ -688,6 +504,30 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
         entities = torch.cat([d_pa.unsqueeze(-2), d_tp], dim=-2)  # [*S, 5, 2]
         return torch.cat([entities, torch.zeros_like(entities)], dim=-1).flatten(-2)
 
+    def _detection_mixture(self, oxy: Tensor, tp: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """The detection mixture per visible cell ``v``, for :meth:`observation_score`: a plain
+        cell's report comes from its own target (``κ_ivj = δ_ij``); a swapping cell's mixes over the
+        source ``j``, laid out ``[*S, slot i, cell v, target j]`` so that the sums over ``j`` run
+        along the last, contiguous dimension. ``oxy`` (the reports) and ``tp``: ``[*S, 4, 2]`` ->
+        ``o_i − p_j`` ``[*S, i, j, 2]``, the swap weights ``w_ij`` ``[*S, i, j]``, the source
+        posterior ``κ_ivj`` ``[*S, i, Vs, j]`` and the per-cell log-mixtures of the plain and
+        swapping cells, ``[*S, i, Vp]`` and ``[*S, i, Vs]``."""
+        diff = oxy.unsqueeze(-2) - tp.unsqueeze(-3)  # [*S, slot i, target j, 2]
+        sq = (diff * diff).sum(-1)  # [*S, i, j]
+        sq_own = torch.diagonal(sq, dim1=-2, dim2=-1).unsqueeze(-1)  # [*S, i, 1]
+        mix_plain = -0.5 * sq_own * self._plain_inv_var - (2 * self._plain_log_sig + LOG_2PI)  # [*S, i, Vp]
+        # swap_log_weights, as softmax and log-softmax
+        tdiff = tp.unsqueeze(-2) - tp.unsqueeze(-3)
+        logits = (-(tdiff * tdiff).sum(-1) / (2 * self.swap_length_scale**2)).masked_fill(self._eye, float("-inf"))
+        weights, log_total = _softmax_and_logsumexp(logits)  # w_ij [*S, i, j], 0 on the diagonal
+        lw = logits - log_total.unsqueeze(-1)
+        norm = -(2 * self._swap_log_sig + LOG_2PI)  # log-normaliser of N(o; p, σ²I₂) [Vs]
+        comp = torch.where(self._eye.unsqueeze(-2), (self._swap_log_keep + norm).unsqueeze(-1),
+                           (self._swap_log_swap + norm).unsqueeze(-1) + lw.unsqueeze(-2))  # [*S, i, Vs, j]
+        joint = comp - 0.5 * sq.unsqueeze(-2) * self._swap_inv_var.unsqueeze(-1)
+        kappa, mix_swap = _softmax_and_logsumexp(joint)  # κ_ivj: the source j of slot i's report; [*S, i, Vs]
+        return diff, weights, kappa, mix_plain, mix_swap
+
     def _cell_log_prob_grad(self, pos: Tensor, g_cells: Tensor) -> Tensor:
         """``Σ_c g_c ∇_p log π_c(p)`` for positions ``[*S, 2]`` and adjoints ``g_cells`` ``[*S, C]`` of
         :meth:`cell_log_probs` (cell ``c = by·n_x + bx``, ``log π_c = log π^y_by + log π^x_bx``)
@@ -699,19 +539,8 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
         return torch.stack(torch.broadcast_tensors(gx, gy), dim=-1)
 
     def _bin_log_prob_grads(self, x: Tensor, edges: Tensor) -> Tensor:
-        """``d/dx`` of :meth:`_bin_log_probs`: ``x`` ``[*S]`` -> ``[*S, n_edges + 1]``. With
-        ``a_e = (x − e)/τ``: ``−σ(a_0)/τ`` for bin 0, ``σ(−a_last)/τ`` for the last bin, and
-        ``−(tanh(a_{b−1}/2) + tanh(a_b/2))/(2τ)`` in between (``d log cosh z/dz = tanh z``; autograd
-        through :func:`_log_cosh` differs by under ``1e-8/τ``, as softplus turns linear past 20)."""
-        if edges.numel() == 0:
-            return torch.zeros(*x.shape, 1, dtype=x.dtype, device=x.device)
-        a = (x.unsqueeze(-1) - edges) / self.zone_softness  # [*S, E]
-        tau = self.zone_softness
-        parts = [-torch.sigmoid(a[..., 0]) / tau]
-        for b in range(1, edges.numel()):
-            parts.append(-(torch.tanh(a[..., b - 1] / 2) + torch.tanh(a[..., b] / 2)) / (2 * tau))
-        parts.append(torch.sigmoid(-a[..., -1]) / tau)
-        return torch.stack(parts, dim=-1)
+        """``d/dx`` of :meth:`_bin_log_probs` (:func:`~escort_rl.models.zone_grid.bin_log_prob_grads`)."""
+        return bin_log_prob_grads(x, edges, self.zone_softness)
 
     # ------------------------------------------------------------------ protocol: reward
     def reward(self, s: Tensor, a: Tensor, s_next: Tensor) -> Tensor:
@@ -724,22 +553,6 @@ class MultiTargetTracking20D(AdditiveGaussianTransition):
     def is_terminal(self, s: Tensor) -> Tensor:
         """Success: the agent within ``success_radius`` of the goal. ``[*S]`` bool."""
         return self.distance_to_goal(s) < self.success_radius
-
-
-def _is_number(value) -> bool:
-    """A finite real number (bools excluded)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _is_numeric_seq(value) -> bool:
-    """True for (nested) lists/tuples/tensors of numbers that torch can read."""
-    if isinstance(value, (str, bytes, Mapping)):
-        return False
-    try:
-        t = torch.as_tensor(value, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError):
-        return False
-    return t.numel() > 0 or t.dim() == 1
 
 
 def describe_correlations() -> str:

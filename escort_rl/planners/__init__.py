@@ -2,7 +2,7 @@
 
 from escort_rl.planners.planner_config import build_planner, load_planner_config, planner_domains
 from escort_rl.planners.policy import POMCPOWPolicy
-from escort_rl.planners.pomcpow import POMCPOW, Decision
+from escort_rl.planners.pomcpow import POMCPOW, Decision, POMCPOWParams
 from escort_rl.planners.scripted import (
     ScriptedBeliefController,
     TrueStateController,
@@ -10,5 +10,5 @@ from escort_rl.planners.scripted import (
     scripted_controller_for,
 )
 
-__all__ = ["POMCPOW", "Decision", "POMCPOWPolicy", "ScriptedBeliefController", "TrueStateController", "build_planner",
-           "load_planner_config", "pd_action", "planner_domains", "scripted_controller_for"]
+__all__ = ["POMCPOW", "Decision", "POMCPOWParams", "POMCPOWPolicy", "ScriptedBeliefController", "TrueStateController",
+           "build_planner", "load_planner_config", "pd_action", "planner_domains", "scripted_controller_for"]

@@ -43,10 +43,13 @@ import random
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Optional
 
 import torch
 from torch import Tensor
 
+from escort_rl.config.errors import ConfigError
+from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.protocol import check_model
 
 LeafValue = Callable[[Tensor, int], float]
@@ -165,60 +168,63 @@ def count_nodes(node: BeliefNode) -> int:
 
 
 # ------------------------------------------------------------------------------------- the planner
-class POMCPOW:
-    """POMCPOW with double progressive widening for a model with discrete actions.
+@dataclass(frozen=True)
+class POMCPOWParams:
+    """:class:`POMCPOW`'s settings (``configs/planner/<domain>.yaml`` holds each domain's, with the
+    paper's values marked there). ``leaf_value``, a callable set in code, is an argument of
+    :class:`POMCPOW`, not a setting.
 
-    Args:
+    Attributes:
         n_sim: simulations per decision; ``None`` runs until ``time_budget_s`` is spent.
         time_budget_s: wall-clock seconds per decision; ``None`` runs exactly ``n_sim`` simulations.
-            With both set, whichever ends first stops the search. At least one simulation always runs.
+            With both set, whichever ends first stops the search. At least one simulation always
+            runs; at least one of the two must be set.
         max_depth: the search horizon ``d_max`` in steps (tree plus rollout).
         exploration_constant: ``c`` in the UCB score ``Q(ha) + c · sqrt(log N(h) / N(ha))``.
         k_action, alpha_action: action widening, ``|C(h)| ≤ k_a · N(h)^α_a``.
         k_observation, alpha_observation: observation widening, ``|C(ha)| ≤ k_o · N(ha)^α_o``.
         discount: ``γ``.
         rollout_count: random rollouts per leaf, run as one batch; their mean is the leaf value.
-        leaf_value: a heuristic ``V̂(s', d)`` used instead of rollouts (``None``: rollouts).
     """
 
-    def __init__(
-        self,
-        n_sim: int | None = 100,
-        time_budget_s: float | None = None,
-        max_depth: int = 3,
-        exploration_constant: float = 10.0,
-        k_action: float = 4.0,
-        alpha_action: float = 0.5,
-        k_observation: float = 4.0,
-        alpha_observation: float = 0.5,
-        discount: float = 0.95,
-        rollout_count: int = 8,
-        leaf_value: LeafValue | None = None,
-    ) -> None:
-        if n_sim is None and time_budget_s is None:
-            raise ValueError("n_sim: set n_sim (simulations per decision), time_budget_s, or both")
-        if n_sim is not None:
-            _check_positive_int("n_sim", n_sim)
-        if time_budget_s is not None and not (isinstance(time_budget_s, int | float) and time_budget_s > 0):
-            raise ValueError(f"time_budget_s: must be a positive number of seconds or None, got {time_budget_s!r}")
-        _check_positive_int("max_depth", max_depth)
-        _check_positive_int("rollout_count", rollout_count)
-        if not (_is_real(exploration_constant) and 0 <= exploration_constant < math.inf):
-            raise ValueError(f"exploration_constant: must be a finite number >= 0, got {exploration_constant!r}")
-        for name, value in (("k_action", k_action), ("k_observation", k_observation)):
-            if not (_is_real(value) and 0 < value < math.inf):
-                raise ValueError(f"{name}: must be a finite number > 0, got {value!r}")
-        for name, value in (("alpha_action", alpha_action), ("alpha_observation", alpha_observation),
-                            ("discount", discount)):
-            if not (_is_real(value) and 0 <= value <= 1):
-                raise ValueError(f"{name}: must lie in [0, 1], got {value!r}")
+    n_sim: Optional[int] = param(100, ge=1)
+    time_budget_s: Optional[float] = param(None, gt=0)
+    max_depth: int = param(3, ge=1)
+    exploration_constant: float = param(10.0, ge=0)
+    k_action: float = param(4.0, gt=0)
+    alpha_action: float = param(0.5, ge=0, le=1)
+    k_observation: float = param(4.0, gt=0)
+    alpha_observation: float = param(0.5, ge=0, le=1)
+    discount: float = param(0.95, ge=0, le=1)
+    rollout_count: int = param(8, ge=1)
+
+
+def check_budget(p: POMCPOWParams) -> None:
+    """Raise unless the search has a budget: ``n_sim``, ``time_budget_s`` or both."""
+    if p.n_sim is None and p.time_budget_s is None:
+        raise ConfigError("POMCPOW.n_sim: set n_sim (simulations per decision), time_budget_s, or both")
+
+
+class POMCPOW(HasParams):
+    """POMCPOW with double progressive widening for a model with discrete actions.
+
+    Takes :class:`POMCPOWParams` (or its fields as keyword arguments) and ``leaf_value``, a
+    heuristic ``V̂(s', d)`` used instead of rollouts (``None``: rollouts).
+    """
+
+    Params = POMCPOWParams
+
+    def __init__(self, params: POMCPOWParams | None = None, *, leaf_value: LeafValue | None = None,
+                 **kwargs) -> None:
+        self.params = p = build_params(POMCPOWParams, params, kwargs, owner=type(self).__name__)
+        check_budget(p)
         if leaf_value is not None and not callable(leaf_value):
-            raise ValueError(f"leaf_value: must be a callable (state, depth) -> float or None, got {leaf_value!r}")
-        self.n_sim, self.time_budget_s, self.max_depth = n_sim, time_budget_s, max_depth
-        self.exploration_constant = float(exploration_constant)
-        self.k_action, self.alpha_action = float(k_action), float(alpha_action)
-        self.k_observation, self.alpha_observation = float(k_observation), float(alpha_observation)
-        self.discount, self.rollout_count, self.leaf_value = float(discount), rollout_count, leaf_value
+            raise ConfigError(f"POMCPOW.leaf_value: must be a callable (state, depth) -> float or None, "
+                              f"got {leaf_value!r}")
+        self.exploration_constant = float(p.exploration_constant)
+        self.k_action, self.alpha_action = float(p.k_action), float(p.alpha_action)
+        self.k_observation, self.alpha_observation = float(p.k_observation), float(p.alpha_observation)
+        self.discount, self.leaf_value = float(p.discount), leaf_value
 
     def __repr__(self) -> str:
         return (f"POMCPOW(n_sim={self.n_sim}, time_budget_s={self.time_budget_s}, max_depth={self.max_depth}, "
@@ -327,15 +333,6 @@ class _Search:
 
 
 # ------------------------------------------------------------------------------------- validation
-def _is_real(value) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and not math.isnan(value)
-
-
-def _check_positive_int(name: str, value) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name}: must be a positive int, got {value!r}")
-
-
 def _check_belief(model, particles: Tensor, log_weights: Tensor | None) -> Tensor:
     """Raise ``ValueError`` naming the field unless ``particles`` is ``[N, model.state_dim]`` and
     ``log_weights`` is ``[N]`` (or ``None``) with some finite weight; return the log-weights."""
