@@ -4,7 +4,6 @@ recomposition, and building filters and models with hydra.utils.instantiate."""
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import shutil
 from pathlib import Path
 
@@ -316,25 +315,23 @@ def _schema_defaults(cls) -> dict:
     return out
 
 
-@pytest.mark.parametrize(("node", "cls_path"), [
-    (schema.KidnappedRobot20DModelConfig, "escort_rl.models.KidnappedRobot20D"),
-    (schema.MultiTargetTracking20DModelConfig, "escort_rl.models.MultiTargetTracking20D"),
-    (schema.PlannerConfig, "escort_rl.planners.pomcpow.POMCPOW"),
-])
-def test_class_schemas_mirror_the_constructors(node, cls_path):
-    from hydra.utils import get_class
+def test_a_class_schema_has_its_params_fields_and_defaults():
+    """The schema of a group option is made from the class's Params: the same fields and defaults
+    (mappings have none in the schema: the yaml sets them), ``_target_`` naming the class."""
+    from escort_rl.belief import ESCORTFilter
+    from escort_rl.models import MultiTargetTracking20D
 
-    cls = get_class(cls_path)
-    params = {k: p.default for k, p in inspect.signature(cls.__init__).parameters.items()
-              if k not in ("self", "device", "leaf_value")}
-    defaults = _schema_defaults(node)
-    defaults = {k: v for k, v in defaults.items() if k not in ("name", "kind")}
-    assert set(defaults) == set(params)
-    for key, value in defaults.items():
-        if value is not MISSING:  # mappings have no schema default
-            assert _plain(value) == _plain(params[key]), key
-    if "_target_" in {f.name for f in dataclasses.fields(node)}:
-        assert node._target_ == cls_path
+    for node, cls in ((schema.ESCORTConfig, ESCORTFilter), (schema.MultiTargetTracking20DModelConfig,
+                                                            MultiTargetTracking20D)):
+        defaults = {k: v for k, v in _schema_defaults(node).items() if k not in ("name", "kind")}
+        own = {f.name: (f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default)
+               for f in dataclasses.fields(cls.Params)}
+        assert set(defaults) == set(own)
+        assert {k: v for k, v in defaults.items() if v is not MISSING} == {
+            k: v for k, v in own.items() if defaults[k] is not MISSING}
+        assert {k for k, v in defaults.items() if v is MISSING} == {
+            k for k, v in own.items() if isinstance(v, dict)}
+        assert node._target_ == f"escort_rl.{cls.__module__.split('.')[1]}.{cls.__name__}"
 
 
 def test_svgd_schema_is_escort_without_the_regularisers():
@@ -357,8 +354,11 @@ def test_bench_settings_load_typed(name, node):
 def test_planner_settings_load_typed(domain):
     from escort_rl.planners.planner_config import load_planner_config
 
-    cfg = schema.load_typed(config_dir() / "planner" / f"{domain}.yaml", schema.PlannerConfig)
-    assert OmegaConf.to_container(cfg) == load_planner_config(domain)
+    from escort_rl.planners import POMCPOWParams
+
+    values = load_planner_config(domain)
+    assert values == OmegaConf.to_container(OmegaConf.load(config_dir() / "planner" / f"{domain}.yaml"))
+    assert set(values) <= {f.name for f in dataclasses.fields(POMCPOWParams)}
 
 
 def test_group_options_load_typed_without_hydra():

@@ -5,11 +5,9 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping
-from pathlib import Path
 
 import pytest
 import torch
-import yaml
 from conftest import gen
 from omegaconf import OmegaConf
 
@@ -22,7 +20,6 @@ from escort_rl.models.kidnapped_robot import (
     paper_correlations,
 )
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "env" / "kidnapped20d.yaml"
 
 
 @pytest.fixture(scope="module")
@@ -65,19 +62,16 @@ def _plain(value):
     return value
 
 
-def test_yaml_matches_constructor_defaults_and_builds_the_model():
-    raw = yaml.safe_load(CONFIG.read_text())
-    assert raw["name"] == "kidnapped20d" and isinstance(raw["max_steps"], int) and raw["max_steps"] > 0
-    defaults = KidnappedRobot20DParams()
-    params = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(defaults)}
-    assert set(raw["model"]) == set(params), "the yaml and the parameters list different fields"
-    for key, default in params.items():
-        assert _plain(raw["model"][key]) == pytest.approx(_plain(default)) if isinstance(default, float) \
-            else _plain(raw["model"][key]) == _plain(default), key
+def test_the_composed_config_is_the_params_defaults_and_builds_the_model():
+    from escort_rl.config import compose
 
-    cfg = OmegaConf.load(CONFIG)
+    cfg = compose(["env=kidnapped20d"]).env
+    assert cfg.name == "kidnapped20d" and cfg.max_steps > 0
+    model_cfg = {k: v for k, v in OmegaConf.to_container(cfg.model, resolve=True).items() if k != "_target_"}
+    defaults = KidnappedRobot20DParams()
+    assert model_cfg == {f.name: _plain(getattr(defaults, f.name)) for f in dataclasses.fields(defaults)}
     default = KidnappedRobot20D()
-    for m in (KidnappedRobot20D(**OmegaConf.to_container(cfg.model, resolve=True)), KidnappedRobot20D(**cfg.model)):
+    for m in (KidnappedRobot20D(**model_cfg), KidnappedRobot20D(**{k: cfg.model[k] for k in model_cfg})):
         check_model(m)
         torch.testing.assert_close(m.landmark_positions, default.landmark_positions, rtol=0, atol=0)
         torch.testing.assert_close(m.landmark_descriptors, default.landmark_descriptors, rtol=0, atol=0)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Mapping
-from pathlib import Path
 
 import pytest
 import torch
@@ -21,7 +20,6 @@ from escort_rl.models.multi_target import (
 )
 from escort_rl.models.protocol import POMDPModel, check_model
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "env" / "mtt20d.yaml"
 N_T = 4
 
 
@@ -71,14 +69,14 @@ def _plain(value):
     return value
 
 
-def test_yaml_matches_defaults_and_builds_the_model():
-    cfg = OmegaConf.to_container(OmegaConf.load(CONFIG), resolve=True)
-    assert cfg["name"] == "mtt20d" and isinstance(cfg["max_steps"], int) and cfg["max_steps"] > 0
+def test_the_composed_config_is_the_params_defaults_and_builds_the_model():
+    from escort_rl.config import compose
+
+    cfg = OmegaConf.to_container(compose(["env=mtt20d"]).env, resolve=True)
+    assert cfg["name"] == "mtt20d" and cfg["max_steps"] > 0
+    cfg["model"].pop("_target_")
     defaults = MultiTargetTracking20DParams()
-    params = {f.name: getattr(defaults, f.name) for f in dataclasses.fields(defaults)}
-    assert set(cfg["model"]) == set(params), "the yaml and the parameters must list the same fields"
-    for key, default in params.items():
-        assert _plain(cfg["model"][key]) == _plain(default), key
+    assert cfg["model"] == {f.name: _plain(getattr(defaults, f.name)) for f in dataclasses.fields(defaults)}
     built = MultiTargetTracking20D(**cfg["model"])
     ref = MultiTargetTracking20D()
     torch.testing.assert_close(built.transition_scale_tril(), ref.transition_scale_tril())

@@ -163,100 +163,9 @@ def trainer_schema(algorithm: str, schema_name: str) -> type:
 LightDark10DModelConfig = model_schema("lightdark10d", "LightDark10DModelConfig")
 
 
-@dataclass
-class KidnappedRobot20DModelConfig:
-    """``escort_rl.models.KidnappedRobot20D``'s arguments."""
-
-    _target_: str = "escort_rl.models.KidnappedRobot20D"
-    map_size: float = _f(20.0, gt=0)
-    cluster_centres: List[List[float]] = _f([[5.0, 5.0], [15.0, 5.0], [5.0, 15.0], [15.0, 15.0]])
-    cluster_offsets: List[List[float]] = _f([[-2.0, -1.0], [0.5, -1.5], [1.5, 1.0], [-1.0, 1.5]])
-    cluster_types: List[str] = _f(["house", "house", "shop", "warehouse"])
-    type_prototypes: Dict[str, List[float]] = MISSING
-    descriptor_perturbation_std: float = _f(0.1, ge=0)
-    map_seed: int = 0
-    reference_descriptor: List[float] = _f([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    sensor_range: float = _f(5.0, gt=0)
-    field_of_view_deg: float = _f(90.0, gt=0, lt=360)
-    range_softness: float = _f(0.2, gt=0)
-    fov_softness: float = _f(0.05, gt=0)
-    detection_prob: float = _f(0.95, gt=0, lt=1)
-    distance_noise_std: float = _f(0.2, gt=0)
-    similarity_noise_std: float = _f(0.05, gt=0)
-    turn_rate: float = _f(0.1, ge=0)
-    dt: float = _f(0.1, gt=0)
-    nominal_speed: float = _f(2.0, ge=0)
-    velocity_reversion: float = _f(0.1, ge=0, le=1)
-    position_noise_std: float = _f(0.02, gt=0)
-    heading_noise_std: float = _f(0.02, gt=0)
-    velocity_noise_std: float = _f(0.05, gt=0)
-    steering_noise_std: float = _f(0.02, gt=0)
-    calibration_noise_std: float = _f(0.005, gt=0)
-    feature_noise_std: float = _f(0.01, gt=0)
-    rho_position_heading: float = _f(0.6, gt=-1, lt=1)
-    rho_position_velocity: float = _f(0.8, gt=-1, lt=1)
-    rho_calibration: float = _f(0.4, gt=-1, lt=1)
-    rho_calibration_feature: float = _f(0.3, gt=-1, lt=1)
-    start_speed_std: float = _f(0.1, ge=0)
-    start_steering_std: float = _f(0.05, ge=0)
-    start_calibration_std: float = _f(0.05, ge=0)
-    start_feature_std: float = _f(0.1, ge=0)
-
-
-@dataclass
-class MultiTargetTracking20DModelConfig:
-    """``escort_rl.models.MultiTargetTracking20D``'s arguments."""
-
-    _target_: str = "escort_rl.models.MultiTargetTracking20D"
-    map_size: float = _f(10.0, gt=0)
-    dt: float = _f(0.1, gt=0)
-    damping: float = _f(0.1, ge=0, le=1)
-    accel: float = _f(0.2, gt=0)
-    actions: List[List[float]] = _f([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
-    flow_center: List[float] = _f([5.0, 5.0])
-    flow_rate: float = 0.3
-    flow_radius: float = _f(3.5, gt=0)
-    flow_attraction: float = _f(0.2, ge=0)
-    flocking_alignment: float = _f(0.05, ge=0)
-    repulsion_radius: float = _f(1.0, gt=0)
-    repulsion_gain: float = _f(0.1, ge=0)
-    wall_gain: float = _f(0.1, ge=0)
-    position_noise_std: float = _f(0.05, gt=0)
-    velocity_noise_std: float = _f(0.05, gt=0)
-    agent_obs_noise_std: float = _f(0.1, gt=0)
-    zone_x_edges: List[float] = _f([5.0])
-    zone_y_edges: List[float] = _f([5.0])
-    zone_grid: List[List[str]] = _f([["clear", "limited"], ["confusion", "blind"]])
-    zone_visibility: Dict[str, float] = _f(MISSING, ge=0, le=1)
-    zone_noise_std: Dict[str, float] = _f(MISSING, gt=0)
-    zone_swap_prob: Dict[str, float] = _f(MISSING, ge=0, le=1)
-    zone_softness: float = _f(0.1, gt=0)
-    fov_degrees: float = _f(60.0, gt=0, lt=360)
-    fov_softness: float = _f(0.02, gt=0)
-    swap_length_scale: float = _f(2.0, gt=0)
-    goal: List[float] = _f([9.0, 9.0])
-    success_radius: float = _f(0.5, gt=0)
-    distance_weight: float = _f(0.1, ge=0)
-    step_penalty: float = _f(0.05, ge=0)
-    collision_radius: float = _f(0.5, ge=0)
-    collision_penalty: float = _f(1.0, ge=0)
-    agent_start_center: List[float] = _f([1.0, 1.0])
-    agent_start_halfwidth: float = _f(0.5, ge=0)
-    target_start_centers: List[List[float]] = _f([[2.5, 2.5], [7.5, 2.5], [7.5, 7.5], [2.5, 7.5]])
-    target_start_halfwidth: float = _f(0.5, ge=0)
-
-
-@dataclass
-class LinearGaussianModelConfig:
-    """``escort_rl.models.LinearGaussian``'s scalar family: the dimension and the observation's sharpness."""
-
-    _target_: str = "escort_rl.models.LinearGaussian"
-    state_dim: int = _f(4, ge=1)
-    obs_dim: Optional[int] = _f(None, ge=1)
-    transition_scale: float = 0.95
-    process_std: float = _f(0.1 ** 0.5, gt=0)
-    obs_std: float = _f(0.5, gt=0)
-    prior_std: float = _f(1.0, gt=0)
+KidnappedRobot20DModelConfig = model_schema("kidnapped20d", "KidnappedRobot20DModelConfig")
+MultiTargetTracking20DModelConfig = model_schema("mtt20d", "MultiTargetTracking20DModelConfig")
+LinearGaussianModelConfig = model_schema("linear_gaussian", "LinearGaussianModelConfig")
 
 
 @dataclass
@@ -358,24 +267,6 @@ class DVRLConfig:
     n_actions: int = _f(MISSING, ge=1)
     module: DVRLModuleConfig = _sub(DVRLModuleConfig)
     loss: DVRLLossConfig = _sub(DVRLLossConfig)
-
-
-# ------------------------------------------------------------------------------------ planner
-@dataclass
-class PlannerConfig:
-    """``configs/planner/<domain>.yaml``: ``escort_rl.planners.pomcpow.POMCPOW``'s arguments but
-    ``leaf_value`` (a callable, set in code). Read with :func:`load_typed`."""
-
-    n_sim: Optional[int] = _f(100, ge=1)
-    time_budget_s: Optional[float] = _f(None, gt=0)
-    max_depth: int = _f(3, ge=1)
-    exploration_constant: float = _f(10.0, ge=0)
-    k_action: float = _f(4.0, gt=0)
-    alpha_action: float = _f(0.5, ge=0, le=1)
-    k_observation: float = _f(4.0, gt=0)
-    alpha_observation: float = _f(0.5, ge=0, le=1)
-    discount: float = _f(0.95, ge=0, le=1)
-    rollout_count: int = _f(8, ge=1)
 
 
 # -------------------------------------------------------------------------------------- bench
