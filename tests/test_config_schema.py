@@ -12,7 +12,7 @@ import torch
 import yaml
 from omegaconf import MISSING, OmegaConf
 
-from escort_rl.config import schema
+from escort_rl.config import bench_schemas, checking, schema
 from escort_rl.cli import main
 from escort_rl.config import ConfigError, compose, config_dir, option_names
 from escort_rl.trainers.resume import merge_override_lists, recompose, saved_config_drift
@@ -341,11 +341,11 @@ def test_svgd_schema_is_escort_without_the_regularisers():
 
 
 # ------------------------------------------------------------------------------ files read without Hydra
-@pytest.mark.parametrize(("name", "node"), [("bench/closed_loop.yaml", schema.ClosedLoopBenchConfig),
-                                            ("bench/synthetic.yaml", schema.SyntheticBenchConfig)])
+@pytest.mark.parametrize(("name", "node"), [("bench/closed_loop.yaml", bench_schemas.ClosedLoopBenchConfig),
+                                            ("bench/synthetic.yaml", bench_schemas.SyntheticBenchConfig)])
 def test_bench_settings_load_typed(name, node):
     path = config_dir() / name
-    cfg = schema.load_typed(path, node)
+    cfg = checking.load_typed(path, node)
     assert OmegaConf.get_type(cfg) is node
     assert OmegaConf.to_container(cfg) == yaml.safe_load(path.read_text())
 
@@ -362,7 +362,7 @@ def test_planner_settings_load_typed(domain):
 
 
 def test_group_options_load_typed_without_hydra():
-    cfg = schema.load_typed(config_dir() / "env" / "mtt20d.yaml", schema.MultiTargetTracking20DEnvConfig)
+    cfg = checking.load_typed(config_dir() / "env" / "mtt20d.yaml", schema.MultiTargetTracking20DEnvConfig)
     assert cfg.model.goal == [9.0, 9.0] and "defaults" not in cfg
 
 
@@ -371,13 +371,13 @@ def test_a_bad_bench_value_names_file_and_key(tmp_path):
     bad = tmp_path / "closed_loop.yaml"
     bad.write_text(text.replace("episodes: 30", "episodes: 0"))
     with pytest.raises(ConfigError, match=r"closed_loop.yaml: episodes: must be >= 1, got 0$"):
-        schema.load_typed(bad, schema.ClosedLoopBenchConfig)
+        checking.load_typed(bad, bench_schemas.ClosedLoopBenchConfig)
     bad.write_text(text.replace("{iterations: 5, num_envs: 8}", "{iterations: five, num_envs: 8}"))
     with pytest.raises(ConfigError, match=r"closed_loop.yaml: train.lightdark10d.iterations: expected an int"):
-        schema.load_typed(bad, schema.ClosedLoopBenchConfig)
+        checking.load_typed(bad, bench_schemas.ClosedLoopBenchConfig)
     bad.write_text(text.replace("pomcpow_sir: {filter: sir}", "pomcpow_sir: {filter: sirr}"))
     with pytest.raises(ConfigError, match=r"planners.pomcpow_sir.filter: no filter config 'sirr'"):
-        schema.load_typed(bad, schema.ClosedLoopBenchConfig)
+        checking.load_typed(bad, bench_schemas.ClosedLoopBenchConfig)
 
 
 # ------------------------------------------------------------------------------ building

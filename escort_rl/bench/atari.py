@@ -47,12 +47,13 @@ def settings_path() -> Path:
 
 def load_settings(overrides: tuple[str, ...] | list[str] = ()) -> DictConfig:
     """``configs/bench/atari.yaml`` with ``overrides`` (``KEY=VALUE``, e.g. ``escort.num_steps=10``),
-    typed and checked (:class:`escort_rl.config.schema.AtariBenchConfig`); a bad key or value raises
+    typed and checked (:class:`escort_rl.config.bench_schemas.AtariBenchConfig`); a bad key or value raises
     ``ConfigError`` naming it."""
     from omegaconf.errors import OmegaConfBaseException
 
     from escort_rl.config import ConfigError
-    from escort_rl.config.schema import AtariBenchConfig, check_config, describe_error, load_typed
+    from escort_rl.config.bench_schemas import AtariBenchConfig
+    from escort_rl.config.checking import check_config, describe_error, load_typed
 
     settings = load_typed(settings_path(), AtariBenchConfig)
     bad = [o for o in overrides if "=" not in o]

@@ -63,10 +63,11 @@ def settings_path() -> Path:
 
 def load_settings() -> dict:
     """``configs/bench/closed_loop.yaml`` as a plain dict, checked against
-    :class:`escort_rl.config.schema.ClosedLoopBenchConfig` (a bad value raises ``ConfigError`` naming the key)."""
+    :class:`escort_rl.config.bench_schemas.ClosedLoopBenchConfig` (a bad value raises ``ConfigError`` naming the key)."""
     from omegaconf import OmegaConf
 
-    from escort_rl.config.schema import ClosedLoopBenchConfig, load_typed
+    from escort_rl.config.bench_schemas import ClosedLoopBenchConfig
+    from escort_rl.config.checking import load_typed
 
     return OmegaConf.to_container(load_typed(settings_path(), ClosedLoopBenchConfig), resolve=True)
 

@@ -200,14 +200,15 @@ def _config_path() -> Path:
 def _load_yaml(path: str) -> dict:
     from omegaconf import OmegaConf
 
-    from escort_rl.config.schema import SyntheticBenchConfig, load_typed
+    from escort_rl.config.bench_schemas import SyntheticBenchConfig
+    from escort_rl.config.checking import load_typed
 
     return OmegaConf.to_container(load_typed(path, SyntheticBenchConfig), resolve=True)
 
 
 def synthetic_config() -> dict:
     """``configs/bench/synthetic.yaml``, checked against
-    :class:`escort_rl.config.schema.SyntheticBenchConfig` (a fresh deep copy)."""
+    :class:`escort_rl.config.bench_schemas.SyntheticBenchConfig` (a fresh deep copy)."""
     import copy
 
     return copy.deepcopy(_load_yaml(str(_config_path())))

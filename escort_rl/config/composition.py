@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
-from escort_rl.config import files, schema
+from escort_rl.config import checking, files, schema
 from escort_rl.config.errors import ConfigError
 
 UNKNOWN_KEY_HINT = ("check the spelling against `escort-rl config`, or add a new key on purpose with "
@@ -40,14 +40,14 @@ def compose(overrides: list[str] | None = None, config_name: str = "config") -> 
 
 
 def check_composed(cfg: DictConfig) -> None:
-    """:func:`escort_rl.config.schema.check_config` on a composed config; a value that fails to resolve
+    """:func:`escort_rl.config.checking.check_config` on a composed config; a value that fails to resolve
     (e.g. ``${oc.env:UNSET}``) raises :class:`ConfigError` naming its key too."""
     from omegaconf.errors import OmegaConfBaseException
 
     try:
-        schema.check_config(cfg, prefix="config: ")
+        checking.check_config(cfg, prefix="config: ")
     except OmegaConfBaseException as err:
-        raise ConfigError(f"config: {schema.describe_error(err)}") from None
+        raise ConfigError(f"config: {checking.describe_error(err)}") from None
 
 
 def hydra_error_line(err: Exception) -> str | None:
@@ -56,7 +56,7 @@ def hydra_error_line(err: Exception) -> str | None:
     from hydra.errors import HydraException, MissingConfigException, OverrideParseException
     from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-    from escort_rl.config.schema import describe_error
+    from escort_rl.config.checking import describe_error
 
     if isinstance(err, OverrideParseException):
         return f"config: cannot parse the override '{err.override}': {_first_line(err.message)}"

@@ -1,32 +1,19 @@
-"""Typed schemas of the configs in ``configs/``, and the checks their metadata drives.
+"""The typed schemas of the configs in ``configs/``, registered in Hydra's ConfigStore.
 
 Every Hydra group option starts with ``defaults: [<option>_schema, _self_]`` (e.g.
 ``configs/trainer/ppo.yaml`` -> ``ppo_schema``), and ``config.yaml`` with ``config_schema``: the
-dataclasses below, registered in Hydra's ``ConfigStore`` under those names by :func:`register`.
-Composing therefore gives a typed config: a value of the wrong type (``num_particles=2.5``) or a
-key the schema lacks (``trainer.lrr=1``) fails while composing, naming the key.
+dataclasses below, registered under those names by :func:`register`. Composing therefore gives a
+typed config: a value of the wrong type (``num_particles=2.5``) or a key the schema lacks
+(``trainer.lrr=1``) fails while composing, naming the key.
 
-Ranges are field metadata, checked by :func:`check_config` after composing (and again by
-``escort_rl.trainers.validation.validate_train_config`` before training):
-
-- ``ge``, ``gt``, ``le``, ``lt``: bounds on a number (on every number of a list);
-- ``choices``: the allowed values (of every element of a list);
-- ``finite``: every float must be finite. This is the default for every field; ``finite: False``
-  opts out;
-- ``check``: a function ``value -> message | None`` for what bounds cannot say (``device``,
-  ``output_dir``, ``trainer.warm_start_filter``);
-- ``stage: "train"``: checked only before training, not while composing;
-- ``group``: the root field holds a Hydra group; a config without types (one saved by an older
-  version) is checked against the option named by ``GROUPS``.
-
-Schemas of classes (the models, the filters, the planner) mirror their constructors, defaults
-included (tests check both), with ``_target_`` for ``hydra.utils.instantiate``; mappings have no
-default (``???``) because OmegaConf merges mappings key by key: a default would keep keys the yaml
-leaves out. The schemas of the other groups give types and ranges only: their values live in the
-yaml (``???`` here).
-
-The benchmark settings (``configs/bench/``) and the planner settings (``configs/planner/``) are
-read without Hydra; :func:`load_typed` applies a schema to such a file.
+The schemas of the models, filters and trainers are made from their classes' parameter dataclasses
+(:func:`params_schema`): the same fields, defaults and range metadata
+(:mod:`escort_rl.config.params`), so a yaml holds only what differs from them. A mapping field has
+no schema default (``???``): OmegaConf merges mappings key by key, and a default would keep the
+keys a yaml leaves out. The other schemas (the env group's own keys, DVRL's sizes, the root) are
+written here. Field metadata ``group`` marks a root field that holds a Hydra group: a config
+without types (one saved by an older version) is checked against the option its contents name
+(:func:`group_schema`). The checks themselves are :mod:`escort_rl.config.checking`'s.
 """
 
 from __future__ import annotations
@@ -38,14 +25,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional
 
-from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
-from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException,
-                              ValidationError)
+from omegaconf import MISSING
 
 from escort_rl.config import registry
-from escort_rl.config.errors import ConfigError
-from escort_rl.config.files import check_filter_name
-from escort_rl.config.params import MAX_LR, describe_type, param, value_problem
+from escort_rl.config.params import param
 
 
 _f = param
@@ -269,150 +252,6 @@ class DVRLConfig:
     loss: DVRLLossConfig = _sub(DVRLLossConfig)
 
 
-# -------------------------------------------------------------------------------------- bench
-@dataclass
-class TrainBudgetConfig:
-    iterations: int = _f(MISSING, ge=1)
-    num_envs: int = _f(MISSING, ge=1)
-
-
-@dataclass
-class PlannerRowConfig:
-    filter: str = _f(MISSING, check=check_filter_name)
-
-
-@dataclass
-class LearnedRowConfig:
-    trainer: str = MISSING
-
-
-@dataclass
-class ClosedLoopBenchConfig:
-    """``configs/bench/closed_loop.yaml`` (protocol (b) of the domain benchmark)."""
-
-    episodes: int = _f(MISSING, ge=1)
-    eval_seed: int = MISSING
-    particles: int = _f(MISSING, ge=1)
-    greedy: bool = MISSING
-    # the trainer of the filter rows (a DeepSets policy on a filter's belief); None: config.yaml's
-    trainer: Optional[str] = _f(None, choices=["ppo", "reinforce"])
-    train: Dict[str, TrainBudgetConfig] = MISSING
-    planners: Dict[str, PlannerRowConfig] = MISSING
-    # scripted rows have the planner rows' shape: {filter: <a configs/filter/ name>}
-    scripted: Dict[str, PlannerRowConfig] = MISSING
-    learned: Dict[str, LearnedRowConfig] = MISSING
-    # recurrent rows (no belief) have the learned rows' shape: {trainer: <a configs/trainer/ name>}
-    recurrent: Dict[str, LearnedRowConfig] = MISSING
-
-
-@dataclass
-class SyntheticTargetConfig:
-    """One GMM target: components are ``{mean, cov}`` or ``{mean, var, corr}`` with several forms
-    each (see the yaml's header), so they stay untyped."""
-
-    dim: int = _f(MISSING, ge=1)
-    weights: List[float] = _f(MISSING, gt=0, le=1)
-    components: List[Any] = MISSING
-
-
-@dataclass
-class GaussianInitialConfig:
-    mean: float = MISSING
-    std: float = _f(MISSING, gt=0)
-
-
-@dataclass
-class ScalabilityConfig:
-    dims: List[int] = _f(MISSING, ge=1)
-    structures: List[str] = _f(MISSING, choices=["block", "banded", "long_range", "sparse"])
-    weights: List[float] = _f(MISSING, gt=0, le=1)
-    positions: List[float] = MISSING
-    std: List[float] = _f(MISSING, gt=0)
-    block: Dict[str, Any] = MISSING
-    banded: Dict[str, Any] = MISSING
-    long_range: Dict[str, Any] = MISSING
-    sparse: Dict[str, Any] = MISSING
-    initial: GaussianInitialConfig = _sub(GaussianInitialConfig)
-
-
-@dataclass
-class SyntheticBenchConfig:
-    """``configs/bench/synthetic.yaml`` (the paper's synthetic targets)."""
-
-    targets: Dict[str, SyntheticTargetConfig] = MISSING
-    initial: Dict[str, GaussianInitialConfig] = MISSING
-    scalability: ScalabilityConfig = _sub(ScalabilityConfig)
-
-
-@dataclass
-class AtariTrainerConfig:
-    """``configs/bench/atari.yaml``'s ``trainer``: A2C with DVRL's Atari settings."""
-
-    num_envs: int = _f(MISSING, ge=1)
-    rollout_steps: int = _f(MISSING, ge=1)
-    updates_per_iteration: int = _f(MISSING, ge=1)
-    lr: float = _f(MISSING, gt=0, lt=MAX_LR)
-    rmsprop_alpha: float = _f(MISSING, ge=0, lt=1)
-    rmsprop_eps: float = _f(MISSING, gt=0)
-    gamma: float = _f(MISSING, gt=0, le=1)
-    entropy_coef: float = _f(MISSING, ge=0)
-    value_loss_coef: float = _f(MISSING, ge=0)
-    encoding_loss_coef: float = _f(MISSING, ge=0)
-    max_grad_norm: float = _f(MISSING, gt=0)
-    reward_clip: bool = MISSING
-    parallel_envs: bool = MISSING
-    checkpoint_every: int = _f(MISSING, ge=1)
-    keep_checkpoints: int = _f(MISSING, ge=1)
-
-
-@dataclass
-class AtariVRNNConfig:
-    """The VRNN of DVRL and ESCORT-latent (``escort_rl.modules.DVRL``'s size arguments)."""
-
-    num_particles: int = _f(MISSING, ge=1)
-    latent_dim: int = _f(MISSING, ge=1)
-    hidden: int = _f(MISSING, ge=1)
-    encoding_dim: int = _f(MISSING, ge=1)
-    summary: str = _f(MISSING, choices=["gru", "deepsets"])
-
-
-@dataclass
-class AtariESCORTConfig:
-    """ESCORT-latent's particle evolution (``ESCORTFilter``'s arguments)."""
-
-    num_steps: int = _f(MISSING, ge=1)
-    step_size: float = _f(MISSING, gt=0)
-    lambda_corr: float = _f(MISSING, ge=0)
-    lambda_temp: float = _f(MISSING, ge=0)
-    n_proj: int = _f(MISSING, ge=1)
-    proj_dim: int = _f(MISSING, ge=1)
-    jitter: float = _f(MISSING, ge=0)
-
-
-@dataclass
-class AtariGRUConfig:
-    hidden: int = _f(MISSING, ge=1)
-
-
-@dataclass
-class AtariPaperConfig:
-    """The paper's Table 4: ``table4[game][method] = [mean, s.e.]`` at ``frames``."""
-
-    frames: int = _f(MISSING, ge=1)
-    table4: Dict[str, Dict[str, List[float]]] = MISSING
-
-
-@dataclass
-class AtariBenchConfig:
-    """``configs/bench/atari.yaml`` (Flickering Atari, the paper's Table 4)."""
-
-    trainer: AtariTrainerConfig = _sub(AtariTrainerConfig)
-    vrnn: AtariVRNNConfig = _sub(AtariVRNNConfig)
-    escort: AtariESCORTConfig = _sub(AtariESCORTConfig)
-    gru: AtariGRUConfig = _sub(AtariGRUConfig)
-    paper: AtariPaperConfig = _sub(AtariPaperConfig)
-
-
 # --------------------------------------------------------------------------------------- root
 @dataclass
 class KeysConfig:
@@ -483,7 +322,7 @@ class Config:
     overrides: Optional[List[str]] = None
 
 
-def _group_schema(group: str, node) -> type | None:
+def group_schema(group: str, node) -> type | None:
     """The schema of a group option from its contents (for configs without types)."""
     if group == "env":
         return ENV_SCHEMAS.get(node.get("name"))
@@ -518,108 +357,6 @@ def register() -> None:
         cs.store(group="trainer", name=f"{name}_schema", node=node)
     cs.store(group="dvrl", name="dvrl_schema", node=DVRLConfig)
     _REGISTERED = True
-
-
-# ------------------------------------------------------------------------------ type messages
-def _field_hint(schema, key) -> Any:
-    if not (isinstance(schema, type) and dataclasses.is_dataclass(schema)) or not isinstance(key, str):
-        return None
-    return typing.get_type_hints(schema).get(key)
-
-
-def _show(value) -> str:
-    return f"'{value}'" if not isinstance(value, (list, dict, ListConfig, DictConfig)) else repr(value)
-
-
-def describe_error(err: OmegaConfBaseException) -> str:
-    """One line for an OmegaConf error, from its structured fields (``full_key``, ``value``, the
-    schema's type of the key): ``num_particles: expected an int, got '2.5'``."""
-    key = err.full_key or err.key or "?"
-    if isinstance(err, (ConfigKeyError, ConfigAttributeError)) and err.object_type is not None:
-        return f"unknown key '{key}'"
-    if isinstance(err, MissingMandatoryValue):
-        return f"{key}: missing (???); set it"
-    if isinstance(err, ValidationError):
-        hint = _field_hint(err.object_type, err.key)
-        if hint is None and isinstance(err.parent_node, ListConfig):  # an element of a typed list
-            hint = err.parent_node._metadata.element_type
-        if hint is not None:
-            return f"{key}: expected {describe_type(hint)}, got {_show(err.value)}"
-    msg = (err.msg or type(err).__name__).strip().splitlines()[0]
-    return f"{key}: {msg}" if err.full_key else msg
-
-
-# ------------------------------------------------------------------------------------ checker
-def check_config(cfg, schema: type | None = None, *, stage: str = "compose", prefix: str = "") -> None:
-    """Raise ``ConfigError(prefix + "<full key>: <what is wrong>")`` for the first value that breaks
-    its schema's type or metadata. ``schema``: for a config without types (default: the root
-    :class:`Config`); a typed config carries its own. ``stage="train"`` adds the checks marked so."""
-    problem = find_problem(cfg, schema or Config, stage=stage)
-    if problem is not None:
-        raise ConfigError(prefix + problem)
-
-
-def find_problem(cfg, schema: type | None = None, *, stage: str = "compose", path: str = "") -> str | None:
-    """The message :func:`check_config` raises, or ``None``."""
-    if not isinstance(cfg, DictConfig):
-        cfg = OmegaConf.create(cfg)
-    return _walk(cfg, schema, path, stage)
-
-
-def _walk(node: DictConfig, schema, path: str, stage: str) -> str | None:
-    own = OmegaConf.get_type(node)
-    if own is not None and dataclasses.is_dataclass(own):
-        schema = own
-    if schema is None:
-        return None
-    hints = typing.get_type_hints(schema)
-    for f in dataclasses.fields(schema):
-        if f.name.startswith("_") or f.name not in node:
-            continue
-        key = f"{path}.{f.name}" if path else f.name
-        if OmegaConf.is_missing(node, f.name):
-            return f"{key}: missing (???); set it"
-        problem = _check_value(node[f.name], hints[f.name], f.metadata, key, stage)
-        if problem is not None:
-            return problem
-    return None
-
-
-def _check_value(value, hint, meta, key: str, stage: str) -> str | None:
-    if "group" in meta and isinstance(value, DictConfig):
-        return _walk(value, _group_schema(meta["group"], value), key, stage)
-    sub = hint
-    if typing.get_origin(hint) is typing.Union:
-        sub = next((a for a in typing.get_args(hint) if a is not type(None)), hint)
-    if isinstance(value, DictConfig) and dataclasses.is_dataclass(sub):
-        return _walk(value, sub, key, stage)
-    args = typing.get_args(sub)
-    if (isinstance(value, DictConfig) and typing.get_origin(sub) in (dict, Dict) and len(args) == 2
-            and dataclasses.is_dataclass(args[1])):
-        for k in value:
-            problem = _walk(value[k], args[1], f"{key}.{k}", stage)
-            if problem is not None:
-                return problem
-        return None
-    plain = OmegaConf.to_container(value, resolve=True) if isinstance(value, (DictConfig, ListConfig)) else value
-    return value_problem(plain, hint, meta, key, stage)
-
-
-# ------------------------------------------------------------------------------ plain files
-def load_typed(path: str | Path, schema: type) -> DictConfig:
-    """A yaml file read without Hydra (``configs/bench/*.yaml``, ``configs/planner/*.yaml``) with
-    ``schema`` applied: ``OmegaConf.merge(OmegaConf.structured(schema), yaml)``, then the checks of
-    its metadata. Raises ``ConfigError("<path>: <key>: ...")``. A top-level ``defaults`` list (Hydra's)
-    is dropped, so a group option can be read too."""
-    loaded = OmegaConf.load(path)
-    if isinstance(loaded, DictConfig) and "defaults" in loaded:
-        loaded = OmegaConf.masked_copy(loaded, [k for k in loaded if k != "defaults"])
-    try:
-        cfg = OmegaConf.merge(OmegaConf.structured(schema), loaded)
-    except OmegaConfBaseException as err:
-        raise ConfigError(f"{path}: {describe_error(err)}") from None
-    check_config(cfg, schema, prefix=f"{path}: ")
-    return cfg
 
 
 register()

@@ -11,7 +11,8 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from escort_rl.config import ConfigError
-from escort_rl.config.schema import ENV_SCHEMAS, check_config, describe_error, find_problem
+from escort_rl.config.checking import check_config, describe_error, find_problem
+from escort_rl.config.schema import ENV_SCHEMAS
 
 
 def validate_train_config(cfg: DictConfig) -> None:
