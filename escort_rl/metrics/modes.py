@@ -62,12 +62,7 @@ def mode_coverage(particles, means, tau: float = 1.0, threshold: float | None = 
 
     Shapes: ``particles`` [N, d] or [..., N, d], ``means`` [K, d], ``weights`` [..., N] or None.
     """
-    f = mode_fractions(particles, means, tau, weights)
-    k = f.shape[-1]
-    thr = 0.05 / k if threshold is None else float(threshold)
-    if not math.isfinite(thr):
-        raise ValueError(f"threshold: expected a finite number, got {threshold}")
-    return (f > thr).to(f.dtype).mean(-1)
+    return covered_share(mode_fractions(particles, means, tau, weights), threshold)
 
 
 def chi2_quantile(df: int, level: float) -> float:
@@ -129,10 +124,14 @@ def mode_coverage_mahalanobis(particles, means, covariances, level: float = 0.99
     for batched particles. Exact samples cover component ``k`` whenever ``level · w_k`` exceeds the
     threshold with margin (every target of the benchmark: ``w_k ≥ 0.08``, ``0.05/K ≤ 0.025``).
     """
-    f = mode_fractions_mahalanobis(particles, means, covariances, level)
-    k = f.shape[-1]
+    return covered_share(mode_fractions_mahalanobis(particles, means, covariances, level), threshold)
+
+
+def covered_share(fractions: Tensor, threshold: float | None = None) -> Tensor:
+    """``(1/K) Σ_k 1[f_k > threshold]`` of the mode fractions ``f`` ``[..., K]`` (``threshold``
+    default ``0.05 / K``) -> ``[...]``."""
+    k = fractions.shape[-1]
     thr = 0.05 / k if threshold is None else float(threshold)
     if not math.isfinite(thr):
         raise ValueError(f"threshold: expected a finite number, got {threshold}")
-    return (f > thr).to(f.dtype).mean(-1)
-
+    return (fractions > thr).to(fractions.dtype).mean(-1)

@@ -88,3 +88,33 @@ def make_positive_definite(c: Tensor, min_eig: float = 1e-3) -> Tensor:
     c = (evecs * evals.clamp_min(min_eig)) @ evecs.T
     s = torch.sqrt(torch.diagonal(c))
     return c / s[:, None] / s[None, :]
+
+
+def pair_rows(paper: Tensor, used: Tensor, names: list[str]) -> list[tuple[str, str, str]]:
+    """``(label, paper, used)`` table rows, one per pair ``i < j`` the paper's correlation matrix sets
+    (non-zero), the values as text."""
+    d = paper.shape[0]
+    return [(f"rho({names[i]}, {names[j]})", f"{paper[i, j]:.2f}", f"{used[i, j]:.3f}")
+            for i in range(d) for j in range(i + 1, d) if paper[i, j] != 0]
+
+
+def correlation_report(title: str, paper: Tensor, used: Tensor, rows: list[tuple[str, str, str]],
+                       column: str = "pair") -> str:
+    """A Markdown report of a paper's process-noise correlation matrix ``paper`` and the matrix a model
+    uses instead (``used``, the nearest correlation matrix when the paper's is not PSD): the smallest
+    eigenvalues, a table of ``rows`` (:func:`pair_rows`) and the largest correlation ``used`` adds
+    where the paper has none."""
+    paper_min = torch.linalg.eigvalsh(paper).min().item()
+    lines = [
+        title,
+        "",
+        f"smallest eigenvalue: paper {paper_min:.4f} ({'not PSD' if paper_min < 0 else 'PSD'}), "
+        f"used {torch.linalg.eigvalsh(used).min().item():.4f}",
+        "",
+        f"| {column} | paper | used |",
+        "| --- | --- | --- |",
+        *(f"| {label} | {p} | {u} |" for label, p, u in rows),
+    ]
+    off = (used * (paper == 0)).abs().max().item()
+    lines += ["", f"largest |correlation| the used matrix adds where the paper has none: {off:.3f}"]
+    return "\n".join(lines)

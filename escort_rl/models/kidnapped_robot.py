@@ -79,6 +79,7 @@ from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.gaussian import (
     AdditiveGaussianTransition,
     GaussianNoise,
+    correlation_report,
     make_positive_definite,
     nearest_correlation_matrix,
 )
@@ -554,7 +555,6 @@ def describe_correlations(model: KidnappedRobot20D | None = None) -> str:
     the paper gives one value for (with the range of the used values over the group)."""
     model = KidnappedRobot20D() if model is None else model
     paper, used = model.paper_correlation, model.correlation
-    paper_min = torch.linalg.eigvalsh(paper).min().item()
     cal, feat = list(range(CAL.start, CAL.stop)), list(range(FEAT.start, FEAT.stop))
     groups = {
         "rho(x, theta), rho(y, theta)": [(X, THETA), (Y, THETA)],
@@ -565,21 +565,11 @@ def describe_correlations(model: KidnappedRobot20D | None = None) -> str:
         "rho(theta, v) (not given)": [(THETA, V)],
         "rho(f_k, f_l), k != l (not given)": [(k, l) for k in feat for l in feat if k < l],
     }
-    lines = [
-        "Kidnapped Robot 20D process-noise correlations",
-        "",
-        f"smallest eigenvalue: paper {paper_min:.4f} ({'not PSD' if paper_min < 0 else 'PSD'}), "
-        f"used {torch.linalg.eigvalsh(used).min().item():.4f}",
-        "",
-        "| pairs | paper | used |",
-        "| --- | --- | --- |",
-    ]
+    rows = []
     for label, pairs in groups.items():
         p = torch.stack([paper[i, j] for i, j in pairs])
         u = torch.stack([used[i, j] for i, j in pairs])
         used_txt = f"{u.min().item():.3f}" if torch.allclose(u.min(), u.max(), atol=5e-4) else \
             f"{u.min().item():.3f} .. {u.max().item():.3f}"
-        lines.append(f"| {label} | {p.max().item():.2f} | {used_txt} |")
-    off = (used * (paper == 0)).abs().max().item()
-    lines += ["", f"largest |correlation| the used matrix adds where the paper has none: {off:.3f}"]
-    return "\n".join(lines)
+        rows.append((label, f"{p.max().item():.2f}", used_txt))
+    return correlation_report("Kidnapped Robot 20D process-noise correlations", paper, used, rows, column="pairs")

@@ -42,8 +42,10 @@ from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.gaussian import (
     AdditiveGaussianTransition,
     GaussianNoise,
+    correlation_report,
     make_positive_definite,
     nearest_correlation_matrix,
+    pair_rows,
 )
 
 LIGHT_DIM = 5
@@ -355,19 +357,4 @@ def describe_correlations() -> str:
     paper = paper_correlations()
     used = LightDark10D().correlation
     names = [f"x{i + 1}" for i in range(5)] + [f"v{i + 1}" for i in range(5)]
-    lines = [
-        "Light-Dark 10D process-noise correlations",
-        "",
-        f"smallest eigenvalue: paper {torch.linalg.eigvalsh(paper).min().item():.4f} (not PSD), "
-        f"used {torch.linalg.eigvalsh(used).min().item():.4f}",
-        "",
-        "| pair | paper | used |",
-        "| --- | --- | --- |",
-    ]
-    for i in range(10):
-        for j in range(i + 1, 10):
-            if paper[i, j] != 0:
-                lines.append(f"| rho({names[i]}, {names[j]}) | {paper[i, j]:.2f} | {used[i, j]:.3f} |")
-    off = (used * (paper == 0)).abs().max().item()
-    lines += ["", f"largest |correlation| the used matrix adds where the paper has none: {off:.3f}"]
-    return "\n".join(lines)
+    return correlation_report("Light-Dark 10D process-noise correlations", paper, used, pair_rows(paper, used, names))

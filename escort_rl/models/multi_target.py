@@ -86,8 +86,10 @@ from escort_rl.config.params import HasParams, build_params
 from escort_rl.models.gaussian import (
     AdditiveGaussianTransition,
     GaussianNoise,
+    correlation_report,
     make_positive_definite,
     nearest_correlation_matrix,
+    pair_rows,
 )
 from escort_rl.models.multi_target_params import (
     N_TARGETS,
@@ -561,20 +563,4 @@ def describe_correlations() -> str:
     paper = paper_correlations()
     used = MultiTargetTracking20D().correlation
     names = _state_names()
-    lines = [
-        "Multi-Target Tracking 20D process-noise correlations",
-        "",
-        f"smallest eigenvalue: paper {torch.linalg.eigvalsh(paper).min().item():.4f} (not PSD), "
-        f"used {torch.linalg.eigvalsh(used).min().item():.4f}",
-        "",
-        "| pair | paper | used |",
-        "| --- | --- | --- |",
-    ]
-    d = paper.shape[0]
-    for i in range(d):
-        for j in range(i + 1, d):
-            if paper[i, j] != 0:
-                lines.append(f"| rho({names[i]}, {names[j]}) | {paper[i, j]:.2f} | {used[i, j]:.3f} |")
-    off = (used * (paper == 0)).abs().max().item()
-    lines += ["", f"largest |correlation| the used matrix adds where the paper has none: {off:.3f}"]
-    return "\n".join(lines)
+    return correlation_report("Multi-Target Tracking 20D process-noise correlations", paper, used, pair_rows(paper, used, names))
