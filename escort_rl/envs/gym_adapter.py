@@ -58,7 +58,8 @@ class POMDPGymEnv(gym.Env):
 
 
 def domain_config(domain: str):
-    """``configs/env/<domain>.yaml`` as a DictConfig (``name``, ``max_steps``, ``model``)."""
+    """``configs/env/<domain>.yaml`` as a DictConfig (``name``, ``max_steps``, ...), read without
+    Hydra: the env group's own keys. The model's parameters are its class's defaults."""
     from omegaconf import OmegaConf
 
     from escort_rl.config import config_dir
@@ -67,15 +68,11 @@ def domain_config(domain: str):
 
 
 def make_domain_gym(domain: str, **model_kwargs) -> POMDPGymEnv:
-    """Entry point of the registered ids: the domain's model with the config's arguments, updated
-    by ``model_kwargs``."""
-    from omegaconf import OmegaConf
-
+    """Entry point of the registered ids: the domain's model, its parameters the defaults of its
+    ``Params`` (the paper's domain) but those in ``model_kwargs``."""
     from escort_rl.models import DOMAINS
 
-    kwargs = OmegaConf.to_container(domain_config(domain).model, resolve=True)
-    kwargs.update(model_kwargs)
-    return POMDPGymEnv(DOMAINS[domain](**kwargs))
+    return POMDPGymEnv(DOMAINS[domain](**model_kwargs))
 
 
 def register_gymnasium_envs() -> None:
