@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from escort_rl.bench.core import options
 from escort_rl.reporting.stats import format_mean_se, mean_se
 
 RESULT_FILES = ("synthetic.json", "scaling.json", "domains.json")
@@ -87,8 +88,6 @@ def ablation_markdown(reference: str, runs: list[str], metric: str, lower_is_bet
 
 def register(subparsers) -> None:
     """Add ``bench ablation`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import add_output_option
-
     p = subparsers.add_parser("ablation", help="paired differences of rows across runs (e.g. a lambda_corr sweep)",
                               description="Compare one method's rows in several runs, or several methods, with a "
                               "reference row seed by seed (the runs must share seeds and inputs). Each run is "
@@ -97,7 +96,7 @@ def register(subparsers) -> None:
     p.add_argument("runs", nargs="+", help="the rows to compare with it: [LABEL=]DIR[:METHOD] ...")
     p.add_argument("--metric", default="rmse", help="per-seed metric (domains: final_error, mean_error)")
     p.add_argument("--higher-is-better", action="store_true", help="for coverage-like metrics")
-    add_output_option(p, None, "ablation.md, the table also printed (default: print only)")
+    options.add_output_option(p, None, "ablation.md, the table also printed (default: print only)")
     p.set_defaults(handler=main)
 
 

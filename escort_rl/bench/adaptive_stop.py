@@ -12,6 +12,7 @@ A tolerance of 0 is the filter without the stop: every update runs ``K`` iterati
 from __future__ import annotations
 
 from escort_rl.bench.calibration import kalman_calibration
+from escort_rl.bench.core import options
 from escort_rl.bench.methods import build_domain, build_method, check_names
 from escort_rl.bench.trajectories import filter_trajectories, generate_trajectories
 from escort_rl.reporting.stats import mean_se
@@ -75,7 +76,6 @@ def adaptive_stop_markdown(rows: list[dict], method: str = "escort") -> str:
 
 def register(subparsers) -> None:
     """Add ``bench adaptive-stop`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_seeds_option, add_threads_option
     from escort_rl.bench.methods import DOMAINS
 
     stop = subparsers.add_parser("adaptive-stop", help="ESCORT's adaptive stop: iterations used, error, calibration",
@@ -86,12 +86,12 @@ def register(subparsers) -> None:
                       help=f"env configs (default: {' '.join(DOMAINS)}; --quick: {QUICK['domains'][0]})")
     stop.add_argument("--tolerances", type=float, nargs="+", default=None,
                       help="values of filter.stop_tolerance; 0: no stop (default: 0 0.05 0.1; --quick: 0 0.1)")
-    add_seeds_option(stop, None, "seeds 0..N-1 of the shared trajectories", f"8; --quick: {QUICK['seeds']}")
+    options.add_seeds_option(stop, None, "seeds 0..N-1 of the shared trajectories", f"8; --quick: {QUICK['seeds']}")
     stop.add_argument("--steps", type=int, default=None,
                       help=f"steps per trajectory (default: 30; --quick: {QUICK['steps']})")
-    add_quick_option(stop, "lightdark10d, tolerances 0 0.1, 2 seeds, 5 steps")
-    add_threads_option(stop)
-    add_output_option(stop, "outputs/bench/adaptive_stop", "adaptive_stop.md and adaptive_stop.json")
+    options.add_quick_option(stop, "lightdark10d, tolerances 0 0.1, 2 seeds, 5 steps")
+    options.add_threads_option(stop)
+    options.add_output_option(stop, "outputs/bench/adaptive_stop", "adaptive_stop.md and adaptive_stop.json")
     stop.set_defaults(handler=main)
 
 
@@ -103,7 +103,6 @@ def main(args) -> None:
     import math
     from pathlib import Path
 
-    from escort_rl.bench.core.options import set_threads
     from escort_rl.bench.methods import DOMAINS
     from escort_rl.reporting.paths import write_results
 
@@ -111,7 +110,7 @@ def main(args) -> None:
     kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
     if any(not (t >= 0 and math.isfinite(t)) for t in kw["tolerances"]):
         raise ValueError(f"--tolerances: each must be a finite number >= 0, got {kw['tolerances']}")
-    set_threads(args)
+    options.set_threads(args)
     rows = adaptive_stop_rows(kw["domains"], kw["tolerances"], seeds=kw["seeds"], steps=kw["steps"],
                               progress=lambda r: print(f"{r['domain']:>12} tol={r['tolerance']:g}: "
                                                        f"{r['iterations']:.1f} iterations", flush=True))

@@ -23,13 +23,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from escort_rl.bench.core.options import (
-    add_output_option,
-    add_overrides_argument,
-    add_quick_option,
-    add_runner_options,
-    add_seeds_option,
-)
+from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
 from escort_rl.bench.methods import check_choices
 from escort_rl.reporting.paths import write_results
@@ -256,16 +250,16 @@ def register(subparsers) -> None:
                               "(A2C, DVRL's Atari settings in configs/bench/atari.yaml), then reports the last 100 "
                               "games' returns (mean ± s.e.) and frames/s beside the paper's Table 4, and learning "
                               "curves. Rerunning the same command resumes unfinished runs from their checkpoints.")
-    add_overrides_argument(p, "overrides of configs/bench/atari.yaml, e.g. escort.num_steps=10 "
+    options.add_overrides_argument(p, "overrides of configs/bench/atari.yaml, e.g. escort.num_steps=10 "
                            "trainer.parallel_envs=true")
     p.add_argument("--games", nargs="+", default=None, help="of pong icehockey mspacman asteroids (default: pong)")
     p.add_argument("--agents", nargs="+", default=["dvrl", "escort_latent", "gru"], help="of dvrl escort_latent gru")
     p.add_argument("--frames", type=int, default=None,
                    help=f"frames (agent steps) per run; required but for --quick (default: none; --quick: "
                    f"{QUICK_FRAMES})")
-    add_seeds_option(p, 1, "seeds 0..N-1 per game and agent")
+    options.add_seeds_option(p, 1, "seeds 0..N-1 per game and agent")
     p.add_argument("--device", default="cpu", help="torch device of the networks")
-    add_quick_option(p, f"pong, every agent, {QUICK_FRAMES} frames per run")
-    add_output_option(p, "outputs/bench/atari", "the runs, atari.md, atari.json and the learning curves")
-    add_runner_options(p, seeds_per_cell=False)
+    options.add_quick_option(p, f"pong, every agent, {QUICK_FRAMES} frames per run")
+    options.add_output_option(p, "outputs/bench/atari", "the runs, atari.md, atari.json and the learning curves")
+    options.add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from escort_rl.bench.core import options
 from escort_rl.models import LinearGaussian
 
 
@@ -85,8 +86,6 @@ def fixed_point_check(filt, d: int = 5, n: int = 300, batch: int = 8, rho: float
 
 def register(subparsers) -> None:
     """Add ``bench calibration`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_threads_option
-
     cal = subparsers.add_parser("calibration", help="SVGD/ESCORT variants against the Kalman filter",
                                 description="Linear-Gaussian model (d=4), N=300, 12 steps, 4 episodes: mean "
                                 "Mahalanobis error and variance ratio against the exact Kalman posterior.")
@@ -94,9 +93,9 @@ def register(subparsers) -> None:
                      help=f"particles of every filter (default: 300; --quick: {QUICK['particles']})")
     cal.add_argument("--steps", type=int, default=None,
                      help=f"steps of each episode (default: 12; --quick: {QUICK['steps']})")
-    add_quick_option(cal, f"N={QUICK['particles']}, {QUICK['steps']} steps (--fixed-point: K = 10)")
-    add_threads_option(cal)
-    add_output_option(cal, None, "calibration.md (--fixed-point: fixed_point.md), the table also printed "
+    options.add_quick_option(cal, f"N={QUICK['particles']}, {QUICK['steps']} steps (--fixed-point: K = 10)")
+    options.add_threads_option(cal)
+    options.add_output_option(cal, None, "calibration.md (--fixed-point: fixed_point.md), the table also printed "
                       "(default: print only)")
     cal.add_argument("--fixed-point", action="store_true",
                      help="instead: where the correlation term's two forms bring a static fit to rest "
@@ -127,11 +126,10 @@ def main(args) -> None:
 
     # the default training job's filter exactly as configs/filter/escort_train.yaml sets it (eager:
     # compiling changes nothing but the speed)
-    from escort_rl.bench.core.options import set_threads
     from escort_rl.config import compose
     from escort_rl.trainers.builders import build_filter
 
-    set_threads(args)
+    options.set_threads(args)
     lines = []
 
     def emit(line: str) -> None:

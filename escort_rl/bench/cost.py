@@ -11,6 +11,7 @@ import time
 import torch
 
 from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
+from escort_rl.bench.core import options
 from escort_rl.models import LightDark10D, LinearGaussian
 
 
@@ -193,18 +194,11 @@ def update_cost_markdown(result: dict) -> str:
 
 def register(subparsers) -> None:
     """Add ``bench cost`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import (
-        add_output_option,
-        add_overrides_argument,
-        add_quick_option,
-        add_threads_option,
-    )
-
     cost = subparsers.add_parser("cost", help="time one belief update: ESCORT vs SVGD vs SIR over d, N, B",
                                  description="Times one update for d, N and B, ESCORT, SVGD and SIR in the same "
                                  "run; reports the ESCORT breakdown, the fitted exponent in d and GFLOP/s. "
                                  "filter.compile=true also times ESCORT and SVGD compiled.")
-    add_overrides_argument(cost, "filter.compile=true: also time ESCORT and SVGD with compile=True (each shape "
+    options.add_overrides_argument(cost, "filter.compile=true: also time ESCORT and SVGD with compile=True (each shape "
                            "compiles once first)")
     cost.add_argument("--dims", type=int, nargs="+", default=[10, 20, 50, 100, 200], metavar="D",
                       help="state dimensions d")
@@ -214,7 +208,7 @@ def register(subparsers) -> None:
     cost.add_argument("--repeats", type=int, default=3, help="timed repeats of each update (the median is kept)")
     cost.add_argument("--num-steps", type=int, default=50, metavar="K", help="K for ESCORT and SVGD")
     cost.add_argument("--device", default="cpu", help="torch device of the particles")
-    add_quick_option(cost, "a small grid: d 10 20, N 100, B 1 2")
+    options.add_quick_option(cost, "a small grid: d 10 20, N 100, B 1 2")
     cost.add_argument("--max-pairs", type=float, default=1e7,
                       help="skip (d, N, B) with B·N² above this (1e7 skips N=1000 at B=32 on a CPU)")
     cost.add_argument("--training", type=int, nargs="+", default=[], metavar="B",
@@ -224,8 +218,8 @@ def register(subparsers) -> None:
     cost.add_argument("--warmup", action="store_true",
                       help="also time the first compiled ESCORT update in fresh processes, cold and from the cache")
     cost.add_argument("--no-updates", action="store_true", help="skip the per-update grid (training/warm-up rows only)")
-    add_threads_option(cost)
-    add_output_option(cost, "outputs/bench/cost", "cost.md and cost.json")
+    options.add_threads_option(cost)
+    options.add_output_option(cost, "outputs/bench/cost", "cost.md and cost.json")
     cost.set_defaults(handler=main)
 
 
@@ -240,10 +234,8 @@ def main(args) -> None:
         raise ValueError(f"--device: {problem.replace('device=cpu', '--device cpu')}")
     if not (math.isfinite(args.max_pairs) and args.max_pairs > 0):
         raise ValueError(f"--max-pairs: must be a finite number > 0, got {args.max_pairs}")
-    from escort_rl.bench.core.options import compile_override, set_threads
-
-    compile = compile_override(args.overrides)
-    set_threads(args)
+    compile = options.compile_override(args.overrides)
+    options.set_threads(args)
     grid = dict(dims=args.dims, particles=args.particles, batches=args.batch_sizes)
     if args.quick:
         grid = dict(dims=[10, 20], particles=[100], batches=[1, 2])

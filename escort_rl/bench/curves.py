@@ -12,8 +12,9 @@ import json
 import math
 from pathlib import Path
 
-from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
+from escort_rl.bench.core import options
 from escort_rl.reporting.paths import display_path
+from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 
 
 def run_label(config: dict) -> str:
@@ -106,13 +107,11 @@ def write_curves(run_dirs: list[str], output: str | Path) -> list[dict]:
 
 def register(subparsers) -> None:
     """Add ``bench curves`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import add_output_option
-
     cur = subparsers.add_parser("curves", help="learning curves of training runs side by side",
                                 description="Return, final distance to goal and (DVRL) ELBO against frames for "
                                 "each run directory; writes learning_curves.png, .md and .json.")
     cur.add_argument("runs", nargs="+", help="run directories (or checkpoints), e.g. outputs/lightdark10d")
-    add_output_option(cur, "outputs/bench/curves", "learning_curves.png, .md and .json")
+    options.add_output_option(cur, "outputs/bench/curves", "learning_curves.png, .md and .json")
     cur.set_defaults(handler=main)
 
 

@@ -30,14 +30,7 @@ from pathlib import Path
 
 import torch
 
-from escort_rl.bench.core.options import (
-    add_labelled_option,
-    add_output_option,
-    add_overrides_argument,
-    add_quick_option,
-    add_runner_options,
-    labelled,
-)
+from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.plots import plot_curves
@@ -254,13 +247,13 @@ def register(subparsers) -> None:
         "seeded episodes: success, final distance, the belief mean's position and velocity error (overall and "
         "near the goal), the belief's spread, and how often the action on the belief equals the rule's action on "
         "the true state. Rows are named rows (--rows) or rows of your own (--add-row LABEL OVERRIDE ...).")
-    add_overrides_argument(p, "Hydra overrides applied to every row before its own, e.g. filter.compile=true")
+    options.add_overrides_argument(p, "Hydra overrides applied to every row before its own, e.g. filter.compile=true")
     p.add_argument("--domains", nargs="+", default=["lightdark10d"],
                    help="env configs with a scripted controller; with more than one, each domain's results go to "
                    "<output>/<domain>")
     p.add_argument("--rows", nargs="+", default=None, metavar="NAME",
                    help=f"named rows: {', '.join(ROWS)} (default: every named row, or none with --add-row)")
-    add_labelled_option(p, "--add-row", "a row of your own", "mine filter=escort_train filter.jitter=0.05")
+    options.add_labelled_option(p, "--add-row", "a row of your own", "mine filter=escort_train filter.jitter=0.05")
     p.add_argument("--episodes", type=int, default=None, help="episodes per row (default: 100)")
     p.add_argument("--particles", type=int, default=None, metavar="N",
                    help="N where a row does not set num_particles (default: 100)")
@@ -269,16 +262,16 @@ def register(subparsers) -> None:
     p.add_argument("--baseline", default=None, metavar="LABEL",
                    help="the row each row's success is compared with, paired by episode (default: the first row)")
     p.add_argument("--near", type=float, default=1.0, help="distance to goal that counts as near")
-    add_quick_option(p, f"rows {' '.join(QUICK['rows'])}, {QUICK['episodes']} episodes of {QUICK['steps']} steps, "
+    options.add_quick_option(p, f"rows {' '.join(QUICK['rows'])}, {QUICK['episodes']} episodes of {QUICK['steps']} steps, "
                      f"N={QUICK['particles']}")
-    add_runner_options(p, seeds_per_cell=False)
-    add_output_option(p, "outputs/bench/decisions", "decisions.md, decisions.json, the plots and cells/")
+    options.add_runner_options(p, seeds_per_cell=False)
+    options.add_output_option(p, "outputs/bench/decisions", "decisions.md, decisions.json, the plots and cells/")
     p.set_defaults(handler=main)
 
 
 def decision_rows(args) -> list[tuple[str, tuple[str, ...]]]:
     """The rows of ``--rows`` and ``--add-row``, each with the positional overrides before its own."""
-    own = labelled(args.add_row, "--add-row")
+    own = options.labelled(args.add_row, "--add-row")
     names = args.rows if args.rows is not None else (QUICK["rows"] if args.quick else () if own else DEFAULT_ROWS)
     rows = [parse_row(name) for name in names] + own
     if not rows:

@@ -24,6 +24,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+from escort_rl.bench.core import options
 from escort_rl.bench.methods import RANDOM
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se
@@ -214,8 +215,6 @@ def planner_budget_markdown(result: dict) -> str:
 def cli(args) -> list[dict]:
     """``escort-rl bench planner-budget``: flags given explicitly win over ``--quick``; with more than
     one domain, each domain's results go to ``<output>/<domain>``."""
-    from escort_rl.bench.core.options import set_threads
-
     quick = QUICK if args.quick else {}
     budgets = args.budgets if args.budgets is not None else quick.get("budgets")
     episodes = args.episodes if args.episodes is not None else quick.get("episodes")
@@ -223,7 +222,7 @@ def cli(args) -> list[dict]:
     for domain in args.domains:  # every name is checked before any runs
         if domain not in budget_domains():
             raise ValueError(f"--domains: unknown domain '{domain}'; choose from {', '.join(budget_domains())}")
-    set_threads(args)
+    options.set_threads(args)
 
     def show(row):
         print(" | ".join(row_cells(row, True)), flush=True)
@@ -240,8 +239,6 @@ def cli(args) -> list[dict]:
 
 def register(subparsers) -> None:
     """Add ``bench planner-budget`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_threads_option
-
     pb = subparsers.add_parser("planner-budget", help="POMCPOW return against simulations per decision",
                                description="POMCPOW on an SIR belief with each n_sim in --budgets, plus a "
                                "uniform-random policy, on the same seeded episodes: return, final distance to goal "
@@ -255,7 +252,7 @@ def register(subparsers) -> None:
                     help="episodes, one seeded batch (default: 30 on lightdark1d, 10 on others)")
     pb.add_argument("--steps", type=int, default=None,
                     help="steps per episode (default: 15 on lightdark1d, 100 on others)")
-    add_quick_option(pb, "budgets 2 5, 2 episodes, 3 steps, 20 particles")
-    add_threads_option(pb)
-    add_output_option(pb, "outputs/bench/planner_budget", "planner_budget.json and planner_budget.md")
+    options.add_quick_option(pb, "budgets 2 5, 2 episodes, 3 steps, 20 particles")
+    options.add_threads_option(pb)
+    options.add_output_option(pb, "outputs/bench/planner_budget", "planner_budget.json and planner_budget.md")
     pb.set_defaults(handler=cli)

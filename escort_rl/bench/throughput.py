@@ -8,6 +8,7 @@ import time
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from escort_rl.bench.core import options
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import build_actor, build_model, env_factory
 from escort_rl.trainers.scaffold import make_collector
@@ -51,19 +52,12 @@ QUICK = dict(collector_workers=[1], num_envs=4, steps=10, batches=1)
 
 def register(subparsers) -> None:
     """Add ``bench throughput`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import (
-        add_output_option,
-        add_overrides_argument,
-        add_quick_option,
-        add_threads_option,
-    )
-
     thr = subparsers.add_parser("throughput", help="collector frames/s with the belief transform",
                                 description="Env frames per second through the training's collector: Collector "
                                 "(1 worker), MultiSyncCollector (K workers), or RayCollector with K remote collectors "
                                 "(overrides collector.backend=ray [collector.ray_address=auto]); belief transform and "
                                 "DeepSets policy in the loop. Writes throughput.json into --output.")
-    add_overrides_argument(thr, "Hydra overrides of the training config, e.g. filter=sir num_particles=200")
+    options.add_overrides_argument(thr, "Hydra overrides of the training config, e.g. filter=sir num_particles=200")
     thr.add_argument("--collector-workers", type=int, nargs="+", default=None, metavar="K",
                      help="the collector worker counts to time, one row each (default: 1 2)")
     thr.add_argument("--num-envs", type=int, default=None, metavar="B",
@@ -71,9 +65,9 @@ def register(subparsers) -> None:
     thr.add_argument("--steps", type=int, default=None, help="steps per env per batch (default: 100)")
     thr.add_argument("--batches", type=int, default=None,
                      help="timed batches, a count, after one warm-up batch (default: 3)")
-    add_quick_option(thr, "1 worker, 4 envs, 10 steps per batch, 1 timed batch")
-    add_threads_option(thr)
-    add_output_option(thr, "outputs/bench/throughput", "throughput.json")
+    options.add_quick_option(thr, "1 worker, 4 envs, 10 steps per batch, 1 timed batch")
+    options.add_threads_option(thr)
+    options.add_output_option(thr, "outputs/bench/throughput", "throughput.json")
     thr.set_defaults(handler=main)
 
 
@@ -81,7 +75,6 @@ def main(args) -> None:
     import json
     from pathlib import Path
 
-    from escort_rl.bench.core.options import set_threads
     from escort_rl.config import compose
 
     full = dict(collector_workers=[1, 2], num_envs=32, steps=100, batches=3)
@@ -90,7 +83,7 @@ def main(args) -> None:
     if bad:
         raise ValueError(f"--collector-workers: {bad[0]} does not divide --num-envs {kw['num_envs']}; each worker "
                          "runs num_envs / workers environments")
-    set_threads(args)
+    options.set_threads(args)
     cfg = compose(args.overrides)
     rows = []
     for k in kw["collector_workers"]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from escort_rl.bench.core import options
 from escort_rl.bench.frontier.cells import FILTER_METHODS, parse_variant
 from escort_rl.bench.frontier.run import DEFAULT_ITERATIONS, DEFAULT_PARTICLES, METRICS, run_frontier
 
@@ -15,8 +16,6 @@ QUICK = {"particles": {"sir": (100, 1000, 10_000), "enkf": (100, 1000, 10_000), 
 
 
 def register(subparsers) -> None:
-    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_runner_options, add_seeds_option
-
     p = subparsers.add_parser(
         "frontier", help="accuracy against time per update of SIR, EnKF, SVGD and ESCORT on any model",
         description="Sweep each filter over its cost knobs (SIR and EnKF over N, SVGD and ESCORT over N x K) on a "
@@ -31,39 +30,35 @@ def register(subparsers) -> None:
     p.add_argument("--model", default=None, metavar="pkg.module:Class", help="a model class of your own")
     p.add_argument("--model-arg", nargs="+", default=[], metavar="KEY=VALUE", help="keyword arguments of --model")
     add_method_options(p)
-    add_seeds_option(p, 5, "shared trajectories")
+    options.add_seeds_option(p, 5, "shared trajectories")
     p.add_argument("--steps", type=int, default=20, help="updates per trajectory")
     p.add_argument("--metric", choices=METRICS, default="w1", help="the front's distance (w1: sliced W1)")
     p.add_argument("--reference-particles", type=int, default=100_000, metavar="N",
                    help="N of the SIR reference for a model without an exact posterior")
-    add_quick_option(p, "N of SIR/EnKF 100 1000 10000, of SVGD/ESCORT 50 200, K 5 15, 2 seeds, 5 steps, a "
+    options.add_quick_option(p, "N of SIR/EnKF 100 1000 10000, of SVGD/ESCORT 50 200, K 5 15, 2 seeds, 5 steps, a "
                      "2000-particle reference")
-    add_output_option(p, "outputs/bench/frontier", "frontier.json, frontier.md, frontier.png and cells/")
-    add_runner_options(p, seeds_per_cell=False)
+    options.add_output_option(p, "outputs/bench/frontier", "frontier.json, frontier.md, frontier.png and cells/")
+    options.add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
 
 
 def add_method_options(p) -> None:
     """``--methods``, ``--<method>-particles``, ``--num-steps`` and ``--variant``, shared with
     ``bench regime-map``."""
-    from escort_rl.bench.core.options import add_labelled_option
-
     p.add_argument("--methods", nargs="+", default=list(FILTER_METHODS), help="the filters swept")
     for m in FILTER_METHODS:
         p.add_argument(f"--{m}-particles", type=int, nargs="+", default=None, metavar="N",
                        help=f"N of {m} (default: {' '.join(map(str, DEFAULT_PARTICLES[m]))})")
     p.add_argument("--num-steps", type=int, nargs="+", default=None, metavar="K",
                    help=f"K of SVGD and ESCORT (default: {' '.join(map(str, DEFAULT_ITERATIONS))})")
-    add_labelled_option(p, "--variant", "one more row, a filter with its own settings swept over its method's N "
+    options.add_labelled_option(p, "--variant", "one more row, a filter with its own settings swept over its method's N "
                         "(and K); the overrides are filter=METHOD and filter.KEY=VALUE",
                         "escort_stop filter=escort filter.stop_tolerance=0.05")
 
 
 def frontier_variants(items) -> dict:
     """``--variant`` as ``name -> (method, ("KEY=VALUE", ...))``, names unique."""
-    from escort_rl.bench.core.options import labelled
-
-    labelled(items, "--variant")
+    options.labelled(items, "--variant")
     return {name: (method, settings) for name, method, settings in map(parse_variant, items)}
 
 
@@ -106,12 +101,11 @@ def write_frontier(out: Path, result: dict, echo: bool = True) -> None:
 
 
 def main(args) -> None:
-    from escort_rl.bench.core.options import compile_override
     from escort_rl.bench.core.runner import backend_from_args
     from escort_rl.bench.frontier.run import label
 
     model, model_args = model_spec(args)
-    compile = compile_override([o for o in args.overrides if o.startswith("filter.")])
+    compile = options.compile_override([o for o in args.overrides if o.startswith("filter.")])
     quick = QUICK if args.quick else {}
     particles = {m: getattr(args, f"{m}_particles") or quick.get("particles", DEFAULT_PARTICLES)[m]
                  for m in FILTER_METHODS}

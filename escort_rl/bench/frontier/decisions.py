@@ -30,6 +30,7 @@ from pathlib import Path
 
 import torch
 
+from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import Cell, CellStore, InProcessBackend, run_cells
 from escort_rl.bench.frontier.cells import FILTER_METHODS, ITERATIVE, build_model, make_filter, model_label
 from escort_rl.metrics.reference import exact_posterior_start, exact_posterior_update
@@ -158,8 +159,6 @@ QUICK = dict(episodes=4, steps=5)
 
 
 def register(subparsers) -> None:
-    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_runner_options
-
     p = subparsers.add_parser("frontier-decisions", help="the greedy regulator, closed loop, on chosen frontier rows",
                               description="Drive the greedy regulator (argmin_a |transition_mean(belief mean, a)|^2) "
                               "on each row's belief in closed loop, on the same seeded episodes, and report the "
@@ -173,9 +172,9 @@ def register(subparsers) -> None:
                    help=f"closed-loop episodes per row (default: 50; --quick: {QUICK['episodes']})")
     p.add_argument("--steps", type=int, default=None,
                    help=f"steps per episode (default: 20; --quick: {QUICK['steps']})")
-    add_quick_option(p, f"{QUICK['episodes']} episodes of {QUICK['steps']} steps")
-    add_output_option(p, "outputs/bench/frontier_decisions", "frontier_decisions.md and frontier_decisions.json")
-    add_runner_options(p, seeds_per_cell=False)
+    options.add_quick_option(p, f"{QUICK['episodes']} episodes of {QUICK['steps']} steps")
+    options.add_output_option(p, "outputs/bench/frontier_decisions", "frontier_decisions.md and frontier_decisions.json")
+    options.add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
 
 

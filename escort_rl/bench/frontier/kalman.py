@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from escort_rl.bench.core import options
 from escort_rl.reporting.paths import write_results
 
 
@@ -87,8 +88,6 @@ QUICK = dict(dim=5, particles=50, episodes=4, steps=5)
 
 
 def register(subparsers) -> None:
-    from escort_rl.bench.core.options import add_output_option, add_quick_option, add_threads_option
-
     p = subparsers.add_parser("enkf-kalman", help="the EnKF's bias against the Kalman posterior (z-scores)",
                               description="Run the EnKF and the Kalman filter on independent linear-Gaussian "
                               "episodes and report the z-scores of the ensemble mean's and covariance's bias.")
@@ -100,16 +99,14 @@ def register(subparsers) -> None:
     p.add_argument("--inflation", type=float, default=None, help="EnKF covariance inflation (default: off)")
     p.add_argument("--localisation-radius", type=float, default=None, help="EnKF Gaspari-Cohn radius, in "
                    "state-index units for this family (default: off)")
-    add_quick_option(p, f"D = {QUICK['dim']}, N = {QUICK['particles']}, {QUICK['episodes']} episodes of "
+    options.add_quick_option(p, f"D = {QUICK['dim']}, N = {QUICK['particles']}, {QUICK['episodes']} episodes of "
                      f"{QUICK['steps']} steps")
-    add_threads_option(p)
-    add_output_option(p, "outputs/bench/enkf_kalman", "enkf_kalman.md and enkf_kalman.json")
+    options.add_threads_option(p)
+    options.add_output_option(p, "outputs/bench/enkf_kalman", "enkf_kalman.md and enkf_kalman.json")
     p.set_defaults(handler=main)
 
 
 def main(args) -> None:
-    from escort_rl.bench.core.options import set_threads
-
     full = dict(dim=50, particles=1000, episodes=20, steps=20)
     kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
     for flag in ("dim", "particles", "steps"):
@@ -119,7 +116,7 @@ def main(args) -> None:
         raise ValueError(f"--episodes: needs at least 2 for a standard error, got {kw['episodes']}")
     if kw["particles"] < 2:
         raise ValueError(f"--particles: the EnKF needs at least 2 members, got {kw['particles']}")
-    set_threads(args)
+    options.set_threads(args)
     enkf = {k: getattr(args, k) for k in ("inflation", "localisation_radius") if getattr(args, k) is not None}
     result = enkf_against_kalman(kw["dim"], kw["particles"], kw["episodes"], kw["steps"], args.obs_std, args.seed,
                                  **enkf)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from escort_rl.bench.core import options
 from escort_rl.bench.frontier.cli import write_frontier
 from escort_rl.bench.frontier.report import METRIC_NAMES
 from escort_rl.bench.frontier.run import BUDGETS_MS, label, run_frontier
@@ -92,13 +93,6 @@ QUICK = dict(dims=[2, 4], obs_std=[1.0])
 
 
 def register(subparsers) -> None:
-    from escort_rl.bench.core.options import (
-        add_output_option,
-        add_overrides_argument,
-        add_quick_option,
-        add_runner_options,
-        add_seeds_option,
-    )
     from escort_rl.bench.frontier.cli import QUICK as FRONTIER_QUICK
     from escort_rl.bench.frontier.cli import add_method_options
 
@@ -109,7 +103,7 @@ def register(subparsers) -> None:
                               description="Run bench frontier at every (dimension, sharpness) of a model family "
                               "(default: the linear-Gaussian family's state_dim x obs_std) and say where each "
                               "filter is on the accuracy-time front.")
-    add_overrides_argument(p, "filter.compile=true: SVGD and ESCORT compiled (the first update is not timed)")
+    options.add_overrides_argument(p, "filter.compile=true: SVGD and ESCORT compiled (the first update is not timed)")
     p.add_argument("--env", default="linear_gaussian", help="the family's env config")
     p.add_argument("--model", default=None, metavar="pkg.module:Class", help="a model class or factory of your "
                    "own instead of --env; --dim-key and --sharpness-key name its keyword arguments (e.g. "
@@ -123,21 +117,20 @@ def register(subparsers) -> None:
     p.add_argument("--obs-std", type=float, nargs="+", default=None,
                    help=f"the sharpness axis (default: 0.1 1.0; --quick: {' '.join(map(str, QUICK['obs_std']))})")
     add_method_options(p)
-    add_seeds_option(p, None, "shared trajectories per point", f"5; --quick: {quick['seeds']}")
+    options.add_seeds_option(p, None, "shared trajectories per point", f"5; --quick: {quick['seeds']}")
     p.add_argument("--steps", type=int, default=None,
                    help=f"updates per trajectory (default: 20; --quick: {quick['steps']})")
     p.add_argument("--reference-particles", type=int, default=None, metavar="N",
                    help="N of the SIR reference where the family has no exact posterior (default: 100000; --quick: "
                    f"{quick['reference_particles']})")
-    add_quick_option(p, "dimensions 2 4, obs_std 1.0, and bench frontier's --quick points at each")
-    add_output_option(p, "outputs/bench/regime_map", "regime_map.md, regime_map.json, regime_map.png and a folder "
+    options.add_quick_option(p, "dimensions 2 4, obs_std 1.0, and bench frontier's --quick points at each")
+    options.add_output_option(p, "outputs/bench/regime_map", "regime_map.md, regime_map.json, regime_map.png and a folder "
                       "per point")
-    add_runner_options(p, seeds_per_cell=False)
+    options.add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
 
 
 def main(args) -> None:
-    from escort_rl.bench.core.options import compile_override
     from escort_rl.bench.core.runner import backend_from_args
     from escort_rl.bench.frontier.cells import FILTER_METHODS
     from escort_rl.bench.frontier.cli import QUICK as FRONTIER_QUICK
@@ -163,7 +156,7 @@ def main(args) -> None:
                             dim_key=args.dim_key,
                             sharpness_key=args.sharpness_key, methods=args.methods, particles=particles,
                             iterations=args.num_steps or quick.get("iterations", DEFAULT_ITERATIONS),
-                            seeds=kw["seeds"], steps=kw["steps"], compile=compile_override(args.overrides),
+                            seeds=kw["seeds"], steps=kw["steps"], compile=options.compile_override(args.overrides),
                             make_backend=lambda: backend_from_args(args),
                             reference_particles=kw["reference_particles"], variants=variants,
                             threads=args.threads or 1)

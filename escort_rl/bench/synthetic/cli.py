@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from escort_rl.belief import ESCORTFilter
+from escort_rl.bench.core import options
 from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices
 from escort_rl.bench.synthetic.cells import INITS, TRACKING_METHODS
 from escort_rl.bench.synthetic.run import PROTOCOLS, SCALING_DIMS, SYNTHETIC_TARGETS, run_scaling, run_synthetic
@@ -14,13 +15,6 @@ from escort_rl.bench.synthetic.tracking import STEPS
 
 def register(subparsers) -> None:
     """Add ``bench synthetic`` and ``bench scaling`` to the ``bench`` subparsers."""
-    from escort_rl.bench.core.options import (
-        add_output_option,
-        add_overrides_argument,
-        add_quick_option,
-        add_runner_options,
-        add_seeds_option,
-    )
     from escort_rl.bench.targets import SCALABILITY_STRUCTURES
 
     syn = subparsers.add_parser("synthetic", help="the paper's GMM targets (Table 2): ESCORT, NoCorr, SVGD, SIR, "
@@ -28,21 +22,21 @@ def register(subparsers) -> None:
                                 "coverage, correlation error and RMSE, mean ± s.e. over seeds, under the static or "
                                 "the tracking protocol, beside the paper's figures.")
     syn.add_argument("--targets", nargs="+", default=list(SYNTHETIC_TARGETS), help="the GMM targets")
-    add_seeds_option(syn, 30)
-    add_quick_option(syn, "gmm1d, gmm2d, gmm3d, 2 seeds, N=100, 30 steps")
-    add_output_option(syn, "outputs/bench/synthetic", "synthetic.md, synthetic.json, the plots and cells/")
+    options.add_seeds_option(syn, 30)
+    options.add_quick_option(syn, "gmm1d, gmm2d, gmm3d, 2 seeds, N=100, 30 steps")
+    options.add_output_option(syn, "outputs/bench/synthetic", "synthetic.md, synthetic.json, the plots and cells/")
     sca = subparsers.add_parser("scaling", help="RMSE of ESCORT against ESCORT-NoCorr on 5-mode GMMs, 1D-200D",
                                 description="The paper's RMSE-against-dimension table, with the paired NoCorr gap, "
                                 "under the static or the tracking protocol, beside the paper's figures.")
     sca.add_argument("--dims", type=int, nargs="+", default=list(SCALING_DIMS), metavar="D", help="dimensions")
     sca.add_argument("--structures", nargs="+", default=list(SCALABILITY_STRUCTURES),
                      help="the correlation structures of the targets")
-    add_seeds_option(sca, 5)
-    add_quick_option(sca, "d 1 5, block, 2 seeds, N=100, 30 steps")
-    add_output_option(sca, "outputs/bench/scaling", "scaling.md, scaling.json, the plots and cells/")
+    options.add_seeds_option(sca, 5)
+    options.add_quick_option(sca, "d 1 5, block, 2 seeds, N=100, 30 steps")
+    options.add_output_option(sca, "outputs/bench/scaling", "scaling.md, scaling.json, the plots and cells/")
     for p, methods in ((syn, SYNTHETIC_METHODS), (sca, SCALING_METHODS)):
         p.set_defaults(handler=main)
-        add_overrides_argument(p, "ESCORT/SVGD arguments as filter overrides, e.g. filter.lambda_corr=0.3 "
+        options.add_overrides_argument(p, "ESCORT/SVGD arguments as filter overrides, e.g. filter.lambda_corr=0.3 "
                                "filter.corr_form=position filter.compile=true (a row's own setting wins: NoCorr keeps "
                                "lambda_corr=0, SVGD both lambdas 0)")
         p.add_argument("--methods", nargs="+", default=None,
@@ -63,7 +57,7 @@ def register(subparsers) -> None:
                        "importance-resampled to the target)")
         p.add_argument("--init-scale", type=float, default=1.0,
                        help="multiply the start's spread, for every method but the oracle")
-        add_runner_options(p)
+        options.add_runner_options(p)
 
 
 def filter_arguments(overrides) -> dict:
@@ -75,11 +69,9 @@ def filter_arguments(overrides) -> dict:
 
     from omegaconf import OmegaConf
 
-    from escort_rl.bench.core.options import filter_overrides
-
     known = [f.name for f in dataclasses.fields(ESCORTFilter.Params)]
     out = {}
-    for key, value in filter_overrides(overrides):
+    for key, value in options.filter_overrides(overrides):
         if key not in known:
             raise ValueError(f"overrides: ESCORT has no argument '{key}' (filter.{key}); choose from "
                              f"{', '.join(known)}")
