@@ -18,8 +18,8 @@ from escort_rl.trainers.algorithm import Algorithm
 from escort_rl.trainers.ppo import PPO, PPOBase
 from escort_rl.trainers.recurrent_ppo import RecurrentPPO
 from escort_rl.trainers.reinforce import Reinforce
-from escort_rl.trainers.training import train
 from escort_rl.trainers.scaffold import CollectorAlgorithm, StagedCollector, run_training
+from escort_rl.trainers.training import train
 
 TINY_PPO = ["trainer=ppo", "filter=sir", "trainer.num_envs=4", "trainer.rollout_steps=6", "env.max_steps=12",
             "num_particles=8", "actor.hidden=8", "trainer.minibatches=2", "trainer.epochs=2"]

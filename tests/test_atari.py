@@ -162,9 +162,9 @@ def test_parallel_env_with_spawned_workers_and_independent_flicker():
 # ---------------------------------------------------------------------------------------- agents
 from omegaconf import OmegaConf  # noqa: E402
 
-from escort_rl.modules import DVRLPolicy, ESCORTLatent  # noqa: E402
 from escort_rl.config.bench_schemas import AtariBenchConfig  # noqa: E402
 from escort_rl.config.checking import load_typed  # noqa: E402
+from escort_rl.modules import DVRLPolicy, ESCORTLatent  # noqa: E402
 from escort_rl.trainers.atari_a2c import AGENTS, AtariA2C  # noqa: E402
 
 

@@ -32,7 +32,6 @@ from escort_rl.trainers.checkpointing import (
     list_checkpoints,
     load_checkpoint,
 )
-from escort_rl.trainers.training import build_algorithm, train
 from escort_rl.trainers.scaffold import (
     CollectorWorkerDied,
     make_logger,
@@ -40,6 +39,7 @@ from escort_rl.trainers.scaffold import (
     truncate_scalar_logs,
     worker_death_message,
 )
+from escort_rl.trainers.training import build_algorithm, train
 
 TINY = ["trainer=reinforce", "trainer.num_envs=4", "env.max_steps=12", "num_particles=16", "actor.hidden=16",
         "trainer.minibatch_size=64", "trainer.checkpoint_every=1", "filter.compile=false"]

@@ -12,11 +12,10 @@ import torch
 import yaml
 from omegaconf import MISSING, OmegaConf
 
-from escort_rl.config import bench_schemas, checking, schema
 from escort_rl.cli import main
-from escort_rl.config import ConfigError, compose, config_dir, option_names
-from escort_rl.trainers.resume import merge_override_lists, recompose, saved_config_drift
+from escort_rl.config import ConfigError, bench_schemas, checking, compose, config_dir, option_names, schema
 from escort_rl.trainers.builders import build_filter, build_model
+from escort_rl.trainers.resume import merge_override_lists, recompose, saved_config_drift
 from escort_rl.trainers.validation import validate_train_config
 
 ENVS = option_names("env")
@@ -352,9 +351,8 @@ def test_bench_settings_load_typed(name, node):
 
 @pytest.mark.parametrize("domain", option_names("planner"))
 def test_planner_settings_load_typed(domain):
-    from escort_rl.planners.planner_config import load_planner_config
-
     from escort_rl.planners import POMCPOWParams
+    from escort_rl.planners.planner_config import load_planner_config
 
     values = load_planner_config(domain)
     assert values == OmegaConf.to_container(OmegaConf.load(config_dir() / "planner" / f"{domain}.yaml"))

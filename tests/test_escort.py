@@ -8,13 +8,12 @@ import torch
 
 from escort_rl.belief import ESCORTFilter, ParticleBelief, SVGDFilter
 from escort_rl.belief.checks import is_finite, is_inf, is_nan
-from escort_rl.bench.calibration import kalman_calibration
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists, svgd_direction
 from escort_rl.belief.prior import SmoothedPrior, silverman_factor
 from escort_rl.belief.projections import (
+    TemporalReference,
     correlation_force,
     correlation_projections,
-    TemporalReference,
     max_sliced_directions,
     permutation_ranks,
     projected_w1_grad,
@@ -24,6 +23,7 @@ from escort_rl.belief.projections import (
     sorted_matching,
     temporal_force,
 )
+from escort_rl.bench.calibration import kalman_calibration
 from escort_rl.models import LightDark10D, LinearGaussian
 
 

@@ -8,9 +8,9 @@ from collections.abc import Mapping
 
 import pytest
 import torch
-from conftest import gen
 from omegaconf import OmegaConf
 
+from conftest import gen
 from escort_rl.config import ConfigError
 from escort_rl.models import POMDPModel, check_model
 from escort_rl.models.kidnapped_robot import (
@@ -19,7 +19,6 @@ from escort_rl.models.kidnapped_robot import (
     describe_correlations,
     paper_correlations,
 )
-
 
 
 @pytest.fixture(scope="module")

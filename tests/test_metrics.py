@@ -488,8 +488,8 @@ def test_chi2_quantile_matches_closed_form_and_scipy():
 @pytest.mark.parametrize("dim", [1, 5, 20, 50, 200])
 def test_exact_samples_cover_every_mode_at_every_dimension(dim, per_test_generator):
     """The paper's τ = 1 ball misses the modes of exact samples from 20D; the Mahalanobis form does not."""
-    from escort_rl.metrics import mode_coverage_mahalanobis
     from escort_rl.bench.targets import scalability_target
+    from escort_rl.metrics import mode_coverage_mahalanobis
 
     t = scalability_target(dim, "block", 0)
     x = t.sample(1000, per_test_generator)
@@ -499,8 +499,8 @@ def test_exact_samples_cover_every_mode_at_every_dimension(dim, per_test_generat
 
 
 def test_mahalanobis_coverage_of_one_mode_is_one_over_k(per_test_generator):
-    from escort_rl.metrics import mode_coverage_mahalanobis, mode_fractions_mahalanobis
     from escort_rl.bench.targets import scalability_target
+    from escort_rl.metrics import mode_coverage_mahalanobis, mode_fractions_mahalanobis
 
     t = scalability_target(20, "banded", 0)
     z = torch.randn(500, 20, generator=per_test_generator, dtype=torch.float64)

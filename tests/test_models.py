@@ -6,8 +6,8 @@ import math
 
 import pytest
 import torch
-from conftest import gen
 
+from conftest import gen
 from escort_rl.models import LightDark10D, LinearGaussian, POMDPModel, check_model
 from escort_rl.models.gaussian import make_positive_definite, nearest_correlation_matrix
 from escort_rl.models.light_dark import LIGHT_REGIONS, paper_correlations

@@ -8,9 +8,9 @@ from collections.abc import Mapping
 
 import pytest
 import torch
-from conftest import gen
 from omegaconf import OmegaConf
 
+from conftest import gen
 from escort_rl.config import ConfigError
 from escort_rl.models.multi_target import (
     MultiTargetTracking20D,

@@ -9,9 +9,9 @@ import types
 
 import pytest
 import torch
-from conftest import gen
 from scipy import stats
 
+from conftest import gen
 from escort_rl.belief import SIRFilter
 from escort_rl.config import ConfigError
 from escort_rl.models import DOMAINS, check_model

@@ -8,8 +8,8 @@ import math
 import pytest
 import torch
 
-from escort_rl.config import ConfigError, compose
 from conftest import tiny_overrides
+from escort_rl.config import ConfigError, compose
 
 
 @pytest.mark.slow

@@ -8,7 +8,6 @@ from functools import partial
 import pytest
 import torch
 from omegaconf import OmegaConf
-from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import ParallelEnv, SerialEnv
 from torchrl.modules import set_recurrent_mode
@@ -17,8 +16,13 @@ from escort_rl.config import ConfigError, compose
 from escort_rl.modules.recurrent import RECURRENT_KEY
 from escort_rl.trainers.builders import build_model
 from escort_rl.trainers.checkpointing import load_checkpoint
-from escort_rl.trainers.recurrent_ppo import (RecurrentPPO, build_recurrent_actor_critic, make_recurrent_env,
-                                              make_recurrent_ppo_loss, observation_scaling)
+from escort_rl.trainers.recurrent_ppo import (
+    RecurrentPPO,
+    build_recurrent_actor_critic,
+    make_recurrent_env,
+    make_recurrent_ppo_loss,
+    observation_scaling,
+)
 from escort_rl.trainers.scaffold import run_training
 
 TINY = ["trainer.num_envs=4", "trainer.rollout_steps=6", "env.max_steps=12", "trainer.minibatches=2",

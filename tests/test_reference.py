@@ -190,8 +190,8 @@ def test_gaussian_sum_posterior_matches_bayes_on_a_grid():
 def test_gaussian_sum_reference_samples_its_modes_and_counts_what_it_prunes():
     """The exact reference of a mixture model: its mean and covariance are the mixture's, its draws
     follow them, and a pruned sum reports the mass it cut."""
-    from escort_rl.metrics.reference import exact_reference, has_exact_posterior
     from escort_rl.bench.synthetic.tracking import gmm_tracking
+    from escort_rl.metrics.reference import exact_reference, has_exact_posterior
 
     model = gmm_tracking(dim=3, max_components=4)
     assert has_exact_posterior(model)

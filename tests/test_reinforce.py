@@ -9,8 +9,8 @@ from tensordict import TensorDict
 from escort_rl.config import compose
 from escort_rl.models import LightDark10D
 from escort_rl.trainers.checkpointing import load_checkpoint
-from escort_rl.trainers.training import train
 from escort_rl.trainers.reinforce import Reinforce, TimeBaseline
+from escort_rl.trainers.training import train
 
 TINY_RF = ["trainer=reinforce", "filter=sir", "trainer.num_envs=4", "env.max_steps=12", "num_particles=8",
            "actor.hidden=8", "trainer.minibatch_size=16", "trainer.checkpoint_every=1"]

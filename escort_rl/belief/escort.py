@@ -32,6 +32,7 @@ from escort_rl.belief.checks import (
 )
 from escort_rl.belief.denormals import flush_denormals
 from escort_rl.belief.evolution import PartTimer, belief_moments, evolution_step, jittered, moment_change
+from escort_rl.belief.importance import tempered_log_weights
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.prior import SmoothedPrior
@@ -46,7 +47,6 @@ from escort_rl.belief.projections import (
     random_deflated_projections,
     random_directions,
 )
-from escort_rl.belief.importance import tempered_log_weights
 from escort_rl.belief.scores import (
     MAX_SCORE,
     Channels,

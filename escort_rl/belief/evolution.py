@@ -12,6 +12,7 @@ from escort_rl.belief.kernels import svgd_direction
 from escort_rl.belief.projections import TemporalReference, correlation_force
 from escort_rl.belief.scores import clamp_non_finite
 
+
 def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]],
                    bandwidth: Tensor, scalars: Tensor, *, repulsion: float = 1.0, proj: Tensor | None = None,
                    lambda_corr: float = 0.0, corr_form: str = "velocity", temporal: TemporalReference | None = None,

@@ -9,8 +9,13 @@ from pathlib import Path
 from typing import Any, Dict
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
-from omegaconf.errors import (ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException,
-                              ValidationError)
+from omegaconf.errors import (
+    ConfigAttributeError,
+    ConfigKeyError,
+    MissingMandatoryValue,
+    OmegaConfBaseException,
+    ValidationError,
+)
 
 from escort_rl.config.errors import ConfigError
 from escort_rl.config.params import describe_type, value_problem

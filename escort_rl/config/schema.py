@@ -30,7 +30,6 @@ from omegaconf import MISSING
 from escort_rl.config import registry
 from escort_rl.config.params import param
 
-
 _f = param
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from tensordict.nn import TensorDictModule
 from torch import Tensor, nn
-from torchrl.modules import ProbabilisticActor
 from torch.distributions import Categorical
+from torchrl.modules import ProbabilisticActor
 
 
 def _mlp(sizes: list[int], activation: type[nn.Module] = nn.Tanh, last_activation: bool = True) -> nn.Sequential:

@@ -34,8 +34,8 @@ import torch
 from torch import Tensor
 
 from escort_rl.belief import ESCORTFilter
-from escort_rl.belief.scores import log_density_score, smoothed_prior_score, target_score
 from escort_rl.belief.prior import SmoothedPrior
+from escort_rl.belief.scores import log_density_score, smoothed_prior_score, target_score
 from escort_rl.modules.dvrl import DVRL, DVRLState
 
 

@@ -14,6 +14,7 @@ from escort_rl.envs import POMDPEnv
 from escort_rl.modules import DeepSetsActor
 from escort_rl.transforms import ActionRepeat, BeliefTransform
 
+
 def _kwargs(node, exclude: tuple[str, ...] = ("name",)) -> dict:
     data = OmegaConf.to_container(node, resolve=True) if OmegaConf.is_config(node) else dict(node)
     return {k: v for k, v in data.items() if k not in exclude}

@@ -45,9 +45,9 @@ from escort_rl.modules.dvrl_networks import StateReadout
 from escort_rl.trainers.algorithm import Algorithm
 from escort_rl.trainers.builders import build_model, input_scaling
 from escort_rl.trainers.checkpointing import load_checkpoint
+from escort_rl.trainers.params import DVRLA2CParams
 from escort_rl.trainers.scaffold import episode_stats
 from escort_rl.trainers.validation import validate_train_config
-from escort_rl.trainers.params import DVRLA2CParams
 
 EPISODE_KEYS = (("next", "reward"), ("next", "done"), ("next", "terminated"), ("next", "true_state"))
 

@@ -13,15 +13,15 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from escort_rl.reporting.paths import display_path
-from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
 from escort_rl.models import position_dims, position_error
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.planners import ScriptedBeliefController
+from escort_rl.reporting.paths import display_path
+from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
 from escort_rl.trainers.builders import belief_keys, build_actor, build_model, make_env, trained_action_repeat
-from escort_rl.transforms import action_repeat_of
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 from escort_rl.trainers.training import algorithm
+from escort_rl.transforms import action_repeat_of
 
 
 def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor | None = None) -> dict:

@@ -14,6 +14,7 @@ from typing import Optional
 from escort_rl.config.files import check_filter_name
 from escort_rl.config.params import MAX_LR, param
 
+
 @dataclass(frozen=True)
 class TrainerParams:
     """The parameters every trainer reads.

@@ -42,8 +42,8 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory, trained_action_repeat
-from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, in_warm_start, make_collector
 from escort_rl.trainers.params import PPOParams
+from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, in_warm_start, make_collector
 
 
 def make_ppo_loss(actor, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:

@@ -37,8 +37,8 @@ from escort_rl.config import ConfigError
 from escort_rl.envs import POMDPEnv
 from escort_rl.modules.recurrent import make_recurrent_actor_critic, make_recurrent_primer
 from escort_rl.trainers.builders import build_model, input_scaling
-from escort_rl.trainers.ppo import PPOBase
 from escort_rl.trainers.params import RecurrentPPOParams
+from escort_rl.trainers.ppo import PPOBase
 
 DEFAULT_HIDDEN = 64
 

@@ -26,8 +26,8 @@ from torchrl.objectives import ReinforceLoss, ValueEstimators
 
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import belief_keys, build_actor, env_factory
-from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
 from escort_rl.trainers.params import ReinforceParams
+from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
 
 
 class TimeBaseline(nn.Module):

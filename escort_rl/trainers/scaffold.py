@@ -32,6 +32,7 @@ import signal
 import threading
 import time
 from pathlib import Path
+
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
