@@ -16,7 +16,7 @@ from escort_rl.bench.core.options import (
     add_seeds_option,
     filter_overrides,
 )
-from escort_rl.bench.domains.spec import PROTOCOLS, DomainsSpec
+from escort_rl.bench.domains.spec import DEFAULT_OUTPUT, PROTOCOLS, DomainsSpec
 
 FLAGS = ("domains", "methods", "seeds", "particles", "steps", "threads", "max_particles", "reference_particles",
          "reference_sample", "train_iterations", "train_envs")
@@ -71,7 +71,7 @@ def register(subparsers) -> None:
                      help="protocol b: trainer.iterations for every domain (default: the yaml's)")
     dom.add_argument("--train-envs", type=int, default=None,
                      help="protocol b: trainer.num_envs for every domain (default: the yaml's)")
-    add_output_option(dom, "outputs/bench/domains", "domains.json, domains.md, PNGs and cells/ (protocol b: "
+    add_output_option(dom, DEFAULT_OUTPUT, "domains.json, domains.md, PNGs and cells/ (protocol b: "
                       "closed_loop.json, closed_loop.md, PNGs and runs/)")
     dom.set_defaults(handler=main)
 

@@ -5,7 +5,7 @@ states a default."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 from escort_rl.bench import methods as registry
@@ -13,6 +13,8 @@ from escort_rl.metrics.reference import SAMPLE
 
 PROTOCOLS = ("a", "b")
 """``a``: shared trajectories; ``b``: closed loop (each method trains its own policy)."""
+DEFAULT_OUTPUT = "outputs/bench/domains"
+"""The command's ``--output`` (a spec without ``output`` writes nothing but its result)."""
 PARTICLE_GRID = (50, 100, 200, 500, 1000, 2000, 5000, 10_000, 20_000, 50_000, 100_000)
 """The ``N'`` the equal wall-clock table chooses from (capped by ``max_particles``)."""
 
@@ -138,7 +140,3 @@ class DomainsSpec:
         """Protocol (b): the trainer keys set for every domain on top of the yaml's budget."""
         return {k: v for k, v in (("iterations", self.train_iterations), ("num_envs", self.train_envs))
                 if v is not None}
-
-
-FIELDS = tuple(f.name for f in fields(DomainsSpec))
-"""The names of the spec's fields, in order."""
