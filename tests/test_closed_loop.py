@@ -7,13 +7,19 @@ import math
 
 import pytest
 
-from escort_rl.bench import closed_loop as cl
+from escort_rl.bench import domains as cl
 from escort_rl.bench import methods as registry
+from escort_rl.bench.domains import closed_loop_cells
 from escort_rl.cli import main
 
 TINY = ["bench", "domains", "--protocol", "b", "--domains", "lightdark10d", "--methods", "sir", "escort",
         "--seeds", "3", "--particles", "10", "--steps", "5", "--train-envs", "2", "--threads", "1",
         "filter.num_steps=2"]
+
+
+def _spec(domains, methods, output, **settings):
+    """A protocol (b) run of ``methods`` on ``domains`` into ``output``; unset settings are the defaults."""
+    return cl.DomainsSpec.full("b", domains=domains, methods=methods, output=output, **settings)
 
 
 def _rows(out):
@@ -78,11 +84,12 @@ def test_training_flags_belong_to_protocol_b(tmp_path, capsys):
     assert main(["bench", "domains", "--train-iterations", "2", "--output", str(tmp_path)]) == 2
     assert "--protocol b" in capsys.readouterr().err
     with pytest.raises(ValueError, match="--particles"):
-        cl.run_closed_loop(["lightdark10d"], ["sir"], tmp_path, n=0)
+        cl.run_closed_loop(_spec(["lightdark10d"], ["sir"], tmp_path, particles=0))
 
 
 def test_planner_rows_plan_on_their_filters_belief(tmp_path):
-    result = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=2, n=10, steps=2, threads=1)
+    result = cl.run_closed_loop(_spec(["lightdark10d"], ["pomcpow_sir"], tmp_path,
+                                      seeds=2, particles=10, steps=2, threads=1))
     rows = {r["method"]: r for r in result["rows"]}
     r = rows["pomcpow_sir"]
     assert r["policy"] == "planner" and r["filter"] == "sir" and r["train"] is None and r["failed"] is None
@@ -91,35 +98,35 @@ def test_planner_rows_plan_on_their_filters_belief(tmp_path):
     assert "| POMCPOW (sir belief) |" in cl.closed_loop_markdown(result) and "ms per decision" in \
         cl.closed_loop_markdown(result)
     with pytest.raises(ValueError, match="--methods"):
-        cl.run_closed_loop(["lightdark10d"], ["pomcpow_nowhere"], tmp_path)
+        cl.run_closed_loop(_spec(["lightdark10d"], ["pomcpow_nowhere"], tmp_path))
 
 
 def test_a_rerun_reuses_finished_evaluations_only_when_nothing_changed(tmp_path, monkeypatch):
-    kwargs = dict(n=10, steps=2, threads=1)
-    first = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=2, **kwargs)
+    kwargs = dict(particles=10, steps=2, threads=1)
+    first = cl.run_closed_loop(_spec(["lightdark10d"], ["pomcpow_sir"], tmp_path, seeds=2, **kwargs))
     assert [r["evaluation_reused"] for r in first["rows"]] == [False, False]
 
     def must_not_run(*args, **kw):
         raise AssertionError("a saved evaluation should have been reused")
 
-    monkeypatch.setattr(cl, "evaluate_run", must_not_run)
-    again = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=2, **kwargs)
+    monkeypatch.setattr(closed_loop_cells, "evaluate_run", must_not_run)
+    again = cl.run_closed_loop(_spec(["lightdark10d"], ["pomcpow_sir"], tmp_path, seeds=2, **kwargs))
     assert [r["evaluation_reused"] for r in again["rows"]] == [True, True]
     assert [r["per_episode"] for r in again["rows"]] == [r["per_episode"] for r in first["rows"]]
     monkeypatch.undo()
 
     # more episodes, or a changed planner setting, is a new evaluation
-    more = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=3, **kwargs)
+    more = cl.run_closed_loop(_spec(["lightdark10d"], ["pomcpow_sir"], tmp_path, seeds=3, **kwargs))
     assert [r["evaluation_reused"] for r in more["rows"]] == [False, False]
     saved = tmp_path / "runs" / "lightdark10d" / "pomcpow_sir" / cl.EVALUATION_FILE
     (saved).write_text("{not json")  # a torn file is ignored, not an error
-    torn = cl.run_closed_loop(["lightdark10d"], ["pomcpow_sir"], tmp_path, episodes=3, **kwargs)
+    torn = cl.run_closed_loop(_spec(["lightdark10d"], ["pomcpow_sir"], tmp_path, seeds=3, **kwargs))
     assert not torn["rows"][0]["evaluation_reused"] and torn["rows"][1]["evaluation_reused"]
 
 
 def test_dvrl_row_trains_its_own_belief_and_reports_the_readout_error(tmp_path):
-    result = cl.run_closed_loop(["lightdark10d"], ["dvrl"], tmp_path, episodes=2, n=10, steps=6, threads=1,
-                                train_overrides={"iterations": 1, "num_envs": 2})
+    result = cl.run_closed_loop(_spec(["lightdark10d"], ["dvrl"], tmp_path,
+                                      seeds=2, particles=10, steps=6, threads=1, train_iterations=1, train_envs=2))
     rows = {r["method"]: r for r in result["rows"]}
     r = rows["dvrl"]
     assert r["policy"] == "learned" and r["failed"] is None and r["train"]["frames"] == 2 * 6
@@ -133,7 +140,7 @@ def test_dvrl_row_trains_its_own_belief_and_reports_the_readout_error(tmp_path):
 def test_the_registry_knows_every_row_and_the_defaults_include_the_baselines():
     settings = registry.load_settings()
     spec = {m: cl.method_spec(m, settings) for m in ("sir", "scripted_sir", "scripted_escort", "pomcpow_sir",
-                                                     "dvrl", "recurrent_ppo", cl.RANDOM)}
+                                                     "dvrl", "recurrent_ppo", registry.RANDOM)}
     assert spec["sir"] == {"kind": "trained", "section": None, "filter": "sir", "trainer": "ppo"}
     assert spec["scripted_escort"]["kind"] == "scripted" and spec["scripted_escort"]["filter"] == "escort"
     assert spec["pomcpow_sir"]["kind"] == "planner"
@@ -141,16 +148,16 @@ def test_the_registry_knows_every_row_and_the_defaults_include_the_baselines():
     assert spec["recurrent_ppo"]["trainer"] == "recurrent_ppo" and spec["recurrent_ppo"]["section"] == "recurrent"
     defaults = registry.protocol_b_methods()
     assert {"scripted_sir", "scripted_escort", "recurrent_ppo", "dvrl", "pomcpow_sir", "sir"} <= set(defaults)
-    assert len(set(defaults)) == len(defaults) and cl.RANDOM not in defaults
+    assert len(set(defaults)) == len(defaults) and registry.RANDOM not in defaults
     # protocol (a)'s learned beliefs stay beliefs: the recurrent policy has none
     assert "recurrent_ppo" not in registry.learned_methods() and "dvrl" in registry.learned_methods()
     # the checks accept the new names and still refuse unknown ones
     with pytest.raises(ValueError, match="--methods: unknown method 'scripted_nowhere'"):
-        cl.run_closed_loop(["lightdark10d"], ["scripted_nowhere"], "unused")
+        cl.run_closed_loop(_spec(["lightdark10d"], ["scripted_nowhere"], "unused"))
     with pytest.raises(ValueError, match="'random' is always run"):
-        cl.run_closed_loop(["lightdark10d"], ["scripted_sir", "random"], "unused")
+        cl.run_closed_loop(_spec(["lightdark10d"], ["scripted_sir", "random"], "unused"))
     with pytest.raises(ValueError, match="overrides: no method in --methods has the filter key 'num_steps'"):
-        cl.run_closed_loop(["lightdark10d"], ["recurrent_ppo"], "unused", filter_set=(("num_steps", "2"),))
+        cl.run_closed_loop(_spec(["lightdark10d"], ["recurrent_ppo"], "unused", filter_set=(("num_steps", "2"),)))
 
 
 def test_a_section_name_may_not_shadow_another_row(monkeypatch):
@@ -180,8 +187,8 @@ def test_filter_rows_use_the_yamls_trainer_with_whole_episode_batches(tmp_path, 
 
     # without the key: the config's default trainer (PPO)
     monkeypatch.setattr(registry, "load_settings", lambda: {k: v for k, v in settings.items() if k != "trainer"})
-    result = cl.run_closed_loop(["lightdark10d"], ["sir"], tmp_path, episodes=2, n=8, steps=6, threads=1,
-                                train_overrides={"iterations": 1, "num_envs": 2})
+    result = cl.run_closed_loop(_spec(["lightdark10d"], ["sir"], tmp_path,
+                                      seeds=2, particles=8, steps=6, threads=1, train_iterations=1, train_envs=2))
     assert result["trainer"] == "ppo" and result["trainers"] == {"sir": "ppo"}
     assert result["rows"][0]["trainer"] == "ppo" and result["rows"][0]["train"]["frames"] == 2 * 6
     assert "DeepSets policy (PPO)" in cl.closed_loop_markdown(result)
@@ -198,8 +205,8 @@ def test_a_bad_trainer_in_the_yaml_names_the_key(tmp_path, monkeypatch):
 
 
 def test_scripted_rows_train_nothing_and_do_not_apply_to_kidnapped_robot(tmp_path):
-    result = cl.run_closed_loop(["lightdark10d", "kidnapped20d"], ["scripted_sir", "scripted_escort"], tmp_path,
-                                episodes=2, n=8, steps=8, threads=1, filter_set=(("num_steps", "2"),))
+    result = cl.run_closed_loop(_spec(["lightdark10d", "kidnapped20d"], ["scripted_sir", "scripted_escort"], tmp_path,
+                                      seeds=2, particles=8, steps=8, threads=1, filter_set=(("num_steps", "2"),)))
     rows = {(r["domain"], r["method"]): r for r in result["rows"]}
     for m, f in (("scripted_sir", "sir"), ("scripted_escort", "escort")):
         r = rows[("lightdark10d", m)]
@@ -214,7 +221,8 @@ def test_scripted_rows_train_nothing_and_do_not_apply_to_kidnapped_robot(tmp_pat
     assert result["filter_set"]["scripted_escort"] == {"num_steps": "2"} and result["filter_set"]["scripted_sir"] == {}
     assert rows[("kidnapped20d", "random")]["failed"] is None  # the domain's other rows still run
     # nothing trained, so a rerun reuses the saved evaluation
-    again = cl.run_closed_loop(["lightdark10d"], ["scripted_sir"], tmp_path, episodes=2, n=8, steps=8, threads=1)
+    again = cl.run_closed_loop(_spec(["lightdark10d"], ["scripted_sir"], tmp_path,
+                                     seeds=2, particles=8, steps=8, threads=1))
     assert again["rows"][0]["evaluation_reused"]
     md = cl.closed_loop_markdown(result)
     assert "| scripted PD (sir belief mean) | " in md and "| scripted PD (escort belief mean) | " in md
@@ -227,8 +235,8 @@ def test_scripted_rows_train_nothing_and_do_not_apply_to_kidnapped_robot(tmp_pat
 
 
 def test_recurrent_row_trains_a_gru_and_has_no_position_error(tmp_path):
-    result = cl.run_closed_loop(["lightdark10d"], ["recurrent_ppo"], tmp_path, episodes=2, n=8, steps=6, threads=1,
-                                train_overrides={"iterations": 1, "num_envs": 2})
+    result = cl.run_closed_loop(_spec(["lightdark10d"], ["recurrent_ppo"], tmp_path,
+                                      seeds=2, particles=8, steps=6, threads=1, train_iterations=1, train_envs=2))
     r = {row["method"]: row for row in result["rows"]}["recurrent_ppo"]
     assert r["policy"] == "learned" and r["trainer"] == "recurrent_ppo" and r["filter"] == "none"
     assert r["failed"] is None and r["train"]["frames"] == 2 * 6 and r["train"]["iterations"] == 1

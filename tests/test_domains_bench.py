@@ -62,15 +62,15 @@ def test_quick_cli_writes_tables_and_plots(tmp_path, capsys):
 def test_a_damaged_reference_file_is_computed_again(tmp_path):
     """A reference file that no longer matches its saved cell is recomputed on the next run, and
     the rows come out the same."""
-    from escort_rl.bench.domains import run_domains
+    from escort_rl.bench.domains import DomainsSpec, run_domains
 
-    kw = dict(domains=["lightdark10d"], methods=["sir"], seeds=2, n=20, steps=2, equal_time=False,
-              reference_particles=200, reference_sample=20, cells_dir=tmp_path / "cells")
-    first = run_domains(**kw)
+    spec = DomainsSpec(domains=["lightdark10d"], methods=["sir"], seeds=2, particles=20, steps=2, equal_time=False,
+                       reference_particles=200, reference_sample=20, output=tmp_path)
+    first = run_domains(spec)
     files = sorted((tmp_path / "cells" / "reference-data").rglob("*.pt"))
     assert len(files) == 2  # N_ref and 2 N_ref
     files[0].write_bytes(files[0].read_bytes()[:64])
-    second = run_domains(**kw)
+    second = run_domains(spec)
     assert second["rows"][0]["accuracy"]["summary"] == first["rows"][0]["accuracy"]["summary"]
     assert files[0].stat().st_size > 64
 
@@ -115,9 +115,10 @@ def test_a_diverged_method_is_a_failed_row_and_the_run_goes_on(monkeypatch):
         real(belief, method, domain, step, seeds)
 
     monkeypatch.setattr(tr, "check_finite", diverge_svgd)
-    result = dom.run_domains(domains=["lightdark10d"], methods=["sir", "svgd", "escort"], seeds=2, n=10, steps=4,
-                             equal_time=True, particle_grid=(10, 20), max_particles=20, calibration_steps=1,
-                             threads=1, filter_set=(("num_steps", "2"),))
+    result = dom.run_domains(dom.DomainsSpec(domains=["lightdark10d"], methods=["sir", "svgd", "escort"], seeds=2,
+                                             particles=10, steps=4, equal_time=True, particle_grid=(10, 20),
+                                             max_particles=20, calibration_steps=1, threads=1,
+                                             filter_set=(("num_steps", "2"),), reference_particles=0))
     by = {r["method"]: r for r in result["rows"]}
     assert by["svgd"]["failed"]["step"] == 3 and "diverged (test)" in by["svgd"]["failed"]["message"]
     assert by["sir"]["failed"] is None and by["escort"]["failed"] is None
@@ -133,9 +134,11 @@ def test_learned_belief_row_reads_the_shared_trajectories(tmp_path, monkeypatch)
     settings["train"] = {d: {"iterations": 1, "num_envs": 2} for d in settings["train"]}
     monkeypatch.setattr(registry, "load_settings", lambda: settings)
     with pytest.raises(ValueError, match="--output"):
-        dom.run_domains(["lightdark10d"], ["dvrl"], seeds=2, n=10, steps=3)
-    result = dom.run_domains(["lightdark10d"], ["sir", "dvrl"], seeds=2, n=10, steps=4, equal_time=True,
-                             max_particles=10, calibration_steps=1, runs_dir=tmp_path / "runs", threads=1)
+        dom.run_domains(dom.DomainsSpec(domains=["lightdark10d"], methods=["dvrl"], seeds=2, particles=10, steps=3,
+                                        reference_particles=0))
+    result = dom.run_domains(dom.DomainsSpec(domains=["lightdark10d"], methods=["sir", "dvrl"], seeds=2, particles=10,
+                                             steps=4, equal_time=True, max_particles=10, calibration_steps=1,
+                                             output=tmp_path, threads=1, reference_particles=0))
     rows = {r["method"]: r for r in result["rows"]}
     assert rows["dvrl"]["input_hashes"] == rows["sir"]["input_hashes"]  # the same sequences
     assert len(rows["dvrl"]["error_over_time"]["mean"]) == 5 and rows["dvrl"]["failed"] is None
@@ -143,3 +146,37 @@ def test_learned_belief_row_reads_the_shared_trajectories(tmp_path, monkeypatch)
     assert [r["method"] for r in result["equal_time"]["rows"]] == ["sir"]  # no particle count to match
     assert (tmp_path / "runs" / "lightdark10d" / "dvrl" / "checkpoints").is_dir()
     assert "| DVRL (learned belief, readout) |" in dom.domains_markdown(result)
+
+
+def test_explicit_flags_win_over_quick_and_the_spec_checks_its_fields(tmp_path):
+    """The command line's spec: the defaults, ``--quick``'s settings under the flags given, and the
+    spec's own checks, each naming the option."""
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    dom.register(parser.add_subparsers())
+
+    def spec(*argv):
+        return dom.spec_from_args(parser.parse_args(["domains", *argv, "--output", str(tmp_path)]))
+
+    quick = spec("--quick", "--particles", "50", "filter.num_steps=2")
+    assert (quick.particles, quick.seeds, quick.steps, quick.calibration_steps) == (50, 2, 20, 1)
+    assert quick.methods == registry.QUICK_METHODS and quick.reference_particles == 2000
+    assert quick.filter_set == (("num_steps", "2"),) and quick.output == tmp_path
+    assert spec("--no-equal-time") == dom.DomainsSpec(output=tmp_path, equal_time=False)
+    assert spec().calibration_steps == 3 and spec().reference_particles == 100_000
+    b = spec("--protocol", "b", "--quick", "--train-envs", "4")
+    assert (b.particles, b.steps, b.train_iterations, b.train_envs) == (20, 10, 1, 4)
+    assert b.train_overrides() == {"iterations": 1, "num_envs": 4}
+    full_b = spec("--protocol", "b")
+    assert full_b.seeds is None and full_b.particles is None  # the yaml's episodes and N
+    assert full_b.methods == tuple(registry.protocol_b_methods())
+    for bad, flag in ((dict(reference_particles=-1), "--reference-particles"),
+                      (dict(reference_particles=10, reference_sample=11), "--reference-sample"),
+                      (dict(seeds_per_cell=0), "--seeds-per-cell"), (dict(protocol="c"), "--protocol"),
+                      (dict(train_envs=2), "--train-iterations/--train-envs: only for --protocol b"),
+                      (dict(protocol="b", seeds_per_cell=2), "--seeds-per-cell")):
+        with pytest.raises(ValueError, match=flag):
+            dom.DomainsSpec(**bad)
+    with pytest.raises(ValueError, match="run_closed_loop"):
+        dom.run_domains(dom.DomainsSpec.quick("b", output=tmp_path))

@@ -12,10 +12,11 @@ import pytest
 from escort_rl.bench import domains as dom
 from escort_rl.bench.compare import compare_runs, differences
 from escort_rl.bench.core.runner import CellStore, make_backend, run_cells, seed_blocks
+from escort_rl.bench.domains import cells as domain_cells
 from escort_rl.cli import main
 
-GRID = dict(domains=["lightdark10d", "kidnapped20d"], methods=["sir", "svgd"], seeds=4, n=10, steps=3,
-            equal_time=False, seeds_per_cell=2, filter_set=(("num_steps", "2"),))
+GRID = dict(domains=["lightdark10d", "kidnapped20d"], methods=["sir", "svgd"], seeds=4, particles=10, steps=3,
+            equal_time=False, seeds_per_cell=2, filter_set=(("num_steps", "2"),), reference_particles=0)
 
 
 def _per_seed(result):
@@ -32,20 +33,20 @@ def test_seed_blocks_and_resources():
 
 
 def test_a_rerun_loads_finished_cells_and_reruns_changed_ones(tmp_path, monkeypatch):
-    first = dom.run_domains(**GRID, cells_dir=tmp_path)
+    first = dom.run_domains(dom.DomainsSpec(**GRID, output=tmp_path))
     saved = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*.json"))
     assert len(saved) == 2 * 2 * 2  # domains x methods x seed blocks
 
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished cell ran again")
 
-    monkeypatch.setattr(dom, "filter_trajectories", must_not_run)
-    again = dom.run_domains(**GRID, cells_dir=tmp_path)
+    monkeypatch.setattr(domain_cells, "filter_trajectories", must_not_run)
+    again = dom.run_domains(dom.DomainsSpec(**GRID, output=tmp_path))
     assert _per_seed(again) == _per_seed(first)
     with pytest.raises(AssertionError, match="ran again"):  # another horizon is another cell
-        dom.run_domains(**{**GRID, "steps": 4}, cells_dir=tmp_path)
+        dom.run_domains(dom.DomainsSpec(**{**GRID, "steps": 4}, output=tmp_path))
     # a file written for another spec under the same name is not reused
-    store = CellStore(tmp_path)
+    store = CellStore(tmp_path / "cells")
     cell = dom.FilterCell(domain="lightdark10d", method="sir", particles=10, steps=3, seeds=(0, 1),
                           filter_set=(("num_steps", "2"),))
     path = store.path(cell)
@@ -58,8 +59,8 @@ def test_a_rerun_loads_finished_cells_and_reruns_changed_ones(tmp_path, monkeypa
 def test_the_seed_split_is_part_of_the_cell_not_of_the_backend():
     """Trajectories and priors are per seed, so any split shares them; the prior's error (step 0)
     is the same whatever the split."""
-    one = dom.run_domains(**{**GRID, "seeds_per_cell": None})
-    two = dom.run_domains(**GRID)
+    one = dom.run_domains(dom.DomainsSpec(**{**GRID, "seeds_per_cell": None}))
+    two = dom.run_domains(dom.DomainsSpec(**GRID))
     for r1, r2 in zip(one["rows"], two["rows"]):
         assert r1["input_hashes"] == r2["input_hashes"] == one["domain_info"][r1["domain"]]["trajectory_hashes"]
         assert r1["initial_belief_hashes"] == r2["initial_belief_hashes"]
@@ -70,8 +71,8 @@ def test_the_seed_split_is_part_of_the_cell_not_of_the_backend():
 
 @pytest.mark.slow
 def test_process_backend_gives_the_inprocess_numbers(tmp_path):
-    here = dom.run_domains(**GRID, cells_dir=tmp_path / "a")
-    there = dom.run_domains(**GRID, backend=make_backend("process", workers=2), cells_dir=tmp_path / "b")
+    here = dom.run_domains(dom.DomainsSpec(**GRID, output=tmp_path / "a"))
+    there = dom.run_domains(dom.DomainsSpec(**GRID, output=tmp_path / "b"), make_backend("process", workers=2))
     assert there["backend"] == "process" and there["workers"] == 2
     assert _per_seed(there) == _per_seed(here)
     assert compare_runs(tmp_path / "a", tmp_path / "b") == (8, [])
@@ -79,16 +80,16 @@ def test_process_backend_gives_the_inprocess_numbers(tmp_path):
 
 @pytest.mark.slow
 def test_ray_backend_gives_the_inprocess_numbers(tmp_path, local_ray):
-    here = dom.run_domains(**GRID, cells_dir=tmp_path / "a")
-    there = dom.run_domains(**GRID, backend=make_backend("ray"), cells_dir=tmp_path / "b")
+    here = dom.run_domains(dom.DomainsSpec(**GRID, output=tmp_path / "a"))
+    there = dom.run_domains(dom.DomainsSpec(**GRID, output=tmp_path / "b"), make_backend("ray"))
     assert there["backend"] == "ray"
     assert _per_seed(there) == _per_seed(here)
     assert compare_runs(tmp_path / "a", tmp_path / "b") == (8, [])
 
 
 def test_compare_finds_a_changed_number_and_ignores_timings(tmp_path, capsys):
-    dom.run_domains(**{**GRID, "domains": ["lightdark10d"], "methods": ["sir"], "filter_set": ()},
-                    cells_dir=tmp_path / "a" / "cells")
+    dom.run_domains(dom.DomainsSpec(**{**GRID, "domains": ["lightdark10d"], "methods": ["sir"], "filter_set": ()},
+                                    output=tmp_path / "a"))
     (tmp_path / "b").mkdir()
     for p in (tmp_path / "a" / "cells").rglob("*.json"):
         target = tmp_path / "b" / "cells" / p.relative_to(tmp_path / "a" / "cells")

@@ -1,4 +1,5 @@
-"""The domain benchmark, protocol (b) "closed loop".
+"""The domain benchmark, protocol (b) "closed loop": what a row is, its run config, its training and
+its evaluation, as one cell per (domain, method) (:class:`ClosedLoopCell`).
 
 For each domain and method (a filter config name under ``configs/filter/``) the trainer named by
 ``trainer`` in ``configs/bench/closed_loop.yaml`` (PPO; without the key, the config's default,
@@ -23,8 +24,8 @@ Learned and recurrent rows are both of the ``learned`` policy kind (their own tr
 :func:`escort_rl.trainers.evaluate.trained_policy`); only the ``learned`` section is a learned
 *belief* (protocol (a) reads it, see :func:`escort_rl.bench.methods.learned_methods`).
 
-Each (domain, method) row is one cell (:class:`ClosedLoopCell`) of :mod:`escort_rl.bench.core.runner`, so
-the rows run on any backend (``--backend process --workers K``, ``--backend ray``).
+Each (domain, method) row is one cell (:class:`ClosedLoopCell`) of :mod:`escort_rl.bench.core.runner`,
+so the rows run on any backend (``--backend process --workers K``, ``--backend ray``).
 
 Equal frames: every trainer's iteration is ``num_envs`` episodes of ``env.max_steps`` steps, so the
 budget ``{iterations, num_envs}`` means the same frames for every trained row. PPO and recurrent PPO
@@ -49,20 +50,15 @@ reuses it when all of that is unchanged, so a killed benchmark repeats only the 
 from __future__ import annotations
 
 import json
-import math
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
 
-from escort_rl.bench import methods as registry
-from escort_rl.bench.core.runner import Cell, backend_from_args, run_cells
-from escort_rl.bench.methods import RANDOM, SECTIONS, applied_filter_set, check_at_least_one, check_names
+from escort_rl.bench.core.runner import Cell
+from escort_rl.bench.methods import RANDOM, SECTIONS, applied_filter_set
 from escort_rl.bench.trajectories import belief_failures
-from escort_rl.reporting.paths import write_results
-from escort_rl.reporting.plots import plot_curves
 from escort_rl.trainers.evaluate import scripted_policy, trained_policy
 
 REFERENCE_FILTER = "sir"  # the belief the random-policy row is scored on
@@ -321,249 +317,3 @@ class ClosedLoopCell(Cell):
         except belief_failures() as e:
             row["failed"] = {"message": str(e).splitlines()[0]}
         return row
-
-
-def run_closed_loop(domains, methods, output, episodes: int | None = None, n: int | None = None,
-                    steps: int | None = None, train_overrides: dict | None = None, filter_set=(),
-                    threads: int | None = None, progress=None, train_progress: bool = False, backend=None) -> dict:
-    """Protocol (b) for every method on every domain, plus a random-policy row per domain.
-
-    ``methods``: filter configs (trained with the yaml's ``trainer``) and the rows of the yaml's
-    sections (:func:`method_spec`). ``episodes``, ``n``: default from ``configs/bench/closed_loop.yaml``.
-    ``steps``: episode length (default: each env's ``max_steps``). ``train_overrides``: trainer keys
-    set for every domain (e.g. ``{"iterations": 2}``) on top of the yaml's per-domain budget.
-    ``filter_set``: (key, value) pairs set on every method's filter config that has the key.
-    ``threads``: torch threads in each cell (default 1). ``backend``: where the (domain, method)
-    cells (:class:`ClosedLoopCell`) run (default in-process). ``progress(row)`` is called per row as
-    it finishes. Writes the runs under ``output/runs``; returns the result (rows in grid order and
-    settings). A row that fails (a diverged belief) or does not apply (a scripted row on a domain
-    without a controller) has ``failed = {"message": ...}`` (with ``"not_applicable": True`` for the
-    latter) and no metrics."""
-    from escort_rl.bench.core.runner import InProcessBackend
-
-    domains, methods = list(domains), list(methods)
-    filter_set = tuple(tuple(kv) for kv in filter_set)
-    settings = registry.load_settings()
-    registry.named_rows(settings)  # the sections' names are distinct
-    specs = {m: method_spec(m, settings) for m in [*methods, RANDOM]}
-    check_names(domains, list(dict.fromkeys(specs[m]["filter"] for m in methods)), filter_set)
-    if len(set(methods)) != len(methods):
-        raise ValueError("--methods: a method is listed twice")
-    if RANDOM in methods:
-        raise ValueError(f"--methods: '{RANDOM}' is always run; leave it out")
-    episodes = int(episodes if episodes is not None else settings["episodes"])
-    n = int(n if n is not None else settings["particles"])
-    check_at_least_one(seeds=episodes, particles=n, steps=steps, threads=threads)
-    missing = [d for d in domains if d not in settings["train"]]
-    if missing:
-        raise ValueError(f"{registry.settings_path().name}: no train entry for {', '.join(missing)}; add one")
-    output, threads = Path(output), threads or 1
-    backend = backend or InProcessBackend()
-    t_start = time.perf_counter()
-    eval_seed, greedy = int(settings["eval_seed"]), bool(settings["greedy"])
-    budgets = {d: {**settings["train"][d], **(train_overrides or {})} for d in domains}
-    cells = [ClosedLoopCell(domain=d, method=m, kind=specs[m]["kind"], section=specs[m]["section"],
-                            filter=specs[m]["filter"], trainer=specs[m]["trainer"], particles=n, episodes=episodes,
-                            steps=steps, budget=tuple(budgets[d].items()), filter_set=filter_set,
-                            run_dir=str(output / "runs" / d / m), eval_seed=eval_seed, greedy=greedy,
-                            train_progress=train_progress, threads=threads)
-             for d in domains for m in [*methods, RANDOM]]
-    try:
-        rows = run_cells(cells, backend, on_result=None if progress is None else lambda cell, row: progress(row),
-                         desc="protocol (b) cells")
-    finally:
-        backend.close()
-    for row in rows:
-        row.pop("timing", None)
-    trainers = {r["method"]: r["trainer"] for r in rows if r["trainer"] is not None}
-    # the filter rows' trainer (resolved: the config's when the yaml has none)
-    reference = run_config(domains[0], REFERENCE_FILTER, n, output / "runs" / domains[0] / RANDOM, budgets[domains[0]],
-                           (), steps, trainer=specs[RANDOM]["trainer"])
-    sections = {section: {m: settings[section][m] for m in methods if specs[m]["section"] == section}
-                for section in SECTIONS}
-    return {"protocol": "b: closed loop", "domains": domains, "methods": [*methods, RANDOM], "episodes": episodes,
-            "particles": n, "eval_seed": eval_seed, "greedy": greedy,
-            "trainer": str(reference.trainer.algorithm), "trainers": trainers,
-            "train_budget": budgets,
-            "filter_set": {m: applied_filter_set(specs[m]["filter"], filter_set)
-                           for m in methods if specs[m]["kind"] != "learned"},
-            **sections,
-            "torch_threads": threads, "backend": backend.name,
-            "seconds": time.perf_counter() - t_start, "rows": rows}
-
-
-# ---------------------------------------------------------------------------------------- reporting
-def _failed_cell(row: dict) -> str:
-    return "n/a" if row["failed"].get("not_applicable") else "failed"
-
-
-def _cell(row: dict, key: str, digits: int = 3) -> str:
-    if row["failed"]:
-        return _failed_cell(row)
-    m, se = row["summary"][key], row["summary"][f"{key}_se"]
-    return "—" if m is None or math.isnan(m) else f"{m:.{digits}f} ± {se:.{digits}f}"
-
-
-def _label(result: dict, m: str) -> str:
-    """A row's name in the tables."""
-    planner, scripted = result.get("planners", {}).get(m), result.get("scripted", {}).get(m)
-    recurrent = result.get("recurrent", {}).get(m)
-    if m == RANDOM:
-        return f"random policy ({REFERENCE_FILTER} belief)"
-    if planner:
-        return f"POMCPOW ({planner['filter']} belief)"
-    if scripted:
-        return f"scripted PD ({scripted['filter']} belief mean)"
-    if m in result.get("learned", {}):
-        return f"{m.upper()} (learned belief, readout)"
-    if recurrent:
-        return f"{m} (GRU on observations, no belief)"
-    return m
-
-
-def _table(result: dict, cell) -> list[str]:
-    domains = result["domains"]
-    by = {(r["domain"], r["method"]): r for r in result["rows"]}
-    lines = ["| method | " + " | ".join(domains) + " |", "| --- | " + " | ".join("---" for _ in domains) + " |"]
-    for m in result["methods"]:
-        cells = (cell(by[(d, m)]) if (d, m) in by else "—" for d in domains)
-        lines.append(f"| {_label(result, m)} | " + " | ".join(cells) + " |")
-    return lines
-
-
-def _time_cell(row: dict) -> str:
-    if row["failed"]:
-        return _failed_cell(row)
-    cell = f"{1e3 * row['seconds_per_step']:.1f} ({row['first_step_seconds']:.1f} s)"
-    if "seconds_per_decision" in row:
-        cell += f"; {1e3 * row['seconds_per_decision']:.1f} ms per decision"
-    return cell
-
-
-def train_cell(row: dict) -> str:
-    t = row.get("train")
-    if not t:
-        return "—"
-    return f"{t['frames']} frames, {t['seconds'] / 60:.1f} min ({t['frames'] / max(t['seconds'], 1e-9):.0f} frames/s)"
-
-
-def closed_loop_markdown(result: dict) -> str:
-    budgets = "; ".join(f"{d}: " + ", ".join(f"{k}={v}" for k, v in b.items()) for d, b in result["train_budget"].items())
-    changed = [f"{m}: " + ", ".join(f"{k}={v}" for k, v in kv.items()) for m, kv in result["filter_set"].items() if kv]
-    trainer = result.get("trainer") or "reinforce"
-    trainer = {"ppo": "PPO", "reinforce": "REINFORCE"}.get(trainer, trainer)
-    others = [f"- {text}" for section, text in (
-        ("planners", "POMCPOW rows train nothing: the planner decides on its filter's belief."),
-        ("scripted", "Scripted rows train nothing: the domain's PD controller drives its filter's belief mean "
-                     "toward the goal (n/a where the domain has no controller: no goal)."),
-        ("learned", "The DVRL row trains DVRL, a learned belief, by A2C plus its ELBO at the same frames; its "
-                    "position error is that of a readout head fitted to the training trajectories' true states."),
-        ("recurrent", "Recurrent rows train a GRU policy on the raw observations (recurrent PPO) at the same "
-                      "frames: no belief, so no position error (—).")) if result.get(section)]
-    others += [""] if others else []
-    lines = [
-        "# Domain benchmark, protocol (b): closed loop",
-        "",
-        f"Each filter method trains its own DeepSets policy ({trainer}) on its own beliefs, N = "
-        f"{result['particles']} particles, then drives it on {result['episodes']} evaluation episodes (env seeds "
-        f"{result['eval_seed']} + 0..{result['episodes'] - 1}, the same for every method; policy "
-        f"{'greedy' if result['greedy'] else 'sampled'}). Mean ± standard error over the episodes. Training budget "
-        f"per domain (trainer keys, equal for every method): {budgets}.",
-        "",
-        *others,
-        *([f"Filter settings changed from the configs: {'; '.join(changed)}.", ""] if changed else []),
-        "## Final position error",
-        "",
-        *_table(result, lambda r: _cell(r, "final_position_error")),
-        "",
-        "## Time-averaged position error",
-        "",
-        *_table(result, lambda r: _cell(r, "mean_position_error")),
-        "",
-        "## Return",
-        "",
-        *_table(result, lambda r: _cell(r, "episode_return", 1)),
-        "",
-        "## Final distance to goal (domains with a goal)",
-        "",
-        *_table(result, lambda r: _cell(r, "final_distance")),
-        "",
-        "## Success rate",
-        "",
-        *_table(result, lambda r: _cell(r, "success_rate")),
-        "",
-        "## Wall-clock",
-        "",
-        "Milliseconds per evaluation step for the whole batch of episodes (policy + env + belief update, steps "
-        "2..T; the first step's seconds, which include compiling for `compile=true`, in brackets), torch threads: "
-        f"{result['torch_threads']}. Planner rows also give the mean wall-clock of one POMCPOW decision (one "
-        "belief; the batch's decisions run one after another).",
-        "",
-        *_table(result, _time_cell),
-        "",
-        "Training cost (frames, minutes over all sessions of the run, frames per second):",
-        "",
-        *_table(result, train_cell),
-        "",
-    ]
-    failed = [r for r in result["rows"] if r["failed"] and not r["failed"].get("not_applicable")]
-    if failed:
-        lines += ["## Failed runs", ""] + [f"- {r['method']} on {r['domain']}: {r['failed']['message']}"
-                                           for r in failed] + [""]
-    skipped = [r for r in result["rows"] if r["failed"] and r["failed"].get("not_applicable")]
-    if skipped:
-        lines += ["## Not applicable (n/a)", ""] + [
-            f"- {r['method']} on {r['domain']}: {r['failed']['message'].removeprefix('not applicable: ')}"
-            for r in skipped] + [""]
-    return "\n".join(lines)
-
-
-def plot_closed_loop_error(result: dict, domain: str, path: Path) -> Path:
-    """Mean position error over the evaluation episodes against the step, one line per method (a
-    row without a belief, the recurrent policy, has no curve)."""
-    curves = {r["method"]: (r["error_over_time"], None)
-              for r in result["rows"] if r["domain"] == domain and not r["failed"]}
-    return plot_curves(curves, path, "step", "position error ‖E_b[pos] − pos_true‖₂",
-                       f"{domain}: protocol (b), N = {result['particles']}, {result['episodes']} episodes (mean)",
-                       start=1)
-
-
-QUICK = dict(domains=list(registry.DOMAINS), methods=list(registry.QUICK_METHODS), seeds=2, particles=20, steps=10,
-             threads=1, train_iterations=1, train_envs=2)
-"""``bench domains --protocol b --quick`` (flags given explicitly win)."""
-
-
-def main(args) -> None:
-    """``bench domains --protocol b`` (the flags of :func:`escort_rl.bench.domains.register`)."""
-    from escort_rl.bench.core.options import filter_overrides
-
-    full = dict(domains=list(registry.DOMAINS), methods=registry.protocol_b_methods(), seeds=None, particles=None,
-                steps=None, threads=None, train_iterations=None, train_envs=None)
-    kw = {k: getattr(args, k) if getattr(args, k) is not None else (QUICK if args.quick else full)[k] for k in full}
-    train = {k: v for k, v in (("iterations", kw["train_iterations"]), ("num_envs", kw["train_envs"])) if v is not None}
-    if args.seeds_per_cell is not None:
-        raise ValueError("--seeds-per-cell: protocol b's cells are (domain, method) runs; leave it out")
-    backend = backend_from_args(args)
-
-    def show(row):
-        if row["failed"]:
-            print(f"{row['domain']:>13} {row['method']:>14} FAILED: {row['failed']['message']}", flush=True)
-            return
-        s = row["summary"]
-        trained = f"  trained {train_cell(row)}" if row["train"] else ""
-        if "seconds_per_decision" in row:
-            trained += f"  {1e3 * row['seconds_per_decision']:.1f} ms per decision"
-        print(f"{row['domain']:>13} {row['method']:>14} final error {s['final_position_error']:.3f} ± "
-              f"{s['final_position_error_se']:.3f}  return {s['episode_return']:.1f} ± {s['episode_return_se']:.1f}  "
-              f"distance {s['final_distance']:.3f}  success {s['success_rate']:.2f}  "
-              f"{1e3 * row['seconds_per_step']:.1f} ms/step{trained}", flush=True)
-
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    result = run_closed_loop(kw["domains"], kw["methods"], out, episodes=kw["seeds"], n=kw["particles"],
-                             steps=kw["steps"], train_overrides=train, filter_set=filter_overrides(args.overrides),
-                             threads=kw["threads"], progress=show, backend=backend)
-    for d in result["domains"]:
-        plot_closed_loop_error(result, d, out / f"closed_loop_error_{d}.png")
-    write_results(out, "closed_loop", result, closed_loop_markdown(result), time.perf_counter() - t0)
