@@ -1,7 +1,7 @@
 """Model conformance: every domain model follows :class:`escort_rl.models.POMDPModel` the same way.
 
 The per-model files test each model's own law (densities by hand, paper constants, rates);
-``tests/test_observation_score.py`` checks the closed-form scores against autograd on filter-shaped
+``tests/belief/test_observation_score.py`` checks the closed-form scores against autograd on filter-shaped
 points. This suite checks, uniformly for every model, what envs, filters and planners rely on:
 
 - shapes and dtypes of every protocol method for batch shapes ``()``, ``(3,)`` and ``(2, 4)``;

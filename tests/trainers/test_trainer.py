@@ -19,7 +19,7 @@ from escort_rl.trainers.checkpointing import CheckpointLoadError, load_checkpoin
 from escort_rl.trainers.training import train
 
 # The default job's filter (ESCORT) at a tiny size; eager, because compiling in every test process
-# would dominate the test time (tests/test_escort.py checks that compiled and eager updates agree).
+# would dominate the test time (tests/belief/test_escort.py checks that compiled and eager updates agree).
 TINY = ["trainer=reinforce", "trainer.num_envs=4", "env.max_steps=12", "num_particles=16", "actor.hidden=16",
         "trainer.minibatch_size=64", "trainer.checkpoint_every=1", "filter.compile=false"]
 

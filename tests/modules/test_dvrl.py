@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 from functools import partial
-from pathlib import Path
 
 import pytest
 import torch
@@ -16,6 +15,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import Compose, InitTracker, ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.utils import step_mdp
 
+from escort_rl.config import config_dir
 from escort_rl.envs import POMDPEnv
 from escort_rl.models import DOMAINS
 from escort_rl.models.light_dark import LightDark10D
@@ -24,7 +24,7 @@ from escort_rl.modules.dvrl_networks import AtariEncoder
 from escort_rl.modules.dvrl_torchrl import DVRLPolicy
 
 torch.set_num_threads(1)
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "dvrl"
+CONFIGS = config_dir() / "dvrl"
 
 
 # ------------------------------------------------------------- a linear-Gaussian model as DVRL parts
