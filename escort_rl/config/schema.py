@@ -163,38 +163,21 @@ class EnvConfig:
     exploring_starts: Optional[Dict[str, Any]] = _f(None)
 
 
-@dataclass
-class LightDark10DEnvConfig(EnvConfig):
-    """``configs/env/lightdark10d.yaml``."""
-
-    name: str = _f("lightdark10d", choices=["lightdark10d"])
-    model: LightDark10DModelConfig = _sub(LightDark10DModelConfig)
-
-
-@dataclass
-class KidnappedRobot20DEnvConfig(EnvConfig):
-    """``configs/env/kidnapped20d.yaml``."""
-
-    name: str = _f("kidnapped20d", choices=["kidnapped20d"])
-    model: KidnappedRobot20DModelConfig = _sub(KidnappedRobot20DModelConfig)
+def env_schema(name: str, model: type, schema_name: str) -> type:
+    """The schema of the env group option ``name`` (``configs/env/<name>.yaml``): the keys of
+    :class:`EnvConfig` and ``model``, the schema of the model registered as ``name``."""
+    specs = [("name", str, field(default=name, metadata={"choices": [name]})),
+             ("model", model, field(default_factory=model))]
+    schema = dataclasses.make_dataclass(schema_name, specs, bases=(EnvConfig,))
+    schema.__module__ = __name__
+    return schema
 
 
-@dataclass
-class MultiTargetTracking20DEnvConfig(EnvConfig):
-    """``configs/env/mtt20d.yaml``."""
-
-    name: str = _f("mtt20d", choices=["mtt20d"])
-    model: MultiTargetTracking20DModelConfig = _sub(MultiTargetTracking20DModelConfig)
-
-
-@dataclass
-class LinearGaussianEnvConfig(EnvConfig):
-    """``configs/env/linear_gaussian.yaml``: the linear-Gaussian family, whose exact posterior is Kalman's."""
-
-    name: str = _f("linear_gaussian", choices=["linear_gaussian"])
-    model: LinearGaussianModelConfig = _sub(LinearGaussianModelConfig)
-
-
+LightDark10DEnvConfig = env_schema("lightdark10d", LightDark10DModelConfig, "LightDark10DEnvConfig")
+KidnappedRobot20DEnvConfig = env_schema("kidnapped20d", KidnappedRobot20DModelConfig, "KidnappedRobot20DEnvConfig")
+MultiTargetTracking20DEnvConfig = env_schema("mtt20d", MultiTargetTracking20DModelConfig,
+                                             "MultiTargetTracking20DEnvConfig")
+LinearGaussianEnvConfig = env_schema("linear_gaussian", LinearGaussianModelConfig, "LinearGaussianEnvConfig")
 ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "kidnapped20d": KidnappedRobot20DEnvConfig,
                "mtt20d": MultiTargetTracking20DEnvConfig, "linear_gaussian": LinearGaussianEnvConfig}
 
