@@ -135,7 +135,8 @@ def test_ray_missing_is_one_line(monkeypatch):
 
     monkeypatch.setattr(builtins, "__import__", no_ray)
     cell = dom.FilterCell(domain="lightdark10d", method="sir", particles=5, steps=1, seeds=(0,))
-    with pytest.raises(ValueError, match=r"--backend ray: ray is not installed; install with pip install escort-rl\[ray\]"):
+    with pytest.raises(ValueError,
+                       match=r"--backend ray: ray is not installed; install with pip install escort-rl\[ray\]"):
         run_cells([cell], make_backend("ray"))
 
 
