@@ -50,7 +50,8 @@ def _imports() -> dict[str, list[tuple[str, list[str]]]]:
             if isinstance(node, ast.ImportFrom):
                 base = node.module or ""
                 if node.level:
-                    base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                    base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1]
+                                    + ([base] if base else []))
                 if base.startswith("escort_rl"):
                     names = [a.name for a in node.names]
                     subs = [f"{base}.{n}" for n in names if (ROOT.parent / f"{base}.{n}".replace(".", "/")).exists()

@@ -255,7 +255,8 @@ def diagnose_model_outputs(model, belief: ParticleBelief, action: Tensor, observ
                    else type(x_next).__name__)
             return (f"model.transition: returned {got} for belief.particles of shape {tuple(x.shape)}, dtype "
                     f"{x.dtype}; {fix}")
-        lp, problem = call("observation_log_prob", lambda: model.observation_log_prob(observation.unsqueeze(-2), x_next, a))
+        lp, problem = call("observation_log_prob",
+                           lambda: model.observation_log_prob(observation.unsqueeze(-2), x_next, a))
     if problem is not None:
         return problem
     if not isinstance(lp, Tensor) or lp.shape != x.shape[:-1] or not lp.dtype.is_floating_point:

@@ -221,8 +221,8 @@ class ESCORTFilter(HasParams, BeliefFilter):
         return {**self.__dict__, "_compiled_fns": {}}
 
     def __repr__(self) -> str:
-        keys = ("num_steps", "step_size", "repulsion", "lambda_corr", "lambda_temp", "n_proj", "projection", "corr_form",
-                "temp_schedule", "prior", "compile")
+        keys = ("num_steps", "step_size", "repulsion", "lambda_corr", "lambda_temp", "n_proj", "projection",
+                "corr_form", "temp_schedule", "prior", "compile")
         extra = "" if self.check_finite else ", check_finite=False"
         return f"{type(self).__name__}(" + ", ".join(f"{k}={getattr(self, k)!r}" for k in keys) + extra + ")"
 

@@ -23,7 +23,8 @@ def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[T
 
     ``x``, ``hist`` (``G``) ``[*B, N, d]``; ``bandwidth`` ``[*B]``; ``scalars`` ``[3]`` or ``[5]`` holds
     ``(ε, α, λ_temp)`` of this iteration and, when given, the annealing factor ``γ`` that multiplies
-    the score in ``φ_SVGD`` and the bandwidth's multiplier (:meth:`ESCORTFilter.schedule`); ``proj`` ``[*B, d, d]`` is ``Σ_k w_k A_k A_kᵀ`` (``None``
+    the score in ``φ_SVGD`` and the bandwidth's multiplier (:meth:`ESCORTFilter.schedule`); ``proj``
+    ``[*B, d, d]`` is ``Σ_k w_k A_k A_kᵀ`` (``None``
     turns ``F_corr`` off); ``temporal`` is the sorted reference of ``F_temp`` (``None`` turns it off).
     ``score_fn(x)`` gives the score ``[*B, N, d]`` and the counts ``[*B, C]`` of particles at which
     its sources gave NaN or inf (or ``None``): they are passed on, never read here (no host sync).
@@ -32,7 +33,8 @@ def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[T
     Pure apart from ``timer``, so ``torch.compile`` fuses it whole. Returns the new ``(x, hist)`` and
     the counts.
 
-    The velocity's NaN → 0 and ±inf → ±``MAX_SCORE`` (:func:`~escort_rl.belief.scores.clamp_non_finite`) guards against the kernel
+    The velocity's NaN → 0 and ±inf → ±``MAX_SCORE`` (:func:`~escort_rl.belief.scores.clamp_non_finite`)
+    guards against the kernel
     overflowing for particles far apart; a non-finite score shows in the counts, not hidden by it.
     """
     timer = timer or NO_TIMER

@@ -48,7 +48,8 @@ def rows_of(result: dict, method: str, metric: str) -> dict[str, list[float]]:
     for row in result["rows"]:
         if row["method"] == method and "per_seed" in row:
             if metric not in row["per_seed"]:
-                raise ValueError(f"--metric: the rows have no '{metric}'; choose from {', '.join(sorted(row['per_seed']))}")
+                raise ValueError(f"--metric: the rows have no '{metric}'; choose from "
+                                 f"{', '.join(sorted(row['per_seed']))}")
             out[row_key(row)] = row["per_seed"][metric]
     return out
 

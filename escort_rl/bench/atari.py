@@ -132,7 +132,8 @@ class AtariCell(Cell):
 
     def run(self) -> dict:
         run_dir = Path(self.runs) / self.game / self.agent / f"seed{self.seed}"
-        cfg = cell_config(load_settings(self.overrides), self.game, self.agent, self.seed, self.frames, run_dir, self.device)
+        cfg = cell_config(load_settings(self.overrides), self.game, self.agent, self.seed, self.frames, run_dir,
+                          self.device)
         return run_atari_cell(cfg)
 
 

@@ -48,10 +48,20 @@ def differences(a, b, tolerance: float = 0.0, where: str = "") -> list[str]:
     return [] if a == b else [f"{where}: {a!r} != {b!r}"]
 
 
+def is_cell(path: Path) -> bool:
+    """Whether ``path`` is a saved cell: a JSON object with ``spec`` and ``result`` (:class:`CellStore`)."""
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(saved, dict) and "spec" in saved and "result" in saved
+
+
 def cell_files(run: Path) -> dict[str, Path]:
-    """Relative path -> file of every saved cell of ``run`` (its ``cells/`` folder, or ``run`` itself)."""
+    """Relative path -> file of every saved cell of ``run`` (its ``cells/`` folder, or ``run`` itself);
+    other JSON files (a report such as ``closed_loop.json``, a training run's files) are left out."""
     root = run / "cells" if (run / "cells").is_dir() else run
-    return {str(p.relative_to(root)): p for p in sorted(root.rglob("*.json"))}
+    return {str(p.relative_to(root)): p for p in sorted(root.rglob("*.json")) if is_cell(p)}
 
 
 def compare_runs(a: Path, b: Path, tolerance: float = 0.0, common_only: bool = False) -> tuple[int, list[str]]:
@@ -64,7 +74,8 @@ def compare_runs(a: Path, b: Path, tolerance: float = 0.0, common_only: bool = F
     for name, run in (("A", Path(a)), ("B", Path(b))):
         files[name] = cell_files(run)
         if not files[name]:
-            raise ValueError(f"{name}: '{run}' holds no saved cells (a benchmark's --output, or its cells/ folder)")
+            raise ValueError(f"{name}: '{run}' holds no benchmark cells (give a benchmark's --output or its cells/ "
+                             "folder; bench domains --protocol b saves none)")
     problems = []
     if not common_only:
         problems += [f"{k}: only in {side}" for side, other in (("A", "B"), ("B", "A"))

@@ -168,7 +168,8 @@ def update_cost_markdown(result: dict) -> str:
         parts = "/".join(f"{1e3 * bd.get(k, 0.0):.0f}" for k in ("kernel", "score", "correlation", "temporal"))
         lines.append(
             f"| {d} | {n} | {b} | {1e3 * e['seconds']:.1f} | {1e3 * s['seconds']:.1f} | {1e3 * p['seconds']:.2f} | "
-            f"{e['seconds'] / s['seconds']:.2f} | {e['seconds'] / p['seconds']:.0f} | {e['gflops_per_s']:.2f} | {parts} |"
+            f"{e['seconds'] / s['seconds']:.2f} | {e['seconds'] / p['seconds']:.0f} | {e['gflops_per_s']:.2f} | "
+            f"{parts} |"
         )
     if compiled:
         lines += ["", "With `compile=True` (each iteration through torch.compile; the first update of a shape "

@@ -199,8 +199,9 @@ def decisions_markdown(result: dict) -> str:
 
 
 def run_decisions(domain: str = "lightdark10d", rows=DEFAULT_ROWS, episodes: int = 100, particles: int = 100,
-                  seed: int | None = None, steps: int | None = None, near: float = 1.0, output="outputs/bench/decisions",
-                  backend=None, threads: int = 1, baseline: str | None = None) -> dict:
+                  seed: int | None = None, steps: int | None = None, near: float = 1.0,
+                  output="outputs/bench/decisions", backend=None, threads: int = 1,
+                  baseline: str | None = None) -> dict:
     """Run the rows (labels of :data:`ROWS` or ``(label, overrides)`` pairs) and write
     ``decisions.md``, ``decisions.json`` and the error-over-time plots into ``output``."""
     from escort_rl.bench.core.runner import make_backend
@@ -262,8 +263,8 @@ def register(subparsers) -> None:
     p.add_argument("--baseline", default=None, metavar="LABEL",
                    help="the row each row's success is compared with, paired by episode (default: the first row)")
     p.add_argument("--near", type=float, default=1.0, help="distance to goal that counts as near")
-    options.add_quick_option(p, f"rows {' '.join(QUICK['rows'])}, {QUICK['episodes']} episodes of {QUICK['steps']} steps, "
-                     f"N={QUICK['particles']}")
+    options.add_quick_option(p, f"rows {' '.join(QUICK['rows'])}, {QUICK['episodes']} episodes of "
+                     f"{QUICK['steps']} steps, N={QUICK['particles']}")
     options.add_runner_options(p, seeds_per_cell=False)
     options.add_output_option(p, "outputs/bench/decisions", "decisions.md, decisions.json, the plots and cells/")
     p.set_defaults(handler=main)

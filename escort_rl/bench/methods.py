@@ -63,7 +63,8 @@ def settings_path() -> Path:
 
 def load_settings() -> dict:
     """``configs/bench/closed_loop.yaml`` as a plain dict, checked against
-    :class:`escort_rl.config.bench_schemas.ClosedLoopBenchConfig` (a bad value raises ``ConfigError`` naming the key)."""
+    :class:`escort_rl.config.bench_schemas.ClosedLoopBenchConfig` (a bad value raises ``ConfigError``
+    naming the key)."""
     from omegaconf import OmegaConf
 
     from escort_rl.config.bench_schemas import ClosedLoopBenchConfig

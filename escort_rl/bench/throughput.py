@@ -89,7 +89,8 @@ def main(args) -> None:
     for k in kw["collector_workers"]:
         row = collection_throughput(cfg, k, kw["num_envs"], kw["steps"], kw["batches"])
         rows.append(row)
-        print(f"backend={row['backend']} workers={k} B={row['num_envs']} N={row['num_particles']} filter={row['filter']}: "
+        print(f"backend={row['backend']} workers={k} B={row['num_envs']} N={row['num_particles']} "
+              f"filter={row['filter']}: "
               f"{row['frames_per_second']:.0f} frames/s ({row['frames']} frames in {row['seconds']:.2f} s)")
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

@@ -91,11 +91,13 @@ class DVRLAtari(gym.Env):
                  repeat_action_probability: float = 0.25, episodic_life: bool = True,
                  max_frames: int = 108_000) -> None:
         self.game = check_game(game)
-        for name, value, low in (("frame_skip", frame_skip, 1), ("noop_max", noop_max, 0), ("max_frames", max_frames, 1)):
+        for name, value, low in (("frame_skip", frame_skip, 1), ("noop_max", noop_max, 0),
+                                 ("max_frames", max_frames, 1)):
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"{name}: expected an int >= {low}, got {value!r}")
         if not 0.0 <= float(repeat_action_probability) <= 1.0:
-            raise ValueError(f"repeat_action_probability: expected a number in [0, 1], got {repeat_action_probability!r}")
+            raise ValueError("repeat_action_probability: expected a number in [0, 1], got "
+                             f"{repeat_action_probability!r}")
         ale_py = _import_ale()
         self.ale_env = ale_py.env.AtariEnv(GAMES[self.game][0], obs_type="grayscale", frameskip=1,
                                            repeat_action_probability=float(repeat_action_probability),

@@ -290,7 +290,8 @@ def kernel_mean(x, y, gamma, x_weights=None, y_weights=None) -> Tensor:
     gamma = torch.as_tensor(gamma, dtype=x.dtype, device=x.device)
     if not bool(((gamma > 0) & torch.isfinite(gamma)).all()):
         raise ValueError("gamma: expected positive finite bandwidths")
-    wx, wy = weights_or_uniform("x_weights", x_weights, x[..., 0]), weights_or_uniform("y_weights", y_weights, y[..., 0])
+    wx, wy = (weights_or_uniform("x_weights", x_weights, x[..., 0]),
+              weights_or_uniform("y_weights", y_weights, y[..., 0]))
     g = gamma[..., None, None]
     # −γ‖x_i − y_j‖² = 2γ x_i·y_j − γ‖x_i‖² − γ‖y_j‖², built in place in one [..., N, M] buffer
     k = (x @ y.transpose(-1, -2)).mul_(2.0 * g)

@@ -563,7 +563,7 @@ def describe_correlations(model: KidnappedRobot20D | None = None) -> str:
         "rho(c_i, f_k)": [(i, k) for i in cal for k in feat],
         "rho(x, y) (not given)": [(X, Y)],
         "rho(theta, v) (not given)": [(THETA, V)],
-        "rho(f_k, f_l), k != l (not given)": [(k, l) for k in feat for l in feat if k < l],
+        "rho(f_k, f_l), k != l (not given)": [(k, other) for k in feat for other in feat if k < other],
     }
     rows = []
     for label, pairs in groups.items():

@@ -64,7 +64,8 @@ LIGHT_REGIONS: tuple[tuple[tuple[float, ...], float, float], ...] = (
 
 
 def paper_correlations(n_pos: int = 5) -> Tensor:
-    """The process-noise correlation matrix exactly as the paper lists it at ``n_pos = 5`` (``[2·n_pos, 2·n_pos]`` float64; beyond five, the chain pattern continues).
+    """The process-noise correlation matrix exactly as the paper lists it at ``n_pos = 5``
+    (``[2·n_pos, 2·n_pos]`` float64; beyond five, the chain pattern continues).
 
     ρ(x_i, v_i) = 0.8, ρ(x_i, x_{i+1}) = 0.5, ρ(v_i, v_{i+1}) = 0.6, ρ(x1, x3) = ρ(x2, x4) = 0.4,
     ρ(v1, v2) = 0.7, ρ(v1, v3) = 0.5 (the later entries override the adjacent-velocity value).
@@ -305,7 +306,8 @@ class LightDark10D(HasParams, AdditiveGaussianTransition):
 
     def observation_score(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
         """``∇_{s'} log O(o | s')`` in closed form (the gradient autograd gives
-        :meth:`observation_log_prob`). ``o``: ``[*S, n_pos]``, ``s_next``: ``[*S, 2·n_pos]`` (broadcast) -> ``[*S, 2·n_pos]``.
+        :meth:`observation_log_prob`). ``o``: ``[*S, n_pos]``, ``s_next``: ``[*S, 2·n_pos]``
+        (broadcast) -> ``[*S, 2·n_pos]``.
 
         With ``v = σ²(x)``, errors ``e_k = ‖o - P_k x‖²`` and event weights ``w_k`` (the posterior
         ``softmax_k(log π_k - e_k/2v)`` in the dark, ``(1, 0, 0)`` in the light):

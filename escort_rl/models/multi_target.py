@@ -563,4 +563,5 @@ def describe_correlations() -> str:
     paper = paper_correlations()
     used = MultiTargetTracking20D().correlation
     names = _state_names()
-    return correlation_report("Multi-Target Tracking 20D process-noise correlations", paper, used, pair_rows(paper, used, names))
+    return correlation_report("Multi-Target Tracking 20D process-noise correlations", paper, used,
+                              pair_rows(paper, used, names))

@@ -8,5 +8,5 @@ from escort_rl.modules.escort_latent import ESCORTLatent
 from escort_rl.modules.frame_gru import FrameGRU, FrameGRUPolicy
 from escort_rl.modules.recurrent import make_recurrent_actor_critic
 
-__all__ = ["DVRL", "DVRLPolicy", "DVRLState", "DeepSetsActor", "ESCORTLatent", "FrameGRU", "FrameGRUPolicy", "make_deepsets_policy", "make_dvrl_primer", "make_recurrent_actor_critic",
-           "systematic_resample_indices"]
+__all__ = ["DVRL", "DVRLPolicy", "DVRLState", "DeepSetsActor", "ESCORTLatent", "FrameGRU", "FrameGRUPolicy",
+           "make_deepsets_policy", "make_dvrl_primer", "make_recurrent_actor_critic", "systematic_resample_indices"]

@@ -55,7 +55,8 @@ class ESCORTLatent(DVRL):
     def __init__(self, obs_shape: int | Sequence[int], n_actions: int, latent_dim: int,
                  escort: ESCORTFilter | None = None, **dvrl_kwargs) -> None:
         if dvrl_kwargs.pop("resample", False):
-            raise ValueError("resample: ESCORT-latent does not resample, as ESCORT does not; leave it out or set it False")
+            raise ValueError("resample: ESCORT-latent does not resample, as ESCORT does not; "
+                             "leave it out or set it False")
         super().__init__(obs_shape, n_actions, latent_dim, resample=False, **dvrl_kwargs)
         if escort is None:
             escort = ESCORTFilter(num_steps=5, jitter=0.0)

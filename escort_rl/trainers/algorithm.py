@@ -52,7 +52,8 @@ from escort_rl.config.params import build_params
 def trainer_params(params: type, trainer_cfg):
     """``params`` (a trainer's parameters dataclass) from a config's ``trainer`` group, checked;
     errors name ``trainer.<key>``."""
-    values = OmegaConf.to_container(trainer_cfg, resolve=True) if OmegaConf.is_config(trainer_cfg) else dict(trainer_cfg)
+    values = (OmegaConf.to_container(trainer_cfg, resolve=True) if OmegaConf.is_config(trainer_cfg)
+              else dict(trainer_cfg))
     values.pop("algorithm", None)
     return build_params(params, None, values, owner="trainer")
 

@@ -229,7 +229,8 @@ def _markdown(r: dict) -> str:
         f"the same for every policy; trained policy {'greedy' if r['greedy'] else 'sampled'}. "
         "scripted: the domain's PD controller on the belief mean of the same filter. Mean ± standard error.",
         "",
-        "| policy | final distance to goal | success rate | return | final position error | steps | ms per step (batch) |",
+        "| policy | final distance to goal | success rate | return | final position error | steps | "
+        "ms per step (batch) |",
         "| --- | --- | --- | --- | --- | --- | --- |",
         *rows,
         "",

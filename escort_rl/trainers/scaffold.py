@@ -378,7 +378,8 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
             record = {"iteration": it + 1, "frames": state["frames"], **stats,
                       "fps": stats.get("fps", float("nan")), "seconds": seconds,
                       "wall_seconds": state["seconds"]}
-            bad = [k for k, v in record.items() if isinstance(v, float) and k.startswith("loss") and not math.isfinite(v)]
+            bad = [k for k, v in record.items()
+                   if isinstance(v, float) and k.startswith("loss") and not math.isfinite(v)]
             if bad:
                 raise FloatingPointError(f"training: non-finite {', '.join(bad)} at iteration {it + 1}; lower "
                                          "trainer.lr or check the model's rewards (last checkpoint kept)")

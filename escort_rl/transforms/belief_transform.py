@@ -210,7 +210,8 @@ class BeliefTransform(Transform):
         old_x = tensordict.get(self.particles_key, None) if tensordict is not None else None
         old_w = tensordict.get(self.log_weights_key, None) if tensordict is not None else None
         particles = old_x.clone() if old_x is not None else torch.zeros(*batch, n, d, device=device)
-        log_w = old_w.clone() if old_w is not None else torch.full((*batch, n), -float(torch.log(torch.tensor(n))), device=device)
+        log_w = (old_w.clone() if old_w is not None
+                 else torch.full((*batch, n), -float(torch.log(torch.tensor(n))), device=device))
         k = int(rows.sum())
         if k:
             # the env's start state places the prior only where the model asks for it (exploring

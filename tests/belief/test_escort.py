@@ -230,7 +230,8 @@ def test_subsampled_median_is_close_to_the_full_median():
         full = sq[b][off].median() / math.log(600)
         est = median_bandwidth(sq)[b]
         assert abs(float(est / full) - 1) < 0.1
-    torch.testing.assert_close(median_bandwidth(sq, max_points=600), median_bandwidth(sq[:, :600, :600], max_points=10**6))
+    torch.testing.assert_close(median_bandwidth(sq, max_points=600),
+                               median_bandwidth(sq[:, :600, :600], max_points=10**6))
 
 
 def test_projected_w1_gradient_matches_autograd_through_the_sort():
@@ -437,7 +438,8 @@ def test_schedule_closed_form():
     assert ESCORTFilter(anneal_cycles=1, anneal_fraction=1.0).schedule(5, 10) == (0.5, 1.0)
 
 
-@pytest.mark.parametrize("kwargs, field", [({"anneal_cycles": -1}, "anneal_cycles"), ({"anneal_cycles": 1.5}, "anneal_cycles"),
+@pytest.mark.parametrize("kwargs, field", [({"anneal_cycles": -1}, "anneal_cycles"),
+                                           ({"anneal_cycles": 1.5}, "anneal_cycles"),
                                            ({"anneal_fraction": 0.0}, "anneal_fraction"),
                                            ({"bandwidth_start": 0.0}, "bandwidth_start")])
 def test_schedule_arguments_are_checked(kwargs, field):

@@ -35,7 +35,8 @@ def test_trains_each_method_evaluates_and_resumes(tmp_path, capsys):
     for m in ("sir", "escort"):
         r = rows[m]
         assert r["failed"] is None and r["policy"] == "trained" and r["trainer"] == "ppo"  # the yaml's trainer
-        assert r["train"]["iterations"] == 1 and r["train"]["frames"] == 2 * 5 and r["train"]["resumed_from_iteration"] == 0
+        assert (r["train"]["iterations"] == 1 and r["train"]["frames"] == 2 * 5
+                and r["train"]["resumed_from_iteration"] == 0)
         assert (out / "runs" / "lightdark10d" / m / "checkpoints").is_dir()
         s = r["summary"]
         assert s["episodes"] == 3 and math.isfinite(s["final_position_error"]) and s["final_position_error"] >= 0

@@ -111,6 +111,24 @@ def test_compare_finds_a_changed_number_and_ignores_timings(tmp_path, capsys):
     assert differences({"x": float("nan")}, {"x": 1.0}) == ["x: nan != 1.0"]
 
 
+def test_compare_refuses_a_folder_without_cells(tmp_path, capsys):
+    """A protocol (b) output (``closed_loop.json`` and ``runs/``, no ``cells/``) holds no cell: compare
+    says so in one line naming the folder instead of reading the report as a cell."""
+    for run in ("a", "b"):
+        (tmp_path / run / "runs" / "lightdark10d" / "sir").mkdir(parents=True)
+        (tmp_path / run / "closed_loop.json").write_text(json.dumps({"protocol": "b", "rows": [{"method": "sir"}]}))
+        (tmp_path / run / "runs" / "lightdark10d" / "sir" / "train.json").write_text(json.dumps({"iterations": 1}))
+    assert main(["bench", "compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(tmp_path / "a") in err and "holds no benchmark cells" in err
+    with pytest.raises(ValueError, match="^A: .* holds no benchmark cells"):
+        compare_runs(tmp_path / "a", tmp_path / "b")
+    cell = {"spec": {"method": "sir"}, "result": {"errors": [1.0], "timing": {"seconds": 1.0}}}
+    for run in ("a", "b"):  # a cell beside the reports is compared; the reports are left out
+        (tmp_path / run / "sir-0123456789.json").write_text(json.dumps(cell))
+    assert compare_runs(tmp_path / "a", tmp_path / "b") == (1, [])
+
+
 @pytest.mark.parametrize("flags, named", [
     (["--backend", "ray", "--workers", "2"], "--workers"),
     (["--backend", "inprocess", "--workers", "2"], "--workers"),
@@ -135,7 +153,8 @@ def test_ray_missing_is_one_line(monkeypatch):
 
     monkeypatch.setattr(builtins, "__import__", no_ray)
     cell = dom.FilterCell(domain="lightdark10d", method="sir", particles=5, steps=1, seeds=(0,))
-    with pytest.raises(ValueError, match=r"--backend ray: ray is not installed; install with pip install escort-rl\[ray\]"):
+    with pytest.raises(ValueError,
+                       match=r"--backend ray: ray is not installed; install with pip install escort-rl\[ray\]"):
         run_cells([cell], make_backend("ray"))
 
 

@@ -155,7 +155,7 @@ def test_passes_reward_termination_and_info_through():
     """The belief's randomness is separate from the env's: the inner trajectory equals the plain
     env's for the same seed and actions."""
     wrapped, plain = make(), gym.make(LIGHTDARK)
-    (_, info_w), (obs_p, info_p) = wrapped.reset(seed=11), plain.reset(seed=11)
+    (_, info_w), (_, info_p) = wrapped.reset(seed=11), plain.reset(seed=11)
     np.testing.assert_array_equal(info_w["true_state"], info_p["true_state"])
     for a in [0, 2, 5, 9, 4]:
         _, r_w, term_w, trunc_w, info_w = wrapped.step(a)

@@ -147,7 +147,8 @@ def test_wasserstein_1d_equals_scipy(n, m, seed):
 def test_wasserstein_1d_with_ties_equals_scipy():
     x = torch.tensor([0.0, 0.0, 1.0, 1.0, 1.0, 3.0], dtype=F64)
     y = torch.tensor([1.0, 1.0, 2.0, 0.0], dtype=F64)
-    assert float(wasserstein_1d(x, y)) == pytest.approx(scipy.stats.wasserstein_distance(x.numpy(), y.numpy()), abs=1e-12)
+    assert float(wasserstein_1d(x, y)) == pytest.approx(scipy.stats.wasserstein_distance(x.numpy(), y.numpy()),
+                                                        abs=1e-12)
 
 
 def test_wasserstein_1d_equal_sizes_is_mean_abs_sorted_difference():
@@ -433,7 +434,8 @@ def test_weighted_wasserstein_1d_uniform_is_the_unweighted_one():
 
 def test_weighted_sliced_wasserstein_uniform_is_sliced_wasserstein_per_batch():
     g = torch.Generator().manual_seed(4)
-    x, y = torch.randn(3, 20, 4, generator=g, dtype=torch.float64), torch.randn(3, 30, 4, generator=g, dtype=torch.float64)
+    x = torch.randn(3, 20, 4, generator=g, dtype=torch.float64)
+    y = torch.randn(3, 30, 4, generator=g, dtype=torch.float64)
     theta = sphere_directions(10, 4)
     got = weighted_sliced_wasserstein(x, y, theta)
     want = torch.stack([sliced_wasserstein(x[i], y[i], projections=theta) for i in range(3)])
@@ -454,7 +456,8 @@ def test_integer_weights_are_repeated_samples():
 
 def test_weighted_mmd_takes_one_bandwidth_per_batch_element():
     g = torch.Generator().manual_seed(6)
-    x, y = torch.randn(2, 8, 3, generator=g, dtype=torch.float64), torch.randn(2, 5, 3, generator=g, dtype=torch.float64)
+    x = torch.randn(2, 8, 3, generator=g, dtype=torch.float64)
+    y = torch.randn(2, 5, 3, generator=g, dtype=torch.float64)
     gamma = torch.tensor([0.5, 2.0], dtype=torch.float64)
     got = weighted_mmd_squared(x, y, gamma)
     want = torch.stack([mmd_squared(x[i], y[i], gamma=float(gamma[i])) for i in range(2)])

@@ -523,8 +523,8 @@ def test_kalman_step_matches_bayes_in_information_form():
     )
     B = 4
     mean = torch.randn(B, d, generator=g, dtype=torch.float64)
-    l = torch.randn(B, d, d, generator=g, dtype=torch.float64)
-    cov = l @ l.transpose(-1, -2) + 0.1 * torch.eye(d, dtype=torch.float64)
+    factor = torch.randn(B, d, d, generator=g, dtype=torch.float64)
+    cov = factor @ factor.transpose(-1, -2) + 0.1 * torch.eye(d, dtype=torch.float64)
     a = torch.randint(0, model.n_actions, (B,), generator=g)
     o = torch.randn(B, m_dim, generator=g, dtype=torch.float64)
     m_post, p_post = model.kalman_step(mean, cov, a, o)
@@ -533,7 +533,8 @@ def test_kalman_step_matches_bayes_in_information_form():
     p_pred = F @ cov @ F.T + Q
     info = torch.linalg.inv(p_pred) + H.T @ torch.linalg.inv(R) @ H
     p_ref = torch.linalg.inv(info)
-    m_ref = (p_ref @ (torch.linalg.solve(p_pred, m_pred.unsqueeze(-1)) + (H.T @ torch.linalg.inv(R) @ o.unsqueeze(-1)))).squeeze(-1)
+    m_ref = (p_ref @ (torch.linalg.solve(p_pred, m_pred.unsqueeze(-1))
+                      + (H.T @ torch.linalg.inv(R) @ o.unsqueeze(-1)))).squeeze(-1)
     torch.testing.assert_close(p_post, p_ref, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(m_post, m_ref, rtol=1e-5, atol=1e-5)
 

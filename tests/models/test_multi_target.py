@@ -287,7 +287,8 @@ def _slot_integral(model, state, action, slot, h=0.05, lo=-1.0, hi=11.0, regions
     return torch.stack([dens[(torch.linalg.vector_norm(pts - c, dim=-1) < r)].sum() for c, r in regions])
 
 
-@pytest.mark.parametrize("state, action, slot", [(CONFUSION_STATE, 2, 3), (BOUNDARY_STATE, 0, 0), (BOUNDARY_STATE, 0, 1)])
+@pytest.mark.parametrize("state, action, slot",
+                         [(CONFUSION_STATE, 2, 3), (BOUNDARY_STATE, 0, 0), (BOUNDARY_STATE, 0, 1)])
 def test_observation_log_prob_normalises(model, state, action, slot):
     """Slots are independent, so Σ_m ∫ p(m, o_slot) = 1 reads f(0)·(1 + ∫ f(1, xy)/f(0)) = 1, with
     f(0) = 1 - P(detected)."""

@@ -95,7 +95,8 @@ def _params(run) -> dict:
     cfg = OmegaConf.create(load_checkpoint(run)["config"])
     actor, (critic, _) = build_actor(cfg, 10, 10), build_critic(cfg, LightDark10D())
     load_checkpoint(run, actor=actor, critic=critic)
-    return {**{f"a.{k}": v for k, v in actor.state_dict().items()}, **{f"c.{k}": v for k, v in critic.state_dict().items()}}
+    return {**{f"a.{k}": v for k, v in actor.state_dict().items()},
+            **{f"c.{k}": v for k, v in critic.state_dict().items()}}
 
 
 def test_ppo_resume_is_exact(tmp_path):
@@ -188,7 +189,8 @@ def test_recurrent_ppo_refuses_an_action_repeat_and_particle_subsampling(tmp_pat
     with pytest.raises(ConfigError, match="^trainer.action_repeat: trainer=recurrent_ppo"):
         train(compose(["trainer=recurrent_ppo", "trainer.action_repeat=2", f"output_dir={tmp_path}"]), progress=False)
     with pytest.raises(ConfigError, match="^trainer.update_particles: trainer=recurrent_ppo"):
-        train(compose(["trainer=recurrent_ppo", "trainer.update_particles=8", f"output_dir={tmp_path}"]), progress=False)
+        train(compose(["trainer=recurrent_ppo", "trainer.update_particles=8", f"output_dir={tmp_path}"]),
+              progress=False)
 
 
 def test_update_particles_trains_on_a_subset_with_the_old_log_prob_recomputed_on_it(tmp_path):

@@ -373,7 +373,8 @@ def test_env_set_seed_twice_reproduces_a_transform_with_its_own_seed():
     c = env.rollout(6, cyclic_policy(), break_when_any_done=False)
     ref = make_belief_env(0, 5)
     ref.base_env.set_seed(3)
-    assert torch.equal(c["next", "particles"], ref.rollout(6, cyclic_policy(), break_when_any_done=False)["next", "particles"])
+    assert torch.equal(c["next", "particles"],
+                       ref.rollout(6, cyclic_policy(), break_when_any_done=False)["next", "particles"])
     assert not torch.equal(c["next", "particles"], a["next", "particles"])
 
 

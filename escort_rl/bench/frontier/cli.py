@@ -51,8 +51,8 @@ def add_method_options(p) -> None:
                        help=f"N of {m} (default: {' '.join(map(str, DEFAULT_PARTICLES[m]))})")
     p.add_argument("--num-steps", type=int, nargs="+", default=None, metavar="K",
                    help=f"K of SVGD and ESCORT (default: {' '.join(map(str, DEFAULT_ITERATIONS))})")
-    options.add_labelled_option(p, "--variant", "one more row, a filter with its own settings swept over its method's N "
-                        "(and K); the overrides are filter=METHOD and filter.KEY=VALUE",
+    options.add_labelled_option(p, "--variant", "one more row, a filter with its own settings swept over its "
+                        "method's N (and K); the overrides are filter=METHOD and filter.KEY=VALUE",
                         "escort_stop filter=escort filter.stop_tolerance=0.05")
 
 

@@ -173,7 +173,8 @@ def register(subparsers) -> None:
     p.add_argument("--steps", type=int, default=None,
                    help=f"steps per episode (default: 20; --quick: {QUICK['steps']})")
     options.add_quick_option(p, f"{QUICK['episodes']} episodes of {QUICK['steps']} steps")
-    options.add_output_option(p, "outputs/bench/frontier_decisions", "frontier_decisions.md and frontier_decisions.json")
+    options.add_output_option(p, "outputs/bench/frontier_decisions",
+                              "frontier_decisions.md and frontier_decisions.json")
     options.add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
 

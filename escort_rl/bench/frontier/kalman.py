@@ -69,14 +69,16 @@ def kalman_markdown(r: dict) -> str:
     flags = "".join(f" --{k.replace('_', '-')} {v:g}" for k, v in r.get("enkf", {}).items())
     lines = [f"# EnKF against the Kalman posterior (D = {r['dim']}, N = {r['particles']})", "",
              f"`escort-rl bench enkf-kalman --dim {r['dim']} --particles {r['particles']} --episodes {r['episodes']} "
-             f"--steps {r['steps']}{flags}`; model `env=linear_gaussian {' '.join('env.' + a for a in r['model_args'])}`. "
+             f"--steps {r['steps']}{flags}`; model "
+             f"`env=linear_gaussian {' '.join('env.' + a for a in r['model_args'])}`. "
              f"Bias z-scores per coordinate (mean) and per entry i ≤ j (covariance) over {r['episodes']} independent "
              f"episodes, each time-averaged over {r['steps']} steps.", "",
              "| quantity | entries | max abs z | share of abs z > 3 (unbiased: 0.0027) | mean z² (unbiased: 1 ± "
              f"{math.sqrt(2 / n_entries):.2f}) |", "| --- | --- | --- | --- | --- |"]
     for name in ("mean", "covariance"):
         q = r[name]
-        lines.append(f"| {name} | {q['entries']} | {q['max_abs_z']:.2f} | {q['share_above_3']:.4f} | {q['mean_z2']:.2f} |")
+        lines.append(f"| {name} | {q['entries']} | {q['max_abs_z']:.2f} | {q['share_above_3']:.4f} | "
+                     f"{q['mean_z2']:.2f} |")
     lines += ["", f"Mean error against N exact posterior draws: E[(m̂ − m)²] / (P_ii / N) = "
               f"{r['mean']['error_over_iid_floor']:.2f} (1 for an i.i.d. posterior sample). Total variance "
               f"tr(Ĉ)/tr(P) = {r['covariance']['trace_ratio']:.3f}."]

@@ -4,7 +4,8 @@ sharpness of a model family; by default the linear-Gaussian family, whose exact 
 Each point ``(D, r)`` is a whole frontier (:func:`~escort_rl.bench.frontier.run.run_frontier`) of
 ``env=<env> env.<dim_key>=D env.<sharpness_key>=r`` in its own folder, so a killed map resumes cell
 by cell. Another family is another env and its two keys, e.g. Light-Dark in more dimensions:
-``--env lightdark10d --dim-key model.n_pos --sharpness-key model.sigma_base``. The map says, per point, which filters are on the Pareto front and which filter
+``--env lightdark10d --dim-key model.n_pos --sharpness-key model.sigma_base``. The map says, per point,
+which filters are on the Pareto front and which filter
 is closest at each time budget; if ESCORT is on no front, it says so.
 """
 
@@ -45,8 +46,9 @@ def run_regime_map(dims, obs_stds, root: Path, progress=None, make_backend=None,
                                                        if label(r) in result["front"]}),
                            "filters_on_fronts": {m: sorted({r.get("base", r["method"]) for r in result["rows"]
                                                             if label(r) in f}) for m, f in result["fronts"].items()}})
-    return {"env": env, "model": model, "dim_key": dim_key, "sharpness_key": sharpness_key, "dims": [int(d) for d in dims],
-            "obs_stds": [float(r) for r in obs_stds], "points": points, "budgets_ms": list(BUDGETS_MS)}
+    return {"env": env, "model": model, "dim_key": dim_key, "sharpness_key": sharpness_key,
+            "dims": [int(d) for d in dims], "obs_stds": [float(r) for r in obs_stds], "points": points,
+            "budgets_ms": list(BUDGETS_MS)}
 
 
 def regime_markdown(result: dict) -> str:
@@ -64,7 +66,8 @@ def regime_markdown(result: dict) -> str:
              f"{points[0]['metric'] if points else ''} to the reference posterior ({', '.join(kinds)}; each "
              "point's `frontier.md` says more) against ms per update, and the closest filter at 1, 10 and "
              f"100 ms per update. One frontier per point (`{command}`).", ""]
-    lines.append(f"**ESCORT (or a variant of it) is on the {METRIC_NAMES.get(points[0]['metric'], '') if points else ''} "
+    lines.append("**ESCORT (or a variant of it) is on the "
+                 f"{METRIC_NAMES.get(points[0]['metric'], '') if points else ''} "
                  "front at: " + (", ".join(f"D = {p['dim']}, r = {p['obs_std']:g}"
                                                         for p in escort_on) if escort_on else "no point of this map")
                  + ".**")
@@ -81,7 +84,8 @@ def regime_markdown(result: dict) -> str:
     for p in points:
         best = {b["ms"]: b["best"] or "—" for b in p["budgets"]}
         ess = p.get("reference_ess")
-        lines.append(f"| {p['dim']} | {p['obs_std']:g} | {p.get('state_dim', p['dim'])} | {', '.join(p['methods_on_front'])} "
+        lines.append(f"| {p['dim']} | {p['obs_std']:g} | {p.get('state_dim', p['dim'])} | "
+                     f"{', '.join(p['methods_on_front'])} "
                      f"| {best.get(1.0, '—')} | {best.get(10.0, '—')} | {best.get(100.0, '—')} |"
                      + "".join(f" {', '.join(p['filters_on_fronts'][m])} |" for m in others)
                      + (f" {ess['median']:.0f} |" if with_ess and ess else (" — |" if with_ess else "")))
@@ -124,8 +128,8 @@ def register(subparsers) -> None:
                    help="N of the SIR reference where the family has no exact posterior (default: 100000; --quick: "
                    f"{quick['reference_particles']})")
     options.add_quick_option(p, "dimensions 2 4, obs_std 1.0, and bench frontier's --quick points at each")
-    options.add_output_option(p, "outputs/bench/regime_map", "regime_map.md, regime_map.json, regime_map.png and a folder "
-                      "per point")
+    options.add_output_option(p, "outputs/bench/regime_map", "regime_map.md, regime_map.json, regime_map.png and a "
+                      "folder per point")
     options.add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
 

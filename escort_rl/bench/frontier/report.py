@@ -77,7 +77,8 @@ def frontier_markdown(result: dict) -> str:
               "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in sorted(result["rows"], key=lambda r: (r["method"], r["particles"], r["num_steps"])):
         if r.get("failed"):
-            lines.append(f"| {label(r)} | {r['ms_per_update']:.3g} | diverged at step {r['failed']['step']} | | | | | |")
+            lines.append(f"| {label(r)} | {r['ms_per_update']:.3g} | diverged at step {r['failed']['step']} "
+                         "| | | | | |")
             continue
         s = r["summary"]
         lines.append(f"| {label(r)} | {r['ms_per_update']:.3g} | " + " | ".join(

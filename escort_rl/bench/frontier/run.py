@@ -50,8 +50,8 @@ def frontier_cells(model: str, model_args: tuple, methods, particles: dict, iter
 def reference_ess_summary(path: Path, digest: str, particles: int) -> dict:
     """How far a SIR reference can be trusted: the effective sample size of its weights at each
     update (before resampling; the mean over a chunk of seeds), as ``min`` and ``median`` over the
-    updates, and ``fraction`` (the median over ``N``). A reference whose ESS is a handful of particles is a few points, not a
-    posterior."""
+    updates, and ``fraction`` (the median over ``N``). A reference whose ESS is a handful of particles is a
+    few points, not a posterior."""
     frac = Reference.load(path, digest).data["ess_fraction_before_resampling"].double()
     return {"min": float(frac.min()) * particles, "median": float(frac.median()) * particles,
             "fraction": float(frac.median())}
@@ -88,7 +88,8 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
                  output: Path | None = None, progress=None, base_seed: int = 0, variants: dict | None = None) -> dict:
     """Every filter over its costs on ``model``; each row's distances to the reference (mean ± s.e. over
     seeds, time-averaged over the steps), its ms per update, and the Pareto front on ``metric`` of the
-    model's first state part against time (``fronts``: the front on each of :data:`METRICS`). ``output``: where the cells (and the SIR reference) are kept.
+    model's first state part against time (``fronts``: the front on each of :data:`METRICS`).
+    ``output``: where the cells (and the SIR reference) are kept.
     ``variants``: ``name -> (method, ("key=value", ...))``, more rows (:func:`~.cells.parse_variant`).
     """
     check_choices("--methods", methods, FILTER_METHODS)
@@ -141,7 +142,8 @@ def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, par
     return {"model": model, "model_args": list(model_args), "model_name": type(built).__name__,
             "state_dim": built.state_dim, "obs_dim": built.obs_dim, "reference": reference_kind, "part": part,
             "reference_ess": reference_ess,
-            "variants": {k: [m, list(a)] for k, (m, a) in variants.items()}, "metric": metric, "seeds": seeds, "steps": steps, "compile": compile, "threads": threads,
+            "variants": {k: [m, list(a)] for k, (m, a) in variants.items()}, "metric": metric, "seeds": seeds,
+            "steps": steps, "compile": compile, "threads": threads,
             "rows": rows, "front": [p[0] for p in front], "fronts": fronts,
             "budgets": [{"ms": b, "best": None if p is None else p[0], "error": None if p is None else p[2]}
                         for b, p in zip(BUDGETS_MS, best)]}

@@ -71,7 +71,8 @@ def scaled(initial: GaussianMixture, scale: float) -> GaussianMixture:
                            name=f"{initial.name}*{scale}")
 
 
-def start_distribution(target: GaussianMixture, cloud: GaussianMixture, init: str, scale: float = 1.0) -> GaussianMixture:
+def start_distribution(target: GaussianMixture, cloud: GaussianMixture, init: str,
+                       scale: float = 1.0) -> GaussianMixture:
     """The distribution ``q`` the starting particles are drawn from: the broad ``cloud`` (``init`` is
     ``cloud`` or ``resampled``) or, for ``overlap``, the target's components at its weights with
     their spread times :data:`OVERLAP_SPREAD`; either spread times ``scale``."""

@@ -40,7 +40,8 @@ def register(subparsers) -> None:
                                "filter.corr_form=position filter.compile=true (a row's own setting wins: NoCorr keeps "
                                "lambda_corr=0, SVGD both lambdas 0)")
         p.add_argument("--methods", nargs="+", default=None,
-                       help=f"rows (default: {' '.join(methods)}; with --protocol tracking: {' '.join(TRACKING_METHODS)})")
+                       help=f"rows (default: {' '.join(methods)}; with --protocol tracking: "
+                       f"{' '.join(TRACKING_METHODS)})")
         p.add_argument("--protocol", choices=PROTOCOLS, default="static",
                        help="static: fit the fixed target from --init; tracking: follow a random walk "
                        "observed through noise shaped as the target")

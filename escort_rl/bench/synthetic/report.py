@@ -46,7 +46,8 @@ def _settings(result: dict) -> str:
     kw = dict(result.get("filter_kwargs") or {})
     if result.get("init_scale", 1.0) != 1.0:
         kw["init_scale"] = result["init_scale"]
-    return (" Settings changed from the defaults: " + ", ".join(f"`{k}={v}`" for k, v in kw.items()) + ".") if kw else ""
+    return ((" Settings changed from the defaults: " + ", ".join(f"`{k}={v}`" for k, v in kw.items()) + ".")
+            if kw else "")
 
 
 def protocol_line(result: dict) -> str:
@@ -76,9 +77,11 @@ def synthetic_markdown(result: dict) -> str:
         for r in result["rows"]:
             s = r["summary"]
             lines.append(f"| {r['target']} | {r['method']} | {format_mean_se(s['rmse'])} | "
-                         f"{format_mean_se(s['final_error'])} | {format_importance(r.get('importance'))} | {r['seconds']:.1f} |")
+                         f"{format_mean_se(s['final_error'])} | {format_importance(r.get('importance'))} | "
+                         f"{r['seconds']:.1f} |")
         return "\n".join(lines) + "\n"
-    lines[2] += (" Metrics against N fresh exact samples: MMD² (biased V-statistic, RBF γ = 0.5, the square), W1 (1-D), "
+    lines[2] += (" Metrics against N fresh exact samples: MMD² (biased V-statistic, RBF γ = 0.5, the square), "
+                 "W1 (1-D), "
                  "sliced W1 (100 fixed directions), mode coverage (more than 0.05/K of the particles inside the "
                  "component's 99% Mahalanobis ellipsoid; the paper's τ = 1 ball in the next column), correlation "
                  "error ‖C_true − C_hat‖_F and RMSE = ‖mean − μ‖₂ (the paper's units).")
@@ -193,5 +196,6 @@ def rmse_against_paper(result: dict) -> str:
                 verdict = "NoCorr better: the opposite of the paper"
         else:
             gap, verdict = "—", "—"
-        lines.append(f"| {d} | {pe} ± {pes} / {ours_e} | {pn} ± {pns} / {ours_n} | {pn - pe:+.2f} | {gap} | {verdict} |")
+        lines.append(f"| {d} | {pe} ± {pes} / {ours_e} | {pn} ± {pns} / {ours_n} | {pn - pe:+.2f} | {gap} | "
+                     f"{verdict} |")
     return "\n".join(lines) + "\n"

@@ -29,7 +29,8 @@ def _run_grid(rows: list[dict], cells: dict, backend, cells_dir, progress) -> li
     def on_group(i, parts):
         per_seed = {k: [v for p in parts for v in p["per_seed"][k]] for k in parts[0]["per_seed"]}
         rows[i].update(seconds=sum(p["timing"]["seconds"] for p in parts), per_seed=per_seed,
-                       summary={k: mean_se(v) for k, v in per_seed.items()}, importance=merge_importance([p.get("importance") for p in parts]))
+                       summary={k: mean_se(v) for k, v in per_seed.items()},
+                       importance=merge_importance([p.get("importance") for p in parts]))
         shown = [p["seed0_particles"] for p in parts if "seed0_particles" in p]
         if shown:
             rows[i]["_shown"] = torch.tensor(shown[0])
