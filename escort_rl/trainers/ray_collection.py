@@ -28,7 +28,7 @@ def ray_init_kwargs(address: str | None = None) -> dict:
     local Ray): quiet (the workers' output is not forwarded), no dashboard for a local Ray.
 
     A new local Ray is asked for as ``address="local"``: Ray's own default would join whatever
-    cluster ``/tmp/ray/ray_current_cluster`` last named, which may be gone or another user's.
+    cluster Ray last recorded on this machine, which may be gone or another user's.
 
     Example::
 
