@@ -76,6 +76,28 @@ def test_synthetic_bandwidth_scale_reaches_the_filters(tmp_path):
     assert "`bandwidth_scale=0.1`" in (tmp_path / "b" / "synthetic.md").read_text()
 
 
+def test_synthetic_specs_hold_the_defaults_and_name_a_bad_option():
+    from escort_rl.bench.synthetic import ScalingSpec, SyntheticSpec
+    from escort_rl.bench.synthetic.cli import spec_from_args
+    from escort_rl.cli import _parser
+
+    full, quick = SyntheticSpec(), SyntheticSpec.quick()
+    assert (full.seeds, full.particles, full.num_steps, full.steps, full.init) == (30, 1000, 500, 10, "cloud")
+    assert full.methods == ("escort", "escort_nocorr", "svgd", "sir", "dvrl", "oracle")
+    assert (quick.targets, quick.seeds, quick.particles, quick.num_steps, quick.steps) == (
+        ("gmm1d", "gmm2d", "gmm3d"), 2, 100, 30, 3)
+    assert SyntheticSpec(protocol="tracking").num_steps == 50
+    scaling = ScalingSpec.quick()
+    assert (ScalingSpec().seeds, scaling.dims, scaling.structures, scaling.seeds) == (5, (1, 5), ("block",), 2)
+    args = _parser().parse_args(["bench", "scaling", "--quick", "--dims", "3", "--steps", "7", "filter.num_steps=4"])
+    spec = spec_from_args(args)  # explicit flags win over --quick
+    assert spec.dims == (3,) and spec.steps == 7 and spec.seeds == 2 and spec.filter_arguments() == {"num_steps": 4}
+    with pytest.raises(ValueError, match="--init: expected one of"):
+        SyntheticSpec(init="prior")
+    with pytest.raises(ValueError, match="--seeds: must be a positive int"):
+        ScalingSpec(seeds=0)
+
+
 @pytest.mark.parametrize("argv, name", [
     (["evaluate", "--checkpoint", "unused", "--episodes", "0"], "--episodes"),
     (["evaluate", "--checkpoint", "unused", "--episodes", "-3"], "--episodes"),

@@ -150,7 +150,8 @@ def test_bench_regime_map_runs_a_frontier_per_point(tmp_path):
 def test_frontier_decisions_pairs_the_episodes_and_names_bad_rows(tmp_path, capsys):
     """The greedy regulator on a controlled tracking model: rows meet the same starts and noise, so a
     row run twice gives the same returns, and the exact posterior's row runs beside the filters."""
-    from escort_rl.bench.frontier.decisions import greedy_action, parse_row, run_decisions
+    from escort_rl.bench.frontier.decisions import greedy_action, run_decisions
+    from escort_rl.bench.frontier.spec import DecisionsSpec, parse_row
     from escort_rl.bench.synthetic.tracking import gmm_tracking
 
     model = gmm_tracking(dim=2, control=1.0)
@@ -163,7 +164,8 @@ def test_frontier_decisions_pairs_the_episodes_and_names_bad_rows(tmp_path, caps
             parse_row(bad)
     spec = "class:escort_rl.bench.synthetic.tracking:gmm_tracking"
     args = ("dim=2", "control=1.0")
-    r = run_decisions(spec, args, [("sir", 200, 0), ("exact", 0, 0), ("sir", 200, 0)], episodes=6, steps=4)
+    r = run_decisions(DecisionsSpec(model=spec, model_args=args, rows=[("sir", 200, 0), ("exact", 0, 0),
+                                                                       ("sir", 200, 0)], episodes=6, steps=4))
     first, exact, again = r["rows"]
     assert first["return"] == again["return"] and first["difference"][0] == 0.0
     assert exact["row"] == "exact posterior" and exact["mean_error"][0] > 0
@@ -186,3 +188,33 @@ def test_escort_against_svgd_is_paired_by_seed():
     # differences -0.5, -0.5, -0.25: mean -0.4167, s.e. 0.0833 (the seeds' spread cancels in the pairing)
     assert lines[-1].startswith("| 10 | 5 | -0.4167 ± 0.0833")
     assert paired_lines({"part": "s", "rows": [row("sir", [1.0])]}) == []
+
+
+def test_frontier_specs_hold_the_defaults_and_name_a_bad_option():
+    from escort_rl.bench.frontier import DecisionsSpec, FrontierSpec, RegimeSpec
+    from escort_rl.bench.frontier.cli import spec_from_args
+    from escort_rl.cli import _parser
+
+    full, quick = FrontierSpec(), FrontierSpec.quick()
+    assert (full.seeds, full.steps, full.reference_particles, full.iterations) == (5, 20, 100_000, (5, 15, 50))
+    assert (quick.seeds, quick.steps, quick.reference_particles, quick.iterations) == (2, 5, 2000, (5, 15))
+    assert quick.particles["sir"] == (100, 1000, 10_000) and full.particles["escort"] == (30, 100, 300, 1000)
+    args = _parser().parse_args(["bench", "frontier", "--quick", "--seeds", "5", "--sir-particles", "7"])
+    spec = spec_from_args(args)  # explicit flags win over --quick
+    assert spec.seeds == 5 and spec.steps == 5
+    assert spec.particles["sir"] == (7,) and spec.particles["svgd"] == (50, 200)
+    with pytest.raises(ValueError, match="--sir-particles: must be >= 1"):
+        FrontierSpec(particles={"sir": (0,)})
+    regime = RegimeSpec.quick()
+    assert regime.dims == (2, 4) and regime.obs_stds == (1.0,) and regime.frontier == quick
+    point = RegimeSpec(output="out").point(10, 0.1)
+    assert point.model == "env:linear_gaussian" and point.model_args == ("model.state_dim=10", "model.obs_std=0.1")
+    assert point.output.name == "D10_obs0.1" and point.seeds == full.seeds
+    with pytest.raises(ValueError, match="--dims: must be a positive int"):
+        RegimeSpec(dims=[0])
+    rows = ["sir:10", "escort:20:3"]
+    assert DecisionsSpec(model="class:m:M", rows=rows).rows == (("sir", 10, 0), ("escort", 20, 3))
+    assert DecisionsSpec.quick(model="class:m:M", rows=rows).steps == 5
+    assert DecisionsSpec(model="class:m:M", rows=rows).steps == 20
+    with pytest.raises(ValueError, match="--rows"):
+        DecisionsSpec(model="class:m:M", rows=["escort:20"])

@@ -161,15 +161,15 @@ def test_ray_missing_is_one_line(monkeypatch):
 def test_synthetic_cells_are_saved_and_a_rerun_reuses_them(tmp_path, monkeypatch):
     from escort_rl.bench import synthetic as syn
 
-    kw = dict(targets=["gmm1d"], methods=["oracle", "sir"], seeds=3, n=20, num_steps=2, seeds_per_cell=2,
-              cells_dir=tmp_path)
-    first = syn.run_synthetic(**kw)
-    assert len(list(tmp_path.rglob("*.json"))) == 2 * 2  # methods x seed blocks
+    spec = syn.SyntheticSpec(targets=["gmm1d"], methods=["oracle", "sir"], seeds=3, particles=20, num_steps=2,
+                             seeds_per_cell=2, output=tmp_path)
+    first = syn.run_synthetic(spec)
+    assert len(list((tmp_path / "cells").rglob("*.json"))) == 2 * 2  # methods x seed blocks
     assert [len(r["per_seed"]["mmd2"]) for r in first["rows"]] == [3, 3]
 
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished cell ran again")
 
     monkeypatch.setattr(syn, "fit_particles", must_not_run)
-    again = syn.run_synthetic(**kw)
+    again = syn.run_synthetic(spec)
     assert differences([r["per_seed"] for r in again["rows"]], [r["per_seed"] for r in first["rows"]]) == []

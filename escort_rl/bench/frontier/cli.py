@@ -7,15 +7,26 @@ from pathlib import Path
 
 from escort_rl.bench.core import options
 from escort_rl.bench.frontier.cells import FILTER_METHODS, parse_variant
-from escort_rl.bench.frontier.run import DEFAULT_ITERATIONS, DEFAULT_PARTICLES, METRICS, run_frontier
+from escort_rl.bench.frontier.spec import DEFAULT_OUTPUT, METRICS, FrontierSpec
 
-QUICK = {"particles": {"sir": (100, 1000, 10_000), "enkf": (100, 1000, 10_000), "svgd": (50, 200),
-                       "escort": (50, 200)},
-         "iterations": (5, 15), "seeds": 2, "steps": 5, "reference_particles": 2000}
-"""``--quick``: a few points per filter, 2 seeds × 5 steps (a few minutes on two cores)."""
+FLAGS = ("seeds", "steps", "reference_particles", "threads")
+"""The options that set the spec's field of the same name when given (else ``--quick``'s or the default)."""
+
+
+def _numbers(values) -> str:
+    return " ".join(map(str, values))
+
+
+def quick_help() -> str:
+    """What ``bench frontier --quick`` runs (a few minutes on two cores)."""
+    q = FrontierSpec.quick()
+    return (f"N of SIR/EnKF {_numbers(q.particles['sir'])}, of SVGD/ESCORT {_numbers(q.particles['svgd'])}, K "
+            f"{_numbers(q.iterations)}, {q.seeds} seeds, {q.steps} steps, a {q.reference_particles}-particle "
+            "reference")
 
 
 def register(subparsers) -> None:
+    full = FrontierSpec()
     p = subparsers.add_parser(
         "frontier", help="accuracy against time per update of SIR, EnKF, SVGD and ESCORT on any model",
         description="Sweep each filter over its cost knobs (SIR and EnKF over N, SVGD and ESCORT over N x K) on a "
@@ -30,14 +41,14 @@ def register(subparsers) -> None:
     p.add_argument("--model", default=None, metavar="pkg.module:Class", help="a model class of your own")
     p.add_argument("--model-arg", nargs="+", default=[], metavar="KEY=VALUE", help="keyword arguments of --model")
     add_method_options(p)
-    options.add_seeds_option(p, 5, "shared trajectories")
-    p.add_argument("--steps", type=int, default=20, help="updates per trajectory")
-    p.add_argument("--metric", choices=METRICS, default="w1", help="the front's distance (w1: sliced W1)")
-    p.add_argument("--reference-particles", type=int, default=100_000, metavar="N",
-                   help="N of the SIR reference for a model without an exact posterior")
-    options.add_quick_option(p, "N of SIR/EnKF 100 1000 10000, of SVGD/ESCORT 50 200, K 5 15, 2 seeds, 5 steps, a "
-                     "2000-particle reference")
-    options.add_output_option(p, "outputs/bench/frontier", "frontier.json, frontier.md, frontier.png and cells/")
+    options.add_seeds_option(p, None, "shared trajectories", str(full.seeds))
+    p.add_argument("--steps", type=int, default=None, help=f"updates per trajectory (default: {full.steps})")
+    p.add_argument("--metric", choices=METRICS, default=full.metric, help="the front's distance (w1: sliced W1)")
+    p.add_argument("--reference-particles", type=int, default=None, metavar="N",
+                   help="N of the SIR reference for a model without an exact posterior (default: "
+                   f"{full.reference_particles})")
+    options.add_quick_option(p, quick_help())
+    options.add_output_option(p, DEFAULT_OUTPUT, "frontier.json, frontier.md, frontier.png and cells/")
     options.add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
 
@@ -45,21 +56,33 @@ def register(subparsers) -> None:
 def add_method_options(p) -> None:
     """``--methods``, ``--<method>-particles``, ``--num-steps`` and ``--variant``, shared with
     ``bench regime-map``."""
-    p.add_argument("--methods", nargs="+", default=list(FILTER_METHODS), help="the filters swept")
+    full = FrontierSpec()
+    p.add_argument("--methods", nargs="+", default=list(full.methods), help="the filters swept")
     for m in FILTER_METHODS:
         p.add_argument(f"--{m}-particles", type=int, nargs="+", default=None, metavar="N",
-                       help=f"N of {m} (default: {' '.join(map(str, DEFAULT_PARTICLES[m]))})")
+                       help=f"N of {m} (default: {_numbers(full.particles[m])})")
     p.add_argument("--num-steps", type=int, nargs="+", default=None, metavar="K",
-                   help=f"K of SVGD and ESCORT (default: {' '.join(map(str, DEFAULT_ITERATIONS))})")
-    options.add_labelled_option(p, "--variant", "one more row, a filter with its own settings swept over its "
-                        "method's N (and K); the overrides are filter=METHOD and filter.KEY=VALUE",
-                        "escort_stop filter=escort filter.stop_tolerance=0.05")
+                   help=f"K of SVGD and ESCORT (default: {_numbers(full.iterations)})")
+    options.add_labelled_option(p, "--variant", "one more row, a filter with its own settings swept over its method's "
+                                "N (and K); the overrides are filter=METHOD and filter.KEY=VALUE",
+                                "escort_stop filter=escort filter.stop_tolerance=0.05")
 
 
-def frontier_variants(items) -> dict:
-    """``--variant`` as ``name -> (method, ("KEY=VALUE", ...))``, names unique."""
+def frontier_variants(items) -> tuple:
+    """``--variant`` as ``((name, method, ("KEY=VALUE", ...)), ...)``, names unique."""
     options.labelled(items, "--variant")
-    return {name: (method, settings) for name, method, settings in map(parse_variant, items)}
+    return tuple(map(parse_variant, items))
+
+
+def method_settings(args) -> dict:
+    """The settings of :func:`add_method_options` given explicitly, as :class:`FrontierSpec` fields
+    (``particles``: the filters whose N was given)."""
+    out = {"methods": args.methods, "variants": frontier_variants(args.variant),
+           "particles": {m: getattr(args, f"{m}_particles") for m in FILTER_METHODS
+                         if getattr(args, f"{m}_particles") is not None}}
+    if args.num_steps is not None:
+        out["iterations"] = args.num_steps
+    return out
 
 
 def model_spec(args) -> tuple[str, tuple]:
@@ -78,7 +101,7 @@ def model_spec(args) -> tuple[str, tuple]:
         return f"class:{args.model}", tuple(args.model_arg)
     if args.model_arg:
         raise ValueError("--model-arg: needs --model")
-    return f"env:{env or 'linear_gaussian'}", tuple(env_args)
+    return (f"env:{env}" if env else FrontierSpec().model), tuple(env_args)
 
 
 def write_frontier(out: Path, result: dict, echo: bool = True) -> None:
@@ -100,31 +123,27 @@ def write_frontier(out: Path, result: dict, echo: bool = True) -> None:
         print(f"results: {out.resolve()}")
 
 
+def spec_from_args(args) -> FrontierSpec:
+    """The run ``args`` ask for: each setting given explicitly, else ``--quick``'s, else the default
+    (:meth:`FrontierSpec.quick`, :meth:`FrontierSpec.full`)."""
+    model, model_args = model_spec(args)
+    explicit = {name: getattr(args, name) for name in FLAGS if getattr(args, name) is not None}
+    make = FrontierSpec.quick if args.quick else FrontierSpec.full
+    compile = options.compile_override([o for o in args.overrides if o.startswith("filter.")])
+    return make(model=model, model_args=model_args, compile=compile, metric=args.metric, output=Path(args.output),
+                **method_settings(args), **explicit)
+
+
 def main(args) -> None:
     from escort_rl.bench.core.runner import backend_from_args
-    from escort_rl.bench.frontier.run import label
+    from escort_rl.bench.frontier.run import label, run_frontier
 
-    model, model_args = model_spec(args)
-    compile = options.compile_override([o for o in args.overrides if o.startswith("filter.")])
-    quick = QUICK if args.quick else {}
-    particles = {m: getattr(args, f"{m}_particles") or quick.get("particles", DEFAULT_PARTICLES)[m]
-                 for m in FILTER_METHODS}
-    for m, ns in particles.items():
-        if any(n < 1 for n in ns):
-            raise ValueError(f"--{m}-particles: must be >= 1, got {list(ns)}")
-    iterations = args.num_steps or quick.get("iterations", DEFAULT_ITERATIONS)
-    explicit = lambda flag, default: getattr(args, flag) if getattr(args, flag) != default else quick.get(flag, default)  # noqa: E731
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
+    spec = spec_from_args(args)
+    spec.output.mkdir(parents=True, exist_ok=True)
 
     def show(row):
         err = "diverged" if row.get("failed") else f"{row['error']:.4g}"
-        print(f"{label(row):>24}: {row['ms_per_update']:.3g} ms, {args.metric} {err}", flush=True)
+        print(f"{label(row):>24}: {row['ms_per_update']:.3g} ms, {spec.metric} {err}", flush=True)
 
-    variants = frontier_variants(args.variant)
-    result = run_frontier(model, model_args, args.methods, particles, iterations, seeds=explicit("seeds", 5),
-                          steps=explicit("steps", 20), compile=compile, metric=args.metric,
-                          reference_particles=explicit("reference_particles", 100_000),
-                          backend=backend_from_args(args), threads=args.threads or 1, output=out, progress=show,
-                          variants=variants)
-    write_frontier(out, result)
+    result = run_frontier(spec, backend_from_args(args), progress=show)
+    write_frontier(spec.output, result)

@@ -32,7 +32,8 @@ import torch
 
 from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import Cell, CellStore, InProcessBackend, run_cells
-from escort_rl.bench.frontier.cells import FILTER_METHODS, ITERATIVE, build_model, make_filter, model_label
+from escort_rl.bench.frontier.cells import ITERATIVE, build_model, make_filter, model_label
+from escort_rl.bench.frontier.spec import DECISIONS_OUTPUT, DecisionsSpec
 from escort_rl.metrics.reference import exact_posterior_start, exact_posterior_update
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
@@ -44,22 +45,6 @@ def greedy_action(model, mean: torch.Tensor) -> torch.Tensor:
     actions = torch.arange(model.n_actions).expand(b, -1)  # [B, A]
     nxt = model.transition_mean(mean.unsqueeze(1).expand(b, model.n_actions, d), actions)
     return (nxt * nxt).sum(-1).argmin(-1)
-
-
-def parse_row(text: str) -> tuple[str, int, int]:
-    """``METHOD:N`` or ``METHOD:N:K`` (SVGD, ESCORT), or ``exact`` -> ``(method, N, K)``."""
-    parts = text.split(":")
-    if parts == ["exact"]:
-        return "exact", 0, 0
-    try:
-        method, n, k = parts[0], int(parts[1]), (int(parts[2]) if len(parts) > 2 else 0)
-    except (IndexError, ValueError):
-        raise ValueError(f"--rows: expected METHOD:N[:K] or exact, got {text!r}") from None
-    if method not in FILTER_METHODS:
-        raise ValueError(f"--rows: unknown filter '{method}' in {text!r}; choose from {', '.join(FILTER_METHODS)}")
-    if n < 1 or (method in ITERATIVE) != (len(parts) == 3) or (method in ITERATIVE and k < 1):
-        raise ValueError(f"--rows: {text!r}: give N >= 1, and K >= 1 exactly for svgd and escort")
-    return method, n, k
 
 
 @dataclass(frozen=True)
@@ -117,11 +102,17 @@ def _mixture_mean(log_w: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
     return (torch.softmax(log_w, -1).unsqueeze(-1) * means).sum(1).float()
 
 
-def run_decisions(model: str, model_args: tuple, rows: list[tuple[str, int, int]], episodes: int = 50,
-                  steps: int = 20, output: Path | None = None, backend=None, threads: int = 1) -> dict:
-    cells = [DecisionCell(model=model, model_args=tuple(model_args), method=m, particles=n, num_steps=k,
-                          episodes=episodes, steps=steps, threads=threads) for m, n, k in rows]
-    store = CellStore(Path(output) / "cells") if output is not None else None
+def run_decisions(spec: DecisionsSpec, backend=None) -> dict:
+    """Every row of ``spec`` driving the greedy regulator; each row's returns (mean ± s.e. over
+    episodes), their paired difference to the first row's, the error of the mean and the ms per
+    update. ``backend``: where the cells run (default in-process), closed at the end."""
+    built = build_model(spec.model, spec.model_args)
+    if getattr(built, "n_actions", 1) < 2:
+        raise ValueError(f"--model: {type(built).__name__} has {getattr(built, 'n_actions', 1)} action; the regulator "
+                         "needs a choice (gmm_tracking: pass --model-arg control=1)")
+    cells = [DecisionCell(model=spec.model, model_args=spec.model_args, method=m, particles=n, num_steps=k,
+                          episodes=spec.episodes, steps=spec.steps, threads=spec.threads) for m, n, k in spec.rows]
+    store = CellStore(spec.output / "cells") if spec.output is not None else None
     backend = backend or InProcessBackend()
     try:
         results = run_cells(cells, backend, store, desc="decision cells")
@@ -136,7 +127,8 @@ def run_decisions(model: str, model_args: tuple, rows: list[tuple[str, int, int]
                          "return": mean_se(r["return"]), "mean_error": mean_se(r["mean_error"]),
                          "difference": mean_se([x - y for x, y in zip(r["return"], base)]),
                          "ms_per_update": 1e3 * r["timing"]["seconds_per_update"]})
-    return {"model": model, "model_args": list(model_args), "episodes": episodes, "steps": steps, "rows": out_rows}
+    return {"model": spec.model, "model_args": list(spec.model_args), "episodes": spec.episodes,
+            "steps": spec.steps, "rows": out_rows}
 
 
 def decisions_markdown(result: dict) -> str:
@@ -154,11 +146,8 @@ def decisions_markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-QUICK = dict(episodes=4, steps=5)
-"""``--quick``: 4 episodes of 5 steps."""
-
-
 def register(subparsers) -> None:
+    full, quick = DecisionsSpec.full(model="", rows=["exact"]), DecisionsSpec.quick(model="", rows=["exact"])
     p = subparsers.add_parser("frontier-decisions", help="the greedy regulator, closed loop, on chosen frontier rows",
                               description="Drive the greedy regulator (argmin_a |transition_mean(belief mean, a)|^2) "
                               "on each row's belief in closed loop, on the same seeded episodes, and report the "
@@ -169,30 +158,27 @@ def register(subparsers) -> None:
     p.add_argument("--rows", nargs="+", required=True, metavar="METHOD:N[:K] | exact",
                    help="the rows, the first the baseline of the differences, e.g. sir:10000 enkf:1000 escort:300:50")
     p.add_argument("--episodes", type=int, default=None,
-                   help=f"closed-loop episodes per row (default: 50; --quick: {QUICK['episodes']})")
+                   help=f"closed-loop episodes per row (default: {full.episodes}; --quick: {quick.episodes})")
     p.add_argument("--steps", type=int, default=None,
-                   help=f"steps per episode (default: 20; --quick: {QUICK['steps']})")
-    options.add_quick_option(p, f"{QUICK['episodes']} episodes of {QUICK['steps']} steps")
-    options.add_output_option(p, "outputs/bench/frontier_decisions",
-                              "frontier_decisions.md and frontier_decisions.json")
+                   help=f"steps per episode (default: {full.steps}; --quick: {quick.steps})")
+    options.add_quick_option(p, f"{quick.episodes} episodes of {quick.steps} steps")
+    options.add_output_option(p, DECISIONS_OUTPUT, "frontier_decisions.md and frontier_decisions.json")
     options.add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
+
+
+def spec_from_args(args) -> DecisionsSpec:
+    """The run ``args`` ask for: each setting given explicitly, else ``--quick``'s, else the default."""
+    explicit = {name: getattr(args, name) for name in ("episodes", "steps", "threads")
+                if getattr(args, name) is not None}
+    make = DecisionsSpec.quick if args.quick else DecisionsSpec.full
+    return make(model=f"class:{args.model}", model_args=args.model_arg, rows=args.rows, output=Path(args.output),
+                **explicit)
 
 
 def main(args) -> None:
     from escort_rl.bench.core.runner import backend_from_args
 
-    pick = QUICK if args.quick else dict(episodes=50, steps=20)
-    episodes = args.episodes if args.episodes is not None else pick["episodes"]
-    steps = args.steps if args.steps is not None else pick["steps"]
-    if episodes < 2 or steps < 2:
-        raise ValueError(f"--episodes and --steps: need at least 2 each, got {episodes} and {steps}")
-    rows = [parse_row(r) for r in args.rows]
-    model = f"class:{args.model}"
-    built = build_model(model, tuple(args.model_arg))
-    if getattr(built, "n_actions", 1) < 2:
-        raise ValueError(f"--model: {type(built).__name__} has {getattr(built, 'n_actions', 1)} action; the regulator "
-                         "needs a choice (gmm_tracking: pass --model-arg control=1)")
-    result = run_decisions(model, tuple(args.model_arg), rows, episodes, steps, Path(args.output),
-                           backend_from_args(args), args.threads or 1)
-    write_results(Path(args.output), "frontier_decisions", result, decisions_markdown(result))
+    spec = spec_from_args(args)
+    result = run_decisions(spec, backend_from_args(args))
+    write_results(spec.output, "frontier_decisions", result, decisions_markdown(result))

@@ -8,7 +8,6 @@ from pathlib import Path
 
 from escort_rl.bench.core.runner import CellStore, InProcessBackend, run_cells
 from escort_rl.bench.frontier.cells import (
-    FILTER_METHODS,
     ITERATIVE,
     FrontierCell,
     FrontierReferenceCell,
@@ -16,33 +15,27 @@ from escort_rl.bench.frontier.cells import (
     model_label,
 )
 from escort_rl.bench.frontier.pareto import best_at_budgets, pareto_front
-from escort_rl.bench.methods import check_choices
+from escort_rl.bench.frontier.spec import METRICS, FrontierSpec
 from escort_rl.metrics.reference import Reference, has_exact_posterior
 from escort_rl.reporting.stats import mean_se
 
-DEFAULT_PARTICLES = {"sir": (100, 300, 1000, 3000, 10_000, 30_000, 100_000),
-                     "enkf": (100, 300, 1000, 3000, 10_000, 30_000, 100_000),
-                     "svgd": (30, 100, 300, 1000), "escort": (30, 100, 300, 1000)}
-DEFAULT_ITERATIONS = (5, 15, 50)
 BUDGETS_MS = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
 """The time budgets (ms per update of one belief) of the "closest filter at each budget" table."""
-METRICS = ("w1", "mean", "cov", "mmd2")
 
 
-def frontier_cells(model: str, model_args: tuple, methods, particles: dict, iterations, seeds: int, steps: int,
-                   compile: bool, threads: int = 1, base_seed: int = 0, reference: tuple = (),
-                   reference_folder: str = "", variants: dict | None = None) -> list[FrontierCell]:
+def frontier_cells(spec: FrontierSpec, reference: tuple = (), reference_folder: str = "") -> list[FrontierCell]:
     """One cell per (filter, N) for SIR and EnKF and per (filter, N, K) for SVGD and ESCORT; a variant
-    (``name -> (method, settings)``) is swept over its method's N (and K)."""
-    rows = [(m, m, ()) for m in methods] + [(name, m, args) for name, (m, args) in (variants or {}).items()]
+    is swept over its method's N (and K)."""
+    rows = [(m, m, ()) for m in spec.methods] + list(spec.variants)
     cells = []
     for name, method, args in rows:
-        for n in particles[method]:
-            for k in (iterations if method in ITERATIVE else (0,)):
-                cells.append(FrontierCell(model=model, model_args=tuple(model_args), method=method, particles=int(n),
-                                          num_steps=int(k), seeds=tuple(range(seeds)), steps=steps,
-                                          compile=compile and method in ITERATIVE, base_seed=base_seed,
-                                          reference=reference, reference_folder=reference_folder, threads=threads,
+        for n in spec.particles[method]:
+            for k in (spec.iterations if method in ITERATIVE else (0,)):
+                cells.append(FrontierCell(model=spec.model, model_args=spec.model_args, method=method,
+                                          particles=int(n), num_steps=int(k), seeds=tuple(range(spec.seeds)),
+                                          steps=spec.steps, compile=spec.compile and method in ITERATIVE,
+                                          base_seed=spec.base_seed, reference=reference,
+                                          reference_folder=reference_folder, threads=spec.threads,
                                           variant="" if name == method else name, filter_args=tuple(args)))
     return cells
 
@@ -50,8 +43,8 @@ def frontier_cells(model: str, model_args: tuple, methods, particles: dict, iter
 def reference_ess_summary(path: Path, digest: str, particles: int) -> dict:
     """How far a SIR reference can be trusted: the effective sample size of its weights at each
     update (before resampling; the mean over a chunk of seeds), as ``min`` and ``median`` over the
-    updates, and ``fraction`` (the median over ``N``). A reference whose ESS is a handful of particles is a
-    few points, not a posterior."""
+    updates, and ``fraction`` (the median over ``N``). A reference whose ESS is a handful of particles
+    is a few points, not a posterior."""
     frac = Reference.load(path, digest).data["ess_fraction_before_resampling"].double()
     return {"min": float(frac.min()) * particles, "median": float(frac.median()) * particles,
             "fraction": float(frac.median())}
@@ -82,68 +75,64 @@ def label(row: dict) -> str:
     return f"{row['method']} N={row['particles']}" + (f" K={row['num_steps']}" if iterative else "")
 
 
-def run_frontier(model: str, model_args: tuple = (), methods=FILTER_METHODS, particles: dict | None = None,
-                 iterations=DEFAULT_ITERATIONS, seeds: int = 5, steps: int = 20, compile: bool = False,
-                 metric: str = "w1", reference_particles: int = 100_000, backend=None, threads: int = 1,
-                 output: Path | None = None, progress=None, base_seed: int = 0, variants: dict | None = None) -> dict:
-    """Every filter over its costs on ``model``; each row's distances to the reference (mean ± s.e. over
-    seeds, time-averaged over the steps), its ms per update, and the Pareto front on ``metric`` of the
-    model's first state part against time (``fronts``: the front on each of :data:`METRICS`).
-    ``output``: where the cells (and the SIR reference) are kept.
-    ``variants``: ``name -> (method, ("key=value", ...))``, more rows (:func:`~.cells.parse_variant`).
-    """
-    check_choices("--methods", methods, FILTER_METHODS)
-    check_choices("--metric", [metric], METRICS, "metric")
-    variants = dict(variants or {})
-    used = set(methods) | {m for m, _ in variants.values()}
-    particles = {m: tuple((particles or {}).get(m, DEFAULT_PARTICLES[m])) for m in used}
-    built = build_model(model, tuple(model_args))
+def run_frontier(spec: FrontierSpec, backend=None, progress=None) -> dict:
+    """Every filter of ``spec`` over its costs on its model; each row's distances to the reference
+    (mean ± s.e. over seeds, time-averaged over the steps), its ms per update, and the Pareto front on
+    ``spec.metric`` of the model's first state part against time (``fronts``: the front on each of
+    :data:`~escort_rl.bench.frontier.spec.METRICS`). ``spec.output``: where the cells (and the SIR
+    reference) are kept. ``backend``: where the cells run (default in-process), closed at the end;
+    ``progress(row)`` is called per row as it finishes."""
     from escort_rl.metrics.reference import state_parts
 
+    built = build_model(spec.model, spec.model_args)
     part = next(iter(state_parts(built)))
-    store = CellStore(Path(output) / "cells") if output is not None else None
+    store = CellStore(spec.output / "cells") if spec.output is not None else None
     backend = backend or InProcessBackend()
-    reference, folder, reference_kind, reference_ess = (), "", "exact", None
     try:
-        gaussian_sum = callable(getattr(built, "exact_posterior_init", None))
-        if not has_exact_posterior(built) or gaussian_sum:
-            folder = str((Path(output) if output is not None else Path(".")) / "reference")
-            ref_cell = FrontierReferenceCell(domain=model_label(model, model_args),
-                                             particles=0 if gaussian_sum else int(reference_particles),
-                                             steps=steps, seeds=tuple(range(seeds)), base_seed=base_seed,
-                                             folder=folder, model_spec=model, model_args=tuple(model_args),
-                                             threads=threads, exact=gaussian_sum)
-            ref = store.load(ref_cell) if store is not None else None
-            if ref is None or not ref_cell.valid(ref):  # a missing or damaged file is computed again
-                [ref] = run_cells([ref_cell], backend, None, desc="frontier reference")
-                if store is not None:
-                    store.save(ref_cell, ref)
-            reference = (ref["file"], ref["hash"])
-            if gaussian_sum:
-                dropped = Reference.load(Path(folder) / ref["file"], ref["hash"]).data["dropped_mass"]
-                reference_kind = (f"exact (a Gaussian sum of up to {getattr(built, 'max_components', '?')} components; "
-                                  f"mass pruned per update: max {float(dropped.max()):.2g}, mean "
-                                  f"{float(dropped[:, 1:].mean()):.2g})")
-            else:
-                reference_kind = f"SIR with {reference_particles} particles"
-                reference_ess = reference_ess_summary(Path(folder) / ref["file"], ref["hash"], reference_particles)
-        cells = frontier_cells(model, model_args, methods, particles, iterations, seeds, steps, compile, threads,
-                               base_seed, reference, folder, variants)
-        results = run_cells(cells, backend, store, desc="frontier cells",
-                            on_result=(lambda c, r: progress(_row(c, r, metric, part))) if progress else None)
+        reference, folder, reference_kind, reference_ess = _reference(spec, built, backend, store)
+        cells = frontier_cells(spec, reference, folder)
+        on_result = (lambda c, r: progress(_row(c, r, spec.metric, part))) if progress else None
+        results = run_cells(cells, backend, store, desc="frontier cells", on_result=on_result)
     finally:
         backend.close()
-    rows = [_row(c, r, metric, part) for c, r in zip(cells, results)]
+    rows = [_row(c, r, spec.metric, part) for c, r in zip(cells, results)]
     points = [(label(r), r["ms_per_update"], r["error"]) for r in rows]
     front = pareto_front(points)
     fronts = {m: [p[0] for p in pareto_front([(label(r), r["ms_per_update"], _error(r, part, m)) for r in rows])]
               for m in METRICS}
     best = best_at_budgets(points, BUDGETS_MS)
-    return {"model": model, "model_args": list(model_args), "model_name": type(built).__name__,
+    return {"model": spec.model, "model_args": list(spec.model_args), "model_name": type(built).__name__,
             "state_dim": built.state_dim, "obs_dim": built.obs_dim, "reference": reference_kind, "part": part,
             "reference_ess": reference_ess,
-            "variants": {k: [m, list(a)] for k, (m, a) in variants.items()}, "metric": metric, "seeds": seeds,
-            "steps": steps, "compile": compile, "threads": threads,
+            "variants": {k: [m, list(a)] for k, m, a in spec.variants}, "metric": spec.metric,
+            "seeds": spec.seeds, "steps": spec.steps, "compile": spec.compile, "threads": spec.threads,
             "rows": rows, "front": [p[0] for p in front], "fronts": fronts,
             "budgets": [{"ms": b, "best": None if p is None else p[0], "error": None if p is None else p[2]}
                         for b, p in zip(BUDGETS_MS, best)]}
+
+
+def _reference(spec: FrontierSpec, built, backend, store) -> tuple[tuple, str, str, dict | None]:
+    """The reference the cells read, where the model has no exact posterior (a SIR one, or the exact
+    Gaussian sum of a model that has one): ``(reference, folder, what it is, its ESS or None)``."""
+    gaussian_sum = callable(getattr(built, "exact_posterior_init", None))
+    if has_exact_posterior(built) and not gaussian_sum:
+        return (), "", "exact", None
+    folder = str((spec.output if spec.output is not None else Path(".")) / "reference")
+    ref_cell = FrontierReferenceCell(domain=model_label(spec.model, spec.model_args),
+                                     particles=0 if gaussian_sum else int(spec.reference_particles),
+                                     steps=spec.steps, seeds=tuple(range(spec.seeds)), base_seed=spec.base_seed,
+                                     folder=folder, model_spec=spec.model, model_args=spec.model_args,
+                                     threads=spec.threads, exact=gaussian_sum)
+    ref = store.load(ref_cell) if store is not None else None
+    if ref is None or not ref_cell.valid(ref):  # a missing or damaged file is computed again
+        [ref] = run_cells([ref_cell], backend, None, desc="frontier reference")
+        if store is not None:
+            store.save(ref_cell, ref)
+    reference = (ref["file"], ref["hash"])
+    if gaussian_sum:
+        dropped = Reference.load(Path(folder) / ref["file"], ref["hash"]).data["dropped_mass"]
+        kind = (f"exact (a Gaussian sum of up to {getattr(built, 'max_components', '?')} components; "
+                f"mass pruned per update: max {float(dropped.max()):.2g}, mean {float(dropped[:, 1:].mean()):.2g})")
+        return reference, folder, kind, None
+    ess = reference_ess_summary(Path(folder) / ref["file"], ref["hash"], spec.reference_particles)
+    return reference, folder, f"SIR with {spec.reference_particles} particles", ess

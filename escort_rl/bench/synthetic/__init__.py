@@ -1,6 +1,8 @@
 """The synthetic benchmark: the paper's GMM targets (Table 2) and the 5-mode
 scalability targets (the RMSE scaling table), under a static and a tracking protocol.
 
+- :mod:`~escort_rl.bench.synthetic.spec`: every setting of a run (:class:`SyntheticSpec`,
+  :class:`ScalingSpec`) and their defaults;
 - :mod:`~escort_rl.bench.synthetic.cells`: the starts, the fits, the scores and the cells;
 - :mod:`~escort_rl.bench.synthetic.tracking`: the tracking protocol's model and its error;
 - :mod:`~escort_rl.bench.synthetic.run`: the grids (:func:`run_synthetic`, :func:`run_scaling`);
@@ -21,8 +23,9 @@ from escort_rl.bench.synthetic.cells import (
     start_distribution,
 )
 from escort_rl.bench.synthetic.cli import filter_arguments, main, register
-from escort_rl.bench.synthetic.run import PROTOCOLS, SCALING_DIMS, SYNTHETIC_TARGETS, run_scaling, run_synthetic
+from escort_rl.bench.synthetic.run import run_scaling, run_synthetic
+from escort_rl.bench.synthetic.spec import PROTOCOLS, SCALING_DIMS, SYNTHETIC_TARGETS, ScalingSpec, SyntheticSpec
 
-__all__ = ["INITS", "PROTOCOLS", "SCALING_DIMS", "SYNTHETIC_TARGETS", "SyntheticCell", "TrackingCell", "fit_particles",
-           "filter_arguments", "initial_particles", "main", "make_filter", "register", "run_scaling", "run_synthetic",
-           "scaled", "score_particles", "start_distribution"]
+__all__ = ["INITS", "PROTOCOLS", "SCALING_DIMS", "SYNTHETIC_TARGETS", "ScalingSpec", "SyntheticCell", "SyntheticSpec",
+           "TrackingCell", "filter_arguments", "fit_particles", "initial_particles", "main", "make_filter", "register",
+           "run_scaling", "run_synthetic", "scaled", "score_particles", "start_distribution"]

@@ -9,17 +9,11 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench.core.runner import CellStore, InProcessBackend, run_groups, seed_blocks
-from escort_rl.bench.methods import SCALING_METHODS, SYNTHETIC_METHODS, check_choices
-from escort_rl.bench.synthetic.cells import INITS, TRACKING_METHODS, SyntheticCell, TrackingCell
-from escort_rl.bench.synthetic.tracking import STEPS
-from escort_rl.bench.targets import SCALABILITY_STRUCTURES, load_target
+from escort_rl.bench.methods import check_choices
+from escort_rl.bench.synthetic.cells import SyntheticCell, TrackingCell
+from escort_rl.bench.synthetic.spec import GridSpec, ScalingSpec, SyntheticSpec
+from escort_rl.bench.targets import load_target, synthetic_config
 from escort_rl.reporting.stats import mean_se, merge_importance
-
-SYNTHETIC_TARGETS = ("gmm1d", "gmm2d", "gmm3d", "gmm5d", "gmm20d")
-SCALING_DIMS = (1, 5, 20, 50, 100, 200)
-PROTOCOLS = ("static", "tracking")
-"""``static``: fit a fixed target from a start (``--init``); ``tracking``: follow a latent state
-through the target-shaped likelihood (:mod:`escort_rl.bench.synthetic.tracking`)."""
 
 
 def _run_grid(rows: list[dict], cells: dict, backend, cells_dir, progress) -> list[dict]:
@@ -46,101 +40,84 @@ def _run_grid(rows: list[dict], cells: dict, backend, cells_dir, progress) -> li
     return rows
 
 
-def _cells_of(protocol: str, blocks, common: dict, init: str, init_scale: float, steps: int,
-              keep_particles: bool = False) -> list:
-    if protocol == "tracking":
-        return [TrackingCell(seeds=b, steps=steps, **common) for b in blocks]
-    return [SyntheticCell(seeds=b, init=init, init_scale=float(init_scale), keep_particles=keep_particles, **common)
-            for b in blocks]
+def _cells_of(spec: GridSpec, common: dict, keep_particles: bool = False) -> list:
+    """The cells of one row (``common``: its target, method and settings), one per seed block."""
+    blocks = seed_blocks(list(range(spec.seeds)), spec.seeds_per_cell)
+    common = dict(common, particles=spec.particles, num_steps=spec.num_steps,
+                  filter_kwargs=tuple(sorted(spec.filter_arguments().items())), threads=spec.threads)
+    if spec.protocol == "tracking":
+        return [TrackingCell(seeds=b, steps=spec.steps, **common) for b in blocks]
+    return [SyntheticCell(seeds=b, init=spec.init, init_scale=float(spec.init_scale), keep_particles=keep_particles,
+                          **common) for b in blocks]
 
 
-def _check(protocol: str, methods, default_methods, init: str) -> None:
-    if protocol not in PROTOCOLS:
-        raise ValueError(f"--protocol: expected one of {', '.join(PROTOCOLS)}, got {protocol!r}")
-    check_choices("--methods", methods, TRACKING_METHODS if protocol == "tracking" else default_methods)
-    if init not in INITS:
-        raise ValueError(f"--init: expected one of {', '.join(INITS)}, got {init!r}")
-
-
-def _meta(protocol, n, seeds, num_steps, filter_kwargs, init, init_scale, steps) -> dict:
-    meta = {"protocol": protocol, "n": n, "seeds": seeds, "num_steps": num_steps,
-            "filter_kwargs": dict(filter_kwargs or {})}
-    if protocol == "tracking":
-        meta["steps"] = steps
+def _meta(spec: GridSpec) -> dict:
+    meta = {"protocol": spec.protocol, "n": spec.particles, "seeds": spec.seeds, "num_steps": spec.num_steps,
+            "filter_kwargs": spec.filter_arguments()}
+    if spec.protocol == "tracking":
+        meta["steps"] = spec.steps
     else:
-        meta.update(init=init, init_scale=float(init_scale))
+        meta.update(init=spec.init, init_scale=float(spec.init_scale))
     return meta
 
 
-def run_synthetic(targets=SYNTHETIC_TARGETS, methods=SYNTHETIC_METHODS, seeds: int = 30, n: int = 1000,
-                  num_steps: int = 500, progress=None, plot_dir=None, filter_kwargs: dict | None = None,
-                  backend=None, threads: int | None = None, seeds_per_cell: int | None = None,
-                  cells_dir=None, init: str = "cloud", init_scale: float = 1.0, protocol: str = "static",
-                  steps: int = STEPS) -> dict:
-    """Fit (or track) and score every method on every target; per-seed values and mean ± s.e.
+def run_synthetic(spec: SyntheticSpec, backend=None, progress=None) -> dict:
+    """Fit (or track) and score every method of ``spec`` on every target; per-seed values and mean ±
+    s.e.
 
-    ``backend``, ``threads`` (per cell, default 1), ``seeds_per_cell`` (default all) and
-    ``cells_dir`` (saved cells, skipped on a rerun): see :mod:`escort_rl.bench.core.runner`. ``init`` and
-    ``init_scale``: the static protocol's start (:func:`~escort_rl.bench.synthetic.cells.fit_particles`);
-    ``steps``: the tracking protocol's ``T`` (``num_steps`` is then the iterations per update). With
-    ``plot_dir`` (static), writes ``<target>_particles.png`` (seed 0's particles of every method on
-    the target's contours, first two coordinates) and ``<metric>_vs_dimension.png``.
+    ``backend``: where the cells run (default in-process, see :mod:`escort_rl.bench.core.runner`),
+    closed at the end; ``progress(row)`` is called per row as it finishes. With ``spec.output``, the
+    cells are saved in ``<output>/cells`` (skipped on a rerun) and, under the static protocol, the
+    plots written there: ``<target>_particles.png`` (seed 0's particles of every method on the
+    target's contours, first two coordinates) and ``<metric>_vs_dimension.png``.
     """
     from escort_rl.reporting.plots import plot_metric_against_dimension, plot_particles_on_target
 
-    _check(protocol, methods, SYNTHETIC_METHODS, init)
-    blocks = seed_blocks(list(range(seeds)), seeds_per_cell)
+    check_choices("--targets", spec.targets, sorted(synthetic_config()["targets"]))
+    plot_dir = spec.output
     rows, cells = [], {}
-    kw = tuple(sorted((filter_kwargs or {}).items()))
-    for name in targets:
+    for name in spec.targets:
         dim = load_target(name).dim
-        for method in methods:
-            common = dict(target=name, method=method, particles=n, num_steps=num_steps, filter_kwargs=kw,
-                          threads=threads or 1)
-            cells[len(rows)] = _cells_of(protocol, blocks, common, init, init_scale, steps,
-                                         keep_particles=plot_dir is not None)
+        for method in spec.methods:
+            cells[len(rows)] = _cells_of(spec, dict(target=name, method=method), keep_particles=plot_dir is not None)
             rows.append({"target": name, "dim": dim, "method": method})
-    _run_grid(rows, cells, backend, cells_dir, progress)
+    _run_grid(rows, cells, backend, _cells_dir(spec), progress)
     shown = {r["target"]: {} for r in rows}
     for r in rows:
         particles = r.pop("_shown", None)
         if particles is not None:
             shown[r["target"]][r["method"]] = particles
-    if plot_dir is not None and protocol == "static":
-        for name in targets:
-            plot_particles_on_target(load_target(name).log_prob, shown[name], Path(plot_dir) / f"{name}_particles.png",
-                                     title=f"{name}: seed 0, N = {n}")
+    if plot_dir is not None and spec.protocol == "static":
+        for name in spec.targets:
+            plot_particles_on_target(load_target(name).log_prob, shown[name], plot_dir / f"{name}_particles.png",
+                                     title=f"{name}: seed 0, N = {spec.particles}")
         for metric in ("sliced_w1", "corr_error", "mmd2"):
-            plot_metric_against_dimension(rows, metric, Path(plot_dir) / f"{metric}_vs_dimension.png")
-    return {**_meta(protocol, n, seeds, num_steps, filter_kwargs, init, init_scale, steps), "rows": rows}
+            plot_metric_against_dimension(rows, metric, plot_dir / f"{metric}_vs_dimension.png")
+    return {**_meta(spec), "rows": rows}
 
 
-def run_scaling(dims=SCALING_DIMS, structures=SCALABILITY_STRUCTURES, methods=SCALING_METHODS, seeds: int = 5,
-                n: int = 1000, num_steps: int = 500, progress=None, plot_dir=None, filter_kwargs: dict | None = None,
-                backend=None, threads: int | None = None, seeds_per_cell: int | None = None, cells_dir=None,
-                init: str = "cloud", init_scale: float = 1.0, protocol: str = "static", steps: int = STEPS) -> dict:
+def _cells_dir(spec: GridSpec) -> Path | None:
+    return spec.output / "cells" if spec.output is not None else None
+
+
+def run_scaling(spec: ScalingSpec, backend=None, progress=None) -> dict:
     """RMSE (and the other metrics) of the 5-mode scalability GMMs against the dimension, under
-    ``protocol``; with ``plot_dir``, ``rmse_vs_dimension.png`` (averaged over the correlation
-    structures). The other arguments are those of :func:`run_synthetic`."""
+    ``spec.protocol``; with ``spec.output``, ``rmse_vs_dimension.png`` (averaged over the correlation
+    structures) and, under the static protocol, ``coverage_vs_dimension.png``. ``backend`` and
+    ``progress``: those of :func:`run_synthetic`."""
     from escort_rl.reporting.plots import plot_metric_against_dimension
 
-    default = SCALING_METHODS + tuple(m for m in SYNTHETIC_METHODS if m not in SCALING_METHODS)
-    _check(protocol, methods, default, init)
-    check_choices("--structures", structures, SCALABILITY_STRUCTURES, "structure")
-    blocks = seed_blocks(list(range(seeds)), seeds_per_cell)
     rows, cells = [], {}
-    kw = tuple(sorted((filter_kwargs or {}).items()))
-    for d in dims:
-        for structure in structures if d > 1 else structures[:1]:
-            for method in methods:
-                common = dict(target=f"scaling-{structure}-{d}d", method=method, particles=n, num_steps=num_steps,
-                              dim=d, structure=structure, filter_kwargs=kw, threads=threads or 1)
-                cells[len(rows)] = _cells_of(protocol, blocks, common, init, init_scale, steps)
+    for d in spec.dims:
+        for structure in spec.structures if d > 1 else spec.structures[:1]:
+            for method in spec.methods:
+                common = dict(target=f"scaling-{structure}-{d}d", method=method, dim=d, structure=structure)
+                cells[len(rows)] = _cells_of(spec, common)
                 rows.append({"dim": d, "structure": structure, "method": method})
-    _run_grid(rows, cells, backend, cells_dir, progress)
-    if plot_dir is not None:
-        plot_metric_against_dimension(rows, "rmse", Path(plot_dir) / "rmse_vs_dimension.png",
+    _run_grid(rows, cells, backend, _cells_dir(spec), progress)
+    if spec.output is not None:
+        plot_metric_against_dimension(rows, "rmse", spec.output / "rmse_vs_dimension.png",
                                       ylabel="RMSE (state units)")
-        if protocol == "static":
-            plot_metric_against_dimension(rows, "mode_coverage", Path(plot_dir) / "coverage_vs_dimension.png")
-    return {**_meta(protocol, n, seeds, num_steps, filter_kwargs, init, init_scale, steps), "rows": rows}
+        if spec.protocol == "static":
+            plot_metric_against_dimension(rows, "mode_coverage", spec.output / "coverage_vs_dimension.png")
+    return {**_meta(spec), "rows": rows}
