@@ -2,4 +2,6 @@
 beliefs, for TorchRL users. Subpackages: ``models``, ``envs``, ``belief``, ``transforms``,
 ``modules``, ``trainers``, ``bench``."""
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
+
+import escort_rl.envs  # noqa: E402,F401  registers the gymnasium ids, as ``import ale_py`` does

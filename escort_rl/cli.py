@@ -35,6 +35,8 @@ import importlib
 import sys
 from pathlib import Path
 
+import escort_rl
+
 OVERRIDES_HELP = (
     "Hydra-style overrides, e.g. trainer.iterations=100 num_particles=200 filter=sir "
     "collector.workers=2 output_dir=outputs/mine resume=outputs/mine (default: none)"
@@ -68,6 +70,8 @@ def _parser() -> argparse.ArgumentParser:
         prog="escort-rl",
         description="ESCORT-RL: particle belief tracking for POMDPs and policies trained on those beliefs.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {escort_rl.__version__}",
+                        help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="train a policy, then evaluate it (the default job)",
                          description="Train with the given overrides, then evaluate the final checkpoint.")

@@ -1,11 +1,24 @@
-"""Environments: a batched TorchRL env over any model, gymnasium adapters, and flickering Atari."""
+"""Environments: a batched TorchRL env over any model, gymnasium adapters, and flickering Atari.
 
-from escort_rl.envs.atari import register_atari_envs
-from escort_rl.envs.belief_observation import BeliefObservation
-from escort_rl.envs.gym_adapter import register_gymnasium_envs
-from escort_rl.envs.pomdp_env import POMDPEnv, check_action
+Importing the package registers the gymnasium ids (:mod:`escort_rl.envs.registration`); the
+environments themselves are imported on first use, so that registering loads no torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from escort_rl.envs.registration import register_gymnasium_envs
 
 register_gymnasium_envs()
-register_atari_envs()  # ale-py is imported only when one of these envs is made
 
-__all__ = ["BeliefObservation", "POMDPEnv", "check_action", "register_atari_envs", "register_gymnasium_envs"]
+_LAZY = {"BeliefObservation": "belief_observation", "POMDPEnv": "pomdp_env", "check_action": "pomdp_env",
+         "register_atari_envs": "atari"}
+
+__all__ = [*_LAZY, "register_gymnasium_envs"]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(f"escort_rl.envs.{_LAZY[name]}"), name)
+    raise AttributeError(f"module 'escort_rl.envs' has no attribute '{name}'")

@@ -8,14 +8,6 @@ import torch
 
 from escort_rl.models.protocol import check_model
 
-# gymnasium id -> domain (its model class is escort_rl.models.DOMAINS[domain]; its episode length is
-# max_steps in configs/env/<domain>.yaml, which says why)
-GYM_IDS = {
-    "escort_rl/LightDark10D-v0": "lightdark10d",
-    "escort_rl/KidnappedRobot20D-v0": "kidnapped20d",
-    "escort_rl/MultiTargetTracking20D-v0": "mtt20d",
-}
-
 
 class POMDPGymEnv(gym.Env):
     """One environment of a POMDP model with the gymnasium API.
@@ -57,31 +49,9 @@ class POMDPGymEnv(gym.Env):
         return obs.numpy().astype(np.float32), reward, terminated, False, {"true_state": s_next.numpy().copy()}
 
 
-def domain_config(domain: str):
-    """``configs/env/<domain>.yaml`` as a DictConfig (``name``, ``max_steps``, ...), read without
-    Hydra: the env group's own keys. The model's parameters are its class's defaults."""
-    from omegaconf import OmegaConf
-
-    from escort_rl.config import config_dir
-
-    return OmegaConf.load(config_dir() / "env" / f"{domain}.yaml")
-
-
 def make_domain_gym(domain: str, **model_kwargs) -> POMDPGymEnv:
     """Entry point of the registered ids: the domain's model, its parameters the defaults of its
     ``Params`` (the paper's domain) but those in ``model_kwargs``."""
     from escort_rl.models import DOMAINS
 
     return POMDPGymEnv(DOMAINS[domain](**model_kwargs))
-
-
-def register_gymnasium_envs() -> None:
-    """Register the package's gymnasium ids (idempotent)."""
-    for env_id, domain in GYM_IDS.items():
-        if env_id not in gym.registry:
-            gym.register(
-                id=env_id,
-                entry_point="escort_rl.envs.gym_adapter:make_domain_gym",
-                max_episode_steps=int(domain_config(domain).max_steps),
-                kwargs={"domain": domain},
-            )

@@ -299,11 +299,11 @@ DOMAIN_IDS = ["escort_rl/LightDark10D-v0", "escort_rl/KidnappedRobot20D-v0", "es
 def test_every_domain_passes_the_gymnasium_checker(env_id):
     from gymnasium.utils.env_checker import check_env
 
-    from escort_rl.envs.gym_adapter import GYM_IDS, domain_config
+    from escort_rl.envs.registration import GYM_IDS, domain_max_steps
 
     env = gymnasium.make(env_id)
     check_env(env.unwrapped, skip_render_check=True)
-    assert env.spec.max_episode_steps == domain_config(GYM_IDS[env_id]).max_steps
+    assert env.spec.max_episode_steps == domain_max_steps(GYM_IDS[env_id])
     obs, info = env.reset(seed=0)
     assert obs.shape == (env.unwrapped.model.obs_dim,) and np.isfinite(obs).all()
     env.close()
