@@ -14,7 +14,8 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/python -m pip install -q -e ".[dev,atari,ray]"
 	touch $@
 
-# Train ESCORT-RL's default job (Light-Dark 10D) and evaluate it; results in outputs/lightdark10d/.
+# Train ESCORT-RL's default job (Light-Dark 10D) and evaluate it; results in
+# outputs/lightdark10d/escort_train-ppo-seed0/.
 run: setup
 	$(BIN)/escort-rl run $(ARGS)
 

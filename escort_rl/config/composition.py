@@ -36,6 +36,8 @@ def compose(overrides: list[str] | None = None, config_name: str = "config") -> 
     OmegaConf.set_struct(cfg, True)
     if config_name == "config":
         check_composed(cfg)
+        # the run's folder is fixed when the run is composed (config.yaml records the path itself)
+        cfg.output_dir = str(cfg.output_dir)
     return cfg
 
 

@@ -211,6 +211,28 @@ def _diff(a, b, path: str) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------ the state
+# keys that say how a run was started or where it is, not what it trains
+_NOT_THE_RUN = ("resume", "overrides", "output_dir")
+
+
+def check_new_run_dir(cfg: DictConfig, run_dir: Path) -> None:
+    """Raise :class:`ConfigError` naming ``output_dir`` when ``run_dir`` already holds a run
+    (its ``config.yaml``) whose config differs from ``cfg``: a new run must not mix its config and
+    checkpoints with another's. The same config may start again there."""
+    saved_path = Path(run_dir) / "config.yaml"
+    if not saved_path.is_file():
+        return
+    saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=False)
+    now = OmegaConf.to_container(cfg, resolve=True)
+    differ = [k for k in _diff({k: v for k, v in saved.items() if k not in _NOT_THE_RUN},
+                               {k: v for k, v in now.items() if k not in _NOT_THE_RUN}, "")]
+    if differ:
+        shown = ", ".join(differ[:4]) + (f" and {len(differ) - 4} more" if len(differ) > 4 else "")
+        raise ConfigError(f"output_dir: '{run_dir}' already holds another run (its config.yaml differs in {shown}); "
+                          f"continue that run with resume={run_dir}, or start this one in another folder "
+                          "(output_dir=...)")
+
+
 def fresh_state() -> dict:
     """The trainer state of a new run."""
     return {"iteration": 0, "frames": 0, "seconds": 0.0, "history": []}
@@ -223,7 +245,9 @@ def restore(cfg: DictConfig, components: dict, resume_state: dict | None) -> tup
     :func:`escort_rl.trainers.checkpointing.load_checkpoint`); the run directory is the one that
     holds the checkpoint, which ``cfg.output_dir`` must name (:func:`resumed_run_dir`)."""
     if resume_state is None:
-        return fresh_state(), output_path(cfg.output_dir), None
+        run_dir = output_path(cfg.output_dir)
+        check_new_run_dir(cfg, run_dir)
+        return fresh_state(), run_dir, None
     loaded = load_checkpoint(resume_state["path"], **components)
     saved = loaded["trainer_state"]
     state = {**fresh_state(), **{k: saved[k] for k in ("iteration", "frames", "history") if k in saved},

@@ -1,0 +1,34 @@
+"""One run per folder: the default ``output_dir`` is derived from env, filter, trainer and seed, and
+a folder that holds another run is refused unless ``resume=`` names it."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import tiny_overrides
+
+from escort_rl.config import ConfigError, compose
+from escort_rl.trainers.resume import train_config
+from escort_rl.trainers.training import train
+
+
+def test_the_default_folder_names_env_filter_trainer_and_seed():
+    assert compose().output_dir == "outputs/lightdark10d/escort_train-ppo-seed0"
+    cfg = compose(["env=mtt20d", "filter=sir", "trainer=reinforce", "seed=7"])
+    assert cfg.output_dir == "outputs/mtt20d/sir-reinforce-seed7"
+
+
+def test_a_folder_holding_another_run_is_refused_unless_resumed(tmp_path):
+    run = tmp_path / "run"
+    first = tiny_overrides("trainer.iterations=1", f"output_dir={run}")
+    train(compose(first), progress=False)
+    saved = (run / "config.yaml").read_text()
+    with pytest.raises(ConfigError) as info:
+        train(compose(tiny_overrides("trainer.iterations=1", "seed=5", f"output_dir={run}")), progress=False)
+    message = str(info.value)
+    assert message.startswith(f"output_dir: '{run}' already holds another run") and "seed" in message
+    assert f"resume={run}" in message and "\n" not in message
+    assert (run / "config.yaml").read_text() == saved  # nothing of the refused run was written
+    train(compose(first), progress=False)  # the same config may start again in its folder
+    cfg, state = train_config([f"resume={run}", "trainer.iterations=2"])  # and resume= continues it
+    assert state is not None
+    train(cfg, resume_state=state, progress=False)
