@@ -4,8 +4,8 @@ a folder that holds another run is refused unless ``resume=`` names it."""
 from __future__ import annotations
 
 import pytest
-from conftest import tiny_overrides
 
+from conftest import tiny_overrides
 from escort_rl.config import ConfigError, compose
 from escort_rl.trainers.resume import train_config
 from escort_rl.trainers.training import train
