@@ -110,7 +110,8 @@ def register(subparsers) -> None:
     cur = subparsers.add_parser("curves", help="learning curves of training runs side by side",
                                 description="Return, final distance to goal and (DVRL) ELBO against frames for "
                                 "each run directory; writes learning_curves.png, .md and .json.")
-    cur.add_argument("runs", nargs="+", help="run directories (or checkpoints), e.g. outputs/lightdark10d/escort_train-ppo-seed0")
+    cur.add_argument("runs", nargs="+",
+                     help="run directories (or checkpoints), e.g. outputs/lightdark10d/escort_train-ppo-seed0")
     options.add_output_option(cur, "outputs/bench/curves", "learning_curves.png, .md and .json")
     cur.set_defaults(handler=main)
 
