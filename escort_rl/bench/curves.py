@@ -13,6 +13,7 @@ import math
 from pathlib import Path
 
 from escort_rl.bench.core import options
+from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 
@@ -101,7 +102,7 @@ def write_curves(run_dirs: list[str], output: str | Path) -> list[dict]:
     out.mkdir(parents=True, exist_ok=True)
     plot_learning_curves(runs, out / "learning_curves.png")
     (out / "learning_curves.md").write_text(curves_markdown(runs))
-    (out / "learning_curves.json").write_text(json.dumps(runs, indent=1))
+    (out / "learning_curves.json").write_text(json.dumps(with_metadata(runs), indent=1))
     return runs
 
 

@@ -10,6 +10,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from escort_rl.bench.core import options
 from escort_rl.modules import make_deepsets_policy
+from escort_rl.reporting.metadata import with_metadata
 from escort_rl.trainers.builders import build_actor, build_model, env_factory
 from escort_rl.trainers.scaffold import make_collector
 
@@ -94,5 +95,5 @@ def main(args) -> None:
               f"{row['frames_per_second']:.0f} frames/s ({row['frames']} frames in {row['seconds']:.2f} s)")
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "throughput.json").write_text(json.dumps(rows, indent=1))
+    (out / "throughput.json").write_text(json.dumps(with_metadata(rows), indent=1))
     print(f"results: {(out / 'throughput.json').resolve()}")

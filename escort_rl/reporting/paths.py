@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from escort_rl.reporting.metadata import with_metadata
+
 
 def display_path(path: Path) -> str:
     """The path relative to the working directory when it lies below it (reports stay portable)."""
@@ -15,11 +17,13 @@ def display_path(path: Path) -> str:
 
 
 def write_results(out: Path, stem: str, result, markdown: str, seconds: float | None = None) -> None:
-    """Write a benchmark's ``<stem>.json`` and ``<stem>.md`` into ``out`` (created), print the Markdown
+    """Write a benchmark's ``<stem>.json`` (with the run's commit, versions and hardware under
+    ``"run"``: :func:`~escort_rl.reporting.metadata.with_metadata`) and ``<stem>.md`` into ``out``
+    (created), print the Markdown
     and where the results are (with the run's seconds, if given)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    (out / f"{stem}.json").write_text(json.dumps(with_metadata(result), indent=1))
     (out / f"{stem}.md").write_text(markdown)
     print(markdown)
     print(f"results: {out.resolve()}" + (f" ({seconds:.1f} s)" if seconds is not None else ""))

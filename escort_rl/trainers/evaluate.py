@@ -16,6 +16,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from escort_rl.models import position_dims, position_error
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.planners import ScriptedBeliefController
+from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
 from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
 from escort_rl.trainers.builders import belief_keys, build_actor, build_model, make_env, trained_action_repeat
@@ -195,7 +196,7 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
         "train_seconds": float(meta["trainer_state"].get("seconds", float("nan"))),
         **rows,
     }
-    (out / "metrics.json").write_text(json.dumps(result, indent=2))
+    (out / "metrics.json").write_text(json.dumps(with_metadata(result), indent=2))
     history = meta["trainer_state"].get("history", [])
     if history:
         plot_learning_curve(history, out / "learning_curve.png")

@@ -60,7 +60,7 @@ def test_bench_scaling_quick(tmp_path):
 def test_bench_throughput_quick(tmp_path, capsys):
     assert main(["bench", "throughput", "num_particles=10", "--collector-workers", "1", "--num-envs", "2",
                  "--steps", "5", "--batches", "1", "--output", str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / "throughput.json").read_text())
+    rows = json.loads((tmp_path / "throughput.json").read_text())["rows"]
     assert rows[0]["frames"] == 10 and rows[0]["frames_per_second"] > 0
 
 
@@ -135,7 +135,7 @@ def test_training_cost_rows_measure_every_filter(tmp_path, monkeypatch):
 def test_bench_adaptive_stop_reports_iterations_per_tolerance(tmp_path, capsys):
     assert main(["bench", "adaptive-stop", "--domains", "lightdark10d", "--tolerances", "0", "1e9", "--seeds", "2",
                  "--steps", "2", "--output", str(tmp_path)]) == 0
-    rows = json.loads((tmp_path / "adaptive_stop.json").read_text())
+    rows = json.loads((tmp_path / "adaptive_stop.json").read_text())["rows"]
     by = {(r["domain"], r["tolerance"]): r for r in rows}
     assert by[("lightdark10d", 0.0)]["iterations"] == 50.0  # no stop: K
     assert by[("lightdark10d", 1e9)]["iterations"] == 5.0  # everything stops at the first check

@@ -16,7 +16,7 @@ def test_curves_of_a_dvrl_and_a_deepsets_run(tmp_path, capsys):
     train(compose([*small, "trainer=dvrl_a2c", f"output_dir={tmp_path / 'dvrl'}"]), progress=False)
     out = tmp_path / "curves"
     assert main(["bench", "curves", str(tmp_path / "sir"), str(tmp_path / "dvrl"), "--output", str(out)]) == 0
-    runs = json.loads((out / "learning_curves.json").read_text())
+    runs = json.loads((out / "learning_curves.json").read_text())["rows"]
     assert [r["label"] for r in runs] == ["sir + DeepSets (ppo)", "dvrl"]
     assert [len(r["history"]) for r in runs] == [2, 2] and "elbo" in runs[1]["history"][0]
     md = (out / "learning_curves.md").read_text()

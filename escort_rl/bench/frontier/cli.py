@@ -8,6 +8,7 @@ from pathlib import Path
 from escort_rl.bench.core import options
 from escort_rl.bench.frontier.cells import FILTER_METHODS, parse_variant
 from escort_rl.bench.frontier.spec import DEFAULT_OUTPUT, METRICS, FrontierSpec
+from escort_rl.reporting.metadata import with_metadata
 
 FLAGS = ("seeds", "steps", "reference_particles", "threads")
 """The options that set the spec's field of the same name when given (else ``--quick``'s or the default)."""
@@ -116,7 +117,7 @@ def write_frontier(out: Path, result: dict, echo: bool = True) -> None:
                   ylabel=f"{result['metric']} to the reference ({result['part']})",
                   title=f"{result['model_name']} " + " ".join(result["model_args"]), label=label)
     md = frontier_markdown(result)
-    (out / "frontier.json").write_text(json.dumps(result, indent=1))
+    (out / "frontier.json").write_text(json.dumps(with_metadata(result), indent=1))
     (out / "frontier.md").write_text(md)
     if echo:
         print(md)
