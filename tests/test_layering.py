@@ -31,7 +31,7 @@ BELOW = {
     "trainers": _SIMULATION | {"modules", "planners", "config", "metrics", "reporting"},
     "bench": _SIMULATION | {"modules", "planners", "config", "metrics", "reporting", "trainers"},
     "cli": _SIMULATION | {"modules", "planners", "config", "metrics", "reporting", "trainers", "bench"},
-    "": _SIMULATION,  # the package's own __init__
+    "": _SIMULATION | {"trainers"},  # the package's own __init__: its entry points (load_policy)
 }
 
 
