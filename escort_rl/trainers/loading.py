@@ -20,11 +20,10 @@ def load_policy(run: str | Path):
     ``torchrl.envs.utils.set_exploration_type(ExplorationType.DETERMINISTIC)`` it takes the most
     probable one, as the evaluation does.
 
-    Example::
+    Example (after ``make run``; ``env`` the run's belief env)::
 
-        >>> import escort_rl                                   # doctest: +SKIP
-        >>> policy = escort_rl.load_policy("outputs/lightdark10d/escort_train-ppo-seed0")
-        >>> td = policy(env.reset())                           # td["action"]: [B]
+        policy = escort_rl.load_policy("outputs/lightdark10d/escort_train-ppo-seed0")
+        td = policy(env.reset())  # td["action"]: [B]
     """
     from escort_rl.trainers.evaluate import trained_policy
 
