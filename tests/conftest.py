@@ -1,5 +1,7 @@
 """Shared test helpers: seeded generators and tiny configs.
 
+- :func:`config_error` (import it too): the one-line message of the ``ConfigError`` an override
+  list raises.
 - :func:`gen` (import it: ``from conftest import gen``): a CPU generator with a given seed, for tests
   whose expected values were worked out for that seed.
 - The ``per_test_seed`` and ``per_test_generator`` fixtures: a seed of the test's own, stable (hashed
@@ -23,6 +25,17 @@ TINY_TRAIN = ["trainer=reinforce", "trainer.num_envs=4", "env.max_steps=12", "nu
               "trainer.minibatch_size=64", "trainer.checkpoint_every=1", "filter.compile=false"]
 """The default job's filter (ESCORT) at a tiny size; eager, because compiling in every test process would
 dominate the test time (``tests/belief/test_escort.py`` checks that compiled and eager updates agree)."""
+
+
+def config_error(overrides) -> str:
+    """The message of the ``ConfigError`` that composing ``overrides`` raises (it must be one line)."""
+    from escort_rl.config import ConfigError, compose
+
+    with pytest.raises(ConfigError) as info:
+        compose(overrides)
+    message = str(info.value)
+    assert "\n" not in message, message
+    return message
 
 
 def gen(seed: int) -> torch.Generator:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from conftest import config_error
 from escort_rl.belief import ESCORTFilter, ParticleBelief, SIRFilter, SVGDFilter
 from escort_rl.envs import POMDPEnv
 from escort_rl.models import LightDark10D, LinearGaussian
@@ -179,41 +180,33 @@ def test_pomdp_env_names_a_cuda_device_this_machine_lacks():
 # ---------------------------------------------------------------------------------------------
 
 
-def _config_error(overrides) -> str:
-    from escort_rl.config import ConfigError, compose
-
-    with pytest.raises(ConfigError) as info:
-        compose(overrides)
-    message = str(info.value)
-    assert "\n" not in message, message
-    return message
 
 
 def test_an_empty_output_dir_is_refused_instead_of_writing_into_the_working_directory():
-    assert _config_error(["output_dir=''"]).startswith("config: output_dir: empty; pass a folder")
+    assert config_error(["output_dir=''"]).startswith("config: output_dir: empty; pass a folder")
 
 
 def test_an_output_dir_inside_a_folder_that_cannot_be_written_is_named(tmp_path, monkeypatch):
     from escort_rl.config import schema
 
     monkeypatch.setattr(schema.os, "access", lambda path, mode: False)
-    message = _config_error([f"output_dir={tmp_path / 'run'}"])
+    message = config_error([f"output_dir={tmp_path / 'run'}"])
     assert message == (f"config: output_dir: '{tmp_path / 'run'}' cannot be written: '{tmp_path}' is not writable; "
                        "pass a folder you can write to")
 
 
 def test_a_seed_torch_cannot_take_is_named():
-    message = _config_error(["seed=99999999999999999999999"])
+    message = config_error(["seed=99999999999999999999999"])
     assert message == "config: seed: must be < 9223372036854775808, got 99999999999999999999999"
 
 
 def test_a_learning_rate_that_overflows_adams_first_step_is_named():
-    assert _config_error(["trainer.lr=1e38"]) == "config: trainer.lr: must be < 1e+37, got 1e+38"
+    assert config_error(["trainer.lr=1e38"]) == "config: trainer.lr: must be < 1e+37, got 1e+38"
 
 
 def test_an_interpolation_that_does_not_resolve_names_its_key(monkeypatch):
     monkeypatch.delenv("ESCORT_RL_TEST_UNSET", raising=False)
-    message = _config_error(["output_dir=${oc.env:ESCORT_RL_TEST_UNSET}"])
+    message = config_error(["output_dir=${oc.env:ESCORT_RL_TEST_UNSET}"])
     assert message.startswith("config: output_dir: KeyError raised while resolving interpolation"), message
     assert "ESCORT_RL_TEST_UNSET" in message
 

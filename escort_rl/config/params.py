@@ -36,6 +36,7 @@ import dataclasses
 import math
 import types
 import typing
+from collections.abc import Mapping, Sequence
 from typing import Any, Callable, Dict, List
 
 from escort_rl.config.errors import ConfigError
@@ -50,16 +51,25 @@ def param(default: Any = MISSING, **meta) -> Any:
     list or dict default is copied for every instance."""
     if isinstance(default, (list, dict)):
         value = default
-        return dataclasses.field(default_factory=lambda: copy_plain(value), metadata=meta)
+        return dataclasses.field(default_factory=lambda: plain_value(value), metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
 
 
-def copy_plain(value):
-    """A deep copy of nested lists and dicts (other values are shared)."""
-    if isinstance(value, list):
-        return [copy_plain(v) for v in value]
-    if isinstance(value, dict):
-        return {k: copy_plain(v) for k, v in value.items()}
+def plain_value(value):
+    """``value`` as a plain config value, copied: every mapping (a ``dict``, an OmegaConf
+    ``DictConfig``) a ``dict``, every sequence but a string (a tuple, a ``ListConfig``) and every
+    array or tensor (anything with ``tolist``) a ``list``, recursively; other values unchanged.
+
+    Examples:
+        >>> plain_value(((1.0, 2.0), (3.0, 4.0)))
+        [[1.0, 2.0], [3.0, 4.0]]
+    """
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        return value.tolist()
+    if isinstance(value, Mapping):
+        return {k: plain_value(v) for k, v in value.items()}
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return [plain_value(v) for v in value]
     return value
 
 
@@ -197,7 +207,8 @@ def params_problem(params, prefix: str = "", stage: str = "train") -> str | None
 
 def build_params(cls: type, params=None, kwargs: typing.Mapping | None = None, *, owner: str):
     """An instance of the parameters dataclass ``cls``, checked: ``params`` (an instance of
-    ``cls``, or ``None`` for the defaults) with the fields in ``kwargs`` replaced. Raises
+    ``cls``, or ``None`` for the defaults) with the fields in ``kwargs`` replaced, each made a plain
+    value first (:func:`plain_value`: a tuple or a ``ListConfig`` becomes a list). Raises
     :class:`ConfigError` ``"<owner>.<field>: ..."`` for a bad value and names the known
     parameters for an unknown one."""
     kwargs = dict(kwargs or {})
@@ -207,6 +218,7 @@ def build_params(cls: type, params=None, kwargs: typing.Mapping | None = None, *
     unknown = [k for k in kwargs if k not in known]
     if unknown:
         raise ConfigError(f"{owner}: unknown parameter '{unknown[0]}'; {owner} takes {', '.join(known)}")
+    kwargs = {k: plain_value(v) for k, v in kwargs.items()}  # tuples, OmegaConf containers, tensors
     built = dataclasses.replace(params, **kwargs) if params is not None else cls(**kwargs)
     problem = params_problem(built, prefix=f"{owner}.")
     if problem is not None:

@@ -83,7 +83,6 @@ from escort_rl.models.gaussian import (
     make_positive_definite,
     nearest_correlation_matrix,
 )
-from escort_rl.models.plain import plain_values
 
 N_CALIBRATION = 5
 N_FEATURES = 10
@@ -299,7 +298,7 @@ class KidnappedRobot20D(HasParams, AdditiveGaussianTransition):
 
     def __init__(self, params: KidnappedRobot20DParams | None = None, *,
                  device: torch.device | str | None = None, **kwargs) -> None:
-        self.params = p = build_params(KidnappedRobot20DParams, params, plain_values(kwargs),
+        self.params = p = build_params(KidnappedRobot20DParams, params, kwargs,
                                        owner=type(self).__name__)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self._set_scalars(p)

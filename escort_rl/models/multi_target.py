@@ -101,7 +101,6 @@ from escort_rl.models.multi_target_params import (
     check_zone_grid,
     check_zone_tables,
 )
-from escort_rl.models.plain import plain_values
 from escort_rl.models.zone_grid import (
     bin_log_prob_grads,
     bin_log_probs,
@@ -190,7 +189,7 @@ class MultiTargetTracking20D(HasParams, AdditiveGaussianTransition):
 
     def __init__(self, params: MultiTargetTracking20DParams | None = None, *,
                  device: torch.device | str | None = None, **kwargs) -> None:
-        self.params = p = build_params(MultiTargetTracking20DParams, params, plain_values(kwargs),
+        self.params = p = build_params(MultiTargetTracking20DParams, params, kwargs,
                                        owner=type(self).__name__)
         act = check_actions(p.actions)
         flow_c, goal_t = check_pair("flow_center", p.flow_center), check_pair("goal", p.goal)

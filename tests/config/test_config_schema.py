@@ -12,6 +12,7 @@ import torch
 import yaml
 from omegaconf import MISSING, OmegaConf
 
+from conftest import config_error
 from escort_rl.cli import main
 from escort_rl.config import ConfigError, bench_schemas, checking, compose, config_dir, option_names, schema
 from escort_rl.trainers.builders import build_filter, build_model
@@ -23,12 +24,6 @@ FILTERS = option_names("filter")
 TRAINERS = option_names("trainer")
 
 
-def _error(overrides) -> str:
-    with pytest.raises(ConfigError) as info:
-        compose(overrides)
-    message = str(info.value)
-    assert "\n" not in message, message
-    return message
 
 
 # ------------------------------------------------------------------------------ composing
@@ -125,52 +120,55 @@ def test_types_are_coerced():
     ("evaluate.greedy=maybe", "evaluate.greedy"),
 ])
 def test_a_bad_value_names_its_key(override, key):
-    assert _error([override]).startswith(f"config: {key}: ")
+    assert config_error([override]).startswith(f"config: {key}: ")
 
 
 def test_type_errors_say_what_was_expected():
-    assert _error(["num_particles=2.5"]) == "config: num_particles: expected an int, got '2.5'"
-    assert _error(["env=mtt20d", "env.model.goal=[1,a]"]) == "config: env.model.goal[1]: expected a number, got 'a'"
-    assert "must be a finite number" in _error(["env.model.dt=inf"])
+    assert config_error(["num_particles=2.5"]) == "config: num_particles: expected an int, got '2.5'"
+    assert config_error(["env=mtt20d", "env.model.goal=[1,a]"]) == \
+        "config: env.model.goal[1]: expected a number, got 'a'"
+    assert "must be a finite number" in config_error(["env.model.dt=inf"])
 
 
 def test_values_of_other_options_are_checked_too():
-    assert _error(["env=kidnapped20d", "env.model.detection_prob=1.0"]).startswith(
+    assert config_error(["env=kidnapped20d", "env.model.detection_prob=1.0"]).startswith(
         "config: env.model.detection_prob: must be < 1")
-    assert _error(["trainer=ppo", "trainer.gae_lambda=2"]).startswith("config: trainer.gae_lambda:")
-    assert _error(["filter=sir", "filter.resample_threshold=1.5"]).startswith("config: filter.resample_threshold:")
+    assert config_error(["trainer=ppo", "trainer.gae_lambda=2"]).startswith("config: trainer.gae_lambda:")
+    assert config_error(["filter=sir", "filter.resample_threshold=1.5"]).startswith(
+        "config: filter.resample_threshold:")
 
 
 def test_unknown_key_is_one_line_naming_the_full_key():
-    message = _error(["trainer.lrr=0.1"])
+    message = config_error(["trainer.lrr=0.1"])
     assert message.startswith("config: unknown key 'trainer.lrr'; check the spelling against `escort-rl config`")
-    assert _error(["filter=sir", "filter.num_steps=3"]).startswith("config: unknown key 'filter.num_steps'")
+    assert config_error(["filter=sir", "filter.num_steps=3"]).startswith("config: unknown key 'filter.num_steps'")
     assert compose(["+trainer.note=hello"]).trainer.note == "hello"  # added on purpose
 
 
 def test_unknown_option_and_unparsable_override():
-    message = _error(["filter=nope"])
+    message = config_error(["filter=nope"])
     assert message.startswith("config: no filter config 'nope'; choose one of ") and "_schema" not in message
-    assert _error(["filter=escort_schema"]).startswith("config: no filter config 'escort_schema'")
-    assert _error(["trainer.iterations=[1"]).startswith("config: cannot parse the override 'trainer.iterations=[1'")
+    assert config_error(["filter=escort_schema"]).startswith("config: no filter config 'escort_schema'")
+    assert config_error(["trainer.iterations=[1"]).startswith(
+        "config: cannot parse the override 'trainer.iterations=[1'")
 
 
 def test_device_without_cuda(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    message = _error(["device=cuda"])
+    message = config_error(["device=cuda"])
     assert message.startswith("config: device: ") and "device=cpu" in message
-    assert _error(["device=tpu0"]).startswith("config: device: ")
+    assert config_error(["device=tpu0"]).startswith("config: device: ")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
     assert compose(["device=cuda:0"]).device == "cuda:0"
-    assert _error(["device=cuda:1"]).startswith("config: device: ")
+    assert config_error(["device=cuda:1"]).startswith("config: device: ")
 
 
 def test_output_dir_that_is_a_file(tmp_path):
     f = tmp_path / "file.txt"
     f.write_text("x")
-    assert _error([f"output_dir={f}"]).startswith("config: output_dir: ")
-    assert _error([f"output_dir={f / 'run'}"]).startswith("config: output_dir: ")
+    assert config_error([f"output_dir={f}"]).startswith("config: output_dir: ")
+    assert config_error([f"output_dir={f / 'run'}"]).startswith("config: output_dir: ")
     assert compose([f"output_dir={tmp_path / 'new' / 'run'}"]).output_dir == str(tmp_path / "new" / "run")
 
 
@@ -188,11 +186,11 @@ def config_copy(tmp_path, monkeypatch):
 def test_a_yaml_key_the_schema_lacks_is_named(config_copy):
     with open(config_copy / "trainer" / "ppo.yaml", "a") as fh:
         fh.write("new_knob: 1\n")
-    assert _error(["trainer=ppo"]).startswith("config: trainer.new_knob: a key of the yaml that its schema "
+    assert config_error(["trainer=ppo"]).startswith("config: trainer.new_knob: a key of the yaml that its schema "
                                               "PPOConfig lacks")
     with open(config_copy / "trainer" / "reinforce.yaml", "a") as fh:
         fh.write("iterations: many\n")
-    assert _error(["trainer=reinforce"]).startswith("config: trainer.iterations: expected an int, got 'many'")
+    assert config_error(["trainer=reinforce"]).startswith("config: trainer.iterations: expected an int, got 'many'")
 
 
 # ------------------------------------------------------------------------------ before training
