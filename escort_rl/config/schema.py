@@ -271,7 +271,9 @@ class CollectorConfig:
 
 @dataclass
 class LoggerConfig:
-    backend: str = _f(MISSING, choices=["csv", "tensorboard"])
+    backend: str = _f(MISSING, choices=["csv", "tensorboard", "wandb"])
+    project: str = "escort-rl"
+    offline: bool = True
 
 
 @dataclass

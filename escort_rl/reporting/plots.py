@@ -226,3 +226,23 @@ def plot_regime_map(points: list[dict], path: Path, budgets=(1.0, 10.0, 100.0), 
         ax.set_ylabel("dimension D")
         ax.set_title(f"closest within {budget:g} ms", fontsize=8)
     return _finish(fig, path, title)
+
+
+def plot_rows_with_seeds(rows: list[dict], metric: str, path: Path, ylabel: str, title: str = "") -> Path:
+    """One horizontal bar per row at ``row[metric]`` with its ``row[metric + "_se"]`` as an error bar,
+    and, where a row has them, its per-seed values (``row["per_seed"][metric]``) as dots."""
+    fig, ax = plt.subplots(figsize=(7, 0.6 * len(rows) + 1.2))
+    ys = list(range(len(rows)))[::-1]
+    for y, row in zip(ys, rows):
+        ax.barh(y, row[metric], xerr=row.get(f"{metric}_se", 0.0), color="C0" if row.get("per_seed") else "C7",
+                alpha=0.8, capsize=4)
+        seeds = row.get("per_seed", {}).get(metric, [])
+        ax.scatter(seeds, [y] * len(seeds), color="k", s=12, zorder=3)
+    ax.set_yticks(ys, [row["policy"] for row in rows], fontsize=8)
+    ax.set_xlabel(ylabel)
+    if title:
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -113,6 +113,20 @@ def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = No
     return rollout, per_step / repeat
 
 
+def policy_summary(cfg, model, policy, episodes: int, seed: int, make=make_env,
+                   estimates=None) -> tuple[dict, TensorDict, torch.Tensor]:
+    """One policy on ``episodes`` seeded episodes (:func:`run_episodes`; ``policy=None``: uniform-random
+    actions). Returns its :func:`summarise_episodes` with ``seconds_per_step`` and
+    ``first_step_seconds``, the rollout ``[E, T]``, and the position error per step averaged over the
+    episodes ``[T]``. ``estimates(rollout)``: the belief means when the rollout carries no particles
+    (see :func:`trained_policy`)."""
+    timing: dict = {}
+    rollout, step_s = run_episodes(cfg, policy, episodes, seed, timing, make=make)
+    metrics = first_episode_metrics(rollout, model, None if estimates is None else estimates(rollout))
+    summary = {**summarise_episodes(metrics), "seconds_per_step": step_s, **timing}
+    return summary, rollout, torch.nanmean(metrics["position_error"], 0)
+
+
 def trained_policy(cfg, checkpoint):
     """The trained policy of a checkpoint of either trainer, the env maker it runs in, and a function
     ``rollout -> belief_mean [E, T, d]`` (``None``: the rollout's particles give the belief mean).
@@ -168,19 +182,14 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     out.mkdir(parents=True, exist_ok=True)
 
     mode = ExplorationType.DETERMINISTIC if greedy else ExplorationType.RANDOM
-    t_trained, t_random, t_scripted = {}, {}, {}
     with set_exploration_type(mode):
-        trained, trained_step_s = run_episodes(cfg, policy, episodes, seed, t_trained, make=make)
-    random_rollout, random_step_s = run_episodes(cfg, None, episodes, seed, t_random)
-    m_trained = first_episode_metrics(trained, model, estimates(trained))
-    m_random = first_episode_metrics(random_rollout, model)
-    rows = {"trained": {**summarise_episodes(m_trained), "seconds_per_step": trained_step_s, **t_trained}}
+        rows = {}
+        rows["trained"], trained, trained_error = policy_summary(cfg, model, policy, episodes, seed, make=make,
+                                                                 estimates=estimates)
     scripted = scripted_policy(cfg, model)
     if scripted is not None:
-        scripted_rollout, scripted_step_s = run_episodes(cfg, scripted, episodes, seed, t_scripted)
-        rows["scripted"] = {**summarise_episodes(first_episode_metrics(scripted_rollout, model)),
-                            "seconds_per_step": scripted_step_s, **t_scripted}
-    rows["random"] = {**summarise_episodes(m_random), "seconds_per_step": random_step_s, **t_random}
+        rows["scripted"] = policy_summary(cfg, model, scripted, episodes, seed)[0]
+    rows["random"] = policy_summary(cfg, model, None, episodes, seed)[0]
     result = {
         "checkpoint": display_path(ckpt_path),
         "env": cfg.env.name,
@@ -204,7 +213,7 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     if "particles" in trained["next"].keys():
         plot_belief_projection(trained["next", "particles"][0][..., pos], trained["next", "true_state"][0, :, pos],
                                out / "belief_projection.png",
-                               position_error=torch.nanmean(m_trained["position_error"], 0))
+                               position_error=trained_error)
     (out / "summary.md").write_text(_markdown(result))
     return result
 

@@ -94,12 +94,21 @@ class ResumingTensorboardLogger(TensorboardLogger):
 
 
 def make_logger(cfg: DictConfig, run_dir: Path, start_iteration: int = 0):
-    """TorchRL's CSV logger (or TensorBoard with ``logger.backend=tensorboard``) under ``run_dir/logs``,
-    for a run that starts after iteration ``start_iteration`` (0: a new run). The steps logged after
-    it by an earlier session are dropped (:func:`truncate_scalar_logs`; TensorBoard's
-    ``purge_step``), so that each iteration is logged once."""
+    """TorchRL's CSV logger (or TensorBoard with ``logger.backend=tensorboard``, Weights & Biases
+    with ``logger.backend=wandb``) under ``run_dir/logs``, for a run that starts after iteration
+    ``start_iteration`` (0: a new run). The steps logged after it by an earlier session are dropped
+    (:func:`truncate_scalar_logs`; TensorBoard's ``purge_step``), so that each iteration is logged
+    once. W&B logs into project ``logger.project``, offline unless ``logger.offline=false``: an offline
+    run lands in ``logs/wandb/`` and ``wandb sync`` uploads it later."""
     from torchrl.record.loggers import CSVLogger
 
+    if cfg.logger.backend == "wandb":
+        from torchrl.record.loggers import WandbLogger
+
+        offline = bool(cfg.logger.get("offline", True))
+        return WandbLogger(exp_name=run_dir.name, offline=offline, save_dir=str(run_dir / "logs"),
+                           project=str(cfg.logger.get("project", "escort-rl")),
+                           mode="offline" if offline else "online")
     if cfg.logger.backend == "tensorboard":
         return ResumingTensorboardLogger(exp_name="logs", log_dir=str(run_dir), purge_step=start_iteration + 1)
     truncate_scalar_logs(run_dir / "logs", start_iteration)

@@ -32,6 +32,9 @@ def validate_train_config(cfg: DictConfig) -> None:
     if cfg.logger.backend == "tensorboard" and importlib.util.find_spec("tensorboard") is None:
         raise ConfigError("logger.backend: 'tensorboard' needs the tensorboard package (pip install tensorboard); "
                           "or use logger.backend=csv")
+    if cfg.logger.backend == "wandb" and importlib.util.find_spec("wandb") is None:
+        raise ConfigError("logger.backend: 'wandb' needs the wandb package (pip install escort-rl[wandb]); "
+                          "or use logger.backend=csv")
 
 
 def check_exploring_starts(cfg: DictConfig) -> None:

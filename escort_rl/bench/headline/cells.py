@@ -1,0 +1,132 @@
+"""The cells of ``bench headline``: one training seed of a row, trained and then evaluated
+(:class:`TrainedCell`), and one evaluation of the scripted controller or a random policy
+(:class:`FixedPolicyCell`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from escort_rl.bench.core.runner import Cell
+
+
+def safe_name(label: str) -> str:
+    """``label`` as a file name: letters, digits, ``-``, ``_`` and ``.``; others become ``_``."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)
+
+
+def row_overrides(base, row) -> list[str]:
+    """``base`` (the run's sizes) then a row's own ``row``, without the base overrides the row
+    replaces: the same key, or every key under a group the row picks (``filter=sir_rough`` drops
+    ``filter.compile=false``)."""
+    from escort_rl.trainers.resume import merge_override_lists
+
+    return merge_override_lists(list(base), list(row))
+
+
+def per_episode(metrics: dict) -> dict:
+    """The per-episode lists the table aggregates: success, final distance (NaN without a goal),
+    return and env steps."""
+    return {"success": metrics["success"].double().tolist(),
+            "final_distance": metrics["final_distance"].double().tolist(),
+            "episode_return": metrics["episode_return"].double().tolist(),
+            "steps": metrics["steps"].double().tolist()}
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainedCell(Cell):
+    """One training seed of a row: ``escort-rl train`` with ``overrides`` and ``seed`` into
+    ``run_dir`` (a killed cell resumes there from its last checkpoint), then the final policy, greedy,
+    on ``episodes`` episodes from env seed ``eval_seed``."""
+
+    label: str
+    overrides: tuple[str, ...]
+    seed: int
+    run_dir: str
+    episodes: int
+    eval_seed: int
+
+    def key(self) -> str:
+        return f"trained/{safe_name(self.label)}/seed{self.seed}"
+
+    def overrides_with_run(self) -> list[str]:
+        return [*self.overrides, f"seed={self.seed}", f"output_dir={self.run_dir}"]
+
+    def spec(self) -> dict:
+        """The cell's fields and the config they compose to: a changed config file is a new cell."""
+        from omegaconf import OmegaConf
+
+        from escort_rl.config import compose
+
+        return {**super().spec(), "config": OmegaConf.to_container(compose(self.overrides_with_run()), resolve=True)}
+
+    def run(self) -> dict:
+        from omegaconf import OmegaConf
+        from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+        from escort_rl.trainers.builders import build_model
+        from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
+        from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes, trained_policy
+        from escort_rl.trainers.resume import train_config
+        from escort_rl.trainers.training import train
+
+        overrides = self.overrides_with_run()
+        if (Path(self.run_dir) / "checkpoints").is_dir():
+            overrides.append(f"resume={self.run_dir}")
+        cfg, saved = train_config(overrides)
+        if saved is None or saved["trainer_state"]["iteration"] < int(cfg.trainer.iterations):
+            train(cfg, resume_state=saved, progress=False)
+        checkpoint = resolve_checkpoint(self.run_dir)
+        state = load_checkpoint(checkpoint)["trainer_state"]
+        model = build_model(cfg.env, cfg.device)
+        policy, make, estimates = trained_policy(cfg, checkpoint)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            rollout, step_s = run_episodes(cfg, policy, self.episodes, self.eval_seed, make=make)
+        return {"label": self.label, "seed": self.seed, "filter": str(cfg.filter.name),
+                "run_dir": self.run_dir, "config": OmegaConf.to_container(cfg, resolve=True),
+                **per_episode(first_episode_metrics(rollout, model, estimates(rollout))),
+                "frames": int(state.get("frames", 0)), "train_seconds": float(state.get("seconds", float("nan"))),
+                "seconds_per_step": step_s}
+
+
+@dataclass(frozen=True, kw_only=True)
+class FixedPolicyCell(Cell):
+    """The scripted controller at velocity gain ``gain`` on the belief of ``filter`` (``gain=None``:
+    uniform-random actions), on ``episodes`` episodes from env seed ``eval_seed``; ``overrides`` are
+    the run's sizes."""
+
+    filter: str
+    gain: float | None
+    overrides: tuple[str, ...]
+    episodes: int
+    eval_seed: int
+
+    def config(self):
+        from escort_rl.config import compose
+
+        return compose(row_overrides(self.overrides, (f"filter={self.filter}",)))
+
+    def spec(self) -> dict:
+        from omegaconf import OmegaConf
+
+        return {**super().spec(), "config": OmegaConf.to_container(self.config(), resolve=True)}
+
+    def key(self) -> str:
+        policy = "random" if self.gain is None else f"scripted-gain{self.gain:g}"
+        return f"fixed/{self.filter}/{policy}-seed{self.eval_seed}"
+
+    def run(self) -> dict:
+        from escort_rl.planners import ScriptedBeliefController
+        from escort_rl.trainers.builders import belief_keys, build_model
+        from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes
+
+        cfg = self.config()
+        model = build_model(cfg.env, cfg.device)
+        policy = None
+        if self.gain is not None:
+            particles_key, log_weights_key = belief_keys(cfg)
+            policy = ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key,
+                                              gain_v=self.gain)
+        rollout, step_s = run_episodes(cfg, policy, self.episodes, self.eval_seed)
+        return {"filter": self.filter, "gain": self.gain, "eval_seed": self.eval_seed,
+                **per_episode(first_episode_metrics(rollout, model)), "seconds_per_step": step_s}

@@ -1,0 +1,63 @@
+"""``escort-rl bench headline``: the default job over several training seeds beside PPO on SIR
+beliefs only, the scripted controller at its best gain and random, with error bars."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from escort_rl.bench.core import options
+from escort_rl.bench.core.runner import backend_from_args
+from escort_rl.bench.headline.spec import DEFAULT_OUTPUT, HeadlineSpec
+from escort_rl.reporting.metadata import with_metadata
+
+
+def register(subparsers) -> None:
+    full, quick = HeadlineSpec(), HeadlineSpec.quick()
+    p = subparsers.add_parser(
+        "headline", help="the default job over several training seeds beside SIR-only PPO, scripted and random",
+        description="Train the default job (PPO, SIR warm start then ESCORT beliefs) and PPO on SIR beliefs only "
+        "for each training seed, evaluate every final policy on the same episodes, beside the scripted controller "
+        "at its best gain (chosen on other episodes) and a random policy; mean ± s.e. across training seeds. "
+        "A killed run resumes: finished cells are loaded and a training cell continues from its last checkpoint.")
+    options.add_seeds_option(p, None, "training seeds 0..N-1 per trained row", str(full.seeds))
+    p.add_argument("--episodes", type=int, default=None, help=f"evaluation episodes (default: {full.episodes})")
+    p.add_argument("--gains", type=float, nargs="+", default=None,
+                   help="the scripted controller's velocity gains searched (default: "
+                   f"{' '.join(f'{g:g}' for g in full.gains)})")
+    options.add_quick_option(p, f"{quick.seeds} seeds of a 2-iteration job, {quick.episodes} episodes of 20 steps")
+    options.add_output_option(p, DEFAULT_OUTPUT, "headline.md, headline.json, headline.png, cells/ and runs/")
+    options.add_runner_options(p, seeds_per_cell=False)
+    p.set_defaults(handler=main)
+
+
+def spec_from_args(args) -> HeadlineSpec:
+    base = HeadlineSpec.quick() if args.quick else HeadlineSpec()
+    changes = {k: v for k, v in (("seeds", args.seeds), ("episodes", args.episodes), ("threads", args.threads))
+               if v is not None}
+    if args.gains is not None:
+        changes["gains"] = tuple(args.gains)
+    return base.replace(output=Path(args.output), **changes)
+
+
+def write_headline(result: dict, out: Path) -> str:
+    """``headline.md``, ``headline.json`` and ``headline.png`` in ``out``; returns the Markdown."""
+    from escort_rl.bench.headline.report import headline_markdown
+    from escort_rl.reporting.plots import plot_rows_with_seeds
+
+    out.mkdir(parents=True, exist_ok=True)
+    md = headline_markdown(result)
+    (out / "headline.md").write_text(md)
+    (out / "headline.json").write_text(json.dumps(with_metadata(result), indent=1))
+    plot_rows_with_seeds(result["rows"], "success", out / "headline.png", "success rate (mean ± s.e.; dots: seeds)",
+                         title=f"Light-Dark 10D, {result['spec']['episodes']} evaluation episodes")
+    return md
+
+
+def main(args) -> None:
+    from escort_rl.bench.headline.run import run_headline
+
+    spec = spec_from_args(args)
+    result = run_headline(spec, backend_from_args(args))
+    print(write_headline(result, spec.output))
+    print(f"results: {spec.output.resolve()}")

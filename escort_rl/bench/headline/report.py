@@ -1,0 +1,49 @@
+"""The Markdown of ``bench headline``."""
+
+from __future__ import annotations
+
+import math
+
+
+def _cell(mean: float, se: float, digits: int) -> str:
+    if math.isnan(mean):
+        return "—"
+    return f"{mean:.{digits}f} ± {se:.{digits}f}"
+
+
+def headline_markdown(result: dict) -> str:
+    """The table: each row's success, final distance, return and steps (mean ± s.e.), its belief,
+    its training frames and minutes; then the gain search and how to read the table."""
+    spec = result["spec"]
+    lines = ["# Headline: PPO on particle beliefs, Light-Dark 10D", "",
+             f"Trained rows: {spec['seeds']} training seeds each, every seed's final policy greedy on the same "
+             f"{spec['episodes']} episodes (env seeds {spec['eval_seed']}..); mean ± s.e. **across training seeds** "
+             "of the per-seed means. Scripted and random rows: the same episodes, mean ± s.e. **over episodes**. "
+             "The scripted controller's velocity gain was chosen among "
+             f"{', '.join(f'{g:g}' for g in spec['gains'])} by success on {spec['episodes']} other episodes "
+             f"(env seeds {spec['selection_seed']}..).", "",
+             "| policy | belief | success | final distance | return | steps | frames | training minutes |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in result["rows"]:
+        trained = r["kind"] == "trained"
+        lines.append(
+            f"| {r['policy']} | {r['filter'] if r['kind'] != 'random' else '—'} | {_cell(r['success'], r['success_se'], 3)} | "
+            f"{_cell(r['final_distance'], r['final_distance_se'], 2)} | "
+            f"{_cell(r['episode_return'], r['episode_return_se'], 1)} | {_cell(r['steps'], r['steps_se'], 0)} | "
+            f"{r['frames'] if trained else '—'} | "
+            f"{_cell(r['train_minutes'], r['train_minutes_se'], 1) if trained else '—'} |")
+    lines += ["", "Per-seed success of the trained rows:", ""]
+    for r in result["rows"]:
+        if r["kind"] == "trained":
+            lines.append(f"- {r['policy']}: " + ", ".join(f"{v:.2f}" for v in r["per_seed"]["success"]))
+    lines += ["", "Gain search (success on the selection episodes):", "",
+              "| belief | " + " | ".join(f"gain {g:g}" for g in spec["gains"]) + " |",
+              "| --- |" + " --- |" * len(spec["gains"])]
+    for f in dict.fromkeys(s["filter"] for s in result["selection"]):
+        cells = {s["gain"]: s["success"] for s in result["selection"] if s["filter"] == f}
+        lines.append(f"| {f} | " + " | ".join(f"{cells[g]:.3f}" for g in spec["gains"]) + " |")
+    if spec["overrides"]:
+        lines += ["", "Overrides on every row: `" + " ".join(spec["overrides"]) + "`."]
+    lines += ["", "Training minutes: each seed's training wall-clock (collection and updates), "
+              f"{spec['threads']} torch thread(s) per cell."]
+    return "\n".join(lines) + "\n"

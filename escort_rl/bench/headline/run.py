@@ -1,0 +1,96 @@
+"""The headline table (:func:`run_headline`): every trained row over its seeds, the scripted
+controller's gain chosen on held-out episodes and then evaluated, and a random policy."""
+
+from __future__ import annotations
+
+import math
+
+from escort_rl.bench.core.runner import CellStore, run_cells
+from escort_rl.bench.headline.cells import FixedPolicyCell, TrainedCell, row_overrides, safe_name
+from escort_rl.bench.headline.spec import HeadlineSpec
+
+
+def mean_se(values: list[float]) -> tuple[float, float]:
+    """Mean and standard error of the non-NaN ``values`` (NaN, NaN when there are none; s.e. 0 for one).
+
+    Examples:
+        >>> mean_se([1.0, 2.0, 3.0])
+        (2.0, 0.5773502691896257)
+    """
+    xs = [float(v) for v in values if not math.isnan(float(v))]
+    if not xs:
+        return math.nan, math.nan
+    m = sum(xs) / len(xs)
+    if len(xs) == 1:
+        return m, 0.0
+    var = sum((x - m) ** 2 for x in xs) / (len(xs) - 1)
+    return m, math.sqrt(var / len(xs))
+
+
+def trained_cells(spec: HeadlineSpec) -> list[TrainedCell]:
+    return [TrainedCell(label=label, overrides=tuple(row_overrides(spec.overrides, overrides)), seed=seed,
+                        run_dir=str(spec.output / "runs" / f"{safe_name(label)}-seed{seed}"),
+                        episodes=spec.episodes, eval_seed=spec.eval_seed, threads=spec.threads)
+            for label, overrides in spec.rows for seed in range(spec.seeds)]
+
+
+def fixed_cell(spec: HeadlineSpec, filter_name: str, gain: float | None, eval_seed: int) -> FixedPolicyCell:
+    return FixedPolicyCell(filter=filter_name, gain=gain, overrides=spec.overrides, episodes=spec.episodes,
+                           eval_seed=eval_seed, threads=spec.threads)
+
+
+def trained_row(label: str, results: list[dict]) -> dict:
+    """A trained row: each metric's mean ± s.e. across the training seeds of the per-seed means."""
+    row = {"policy": label, "kind": "trained", "filter": results[0]["filter"], "seeds": len(results),
+           "per_seed": {}}
+    for key in ("success", "final_distance", "episode_return", "steps"):
+        per_seed = [mean_se(r[key])[0] for r in results]
+        row["per_seed"][key] = per_seed
+        row[key], row[f"{key}_se"] = mean_se(per_seed)
+    row["frames"] = results[0]["frames"]
+    row["train_minutes"], row["train_minutes_se"] = mean_se([r["train_seconds"] / 60 for r in results])
+    return row
+
+
+def fixed_row(label: str, result: dict, kind: str) -> dict:
+    """A scripted or random row: each metric's mean ± s.e. over the episodes."""
+    row = {"policy": label, "kind": kind, "filter": result["filter"], "gain": result["gain"]}
+    for key in ("success", "final_distance", "episode_return", "steps"):
+        row[key], row[f"{key}_se"] = mean_se(result[key])
+    return row
+
+
+def best_gain(results: list[dict]) -> float:
+    """The gain of the highest mean success (ties: the lower mean final distance, then the lower gain)."""
+    def score(r):
+        distance = mean_se(r["final_distance"])[0]
+        return (-mean_se(r["success"])[0], distance if not math.isnan(distance) else 0.0, r["gain"])
+
+    return min(results, key=score)["gain"]
+
+
+def run_headline(spec: HeadlineSpec, backend) -> dict:
+    """Run every cell (finished ones are loaded from ``spec.output / "cells"``) and return
+    ``{"rows", "selection", "spec"}``: the table's rows in order (trained rows, the scripted
+    controller on each filter at its selected gain, random) and the gain search's success rates."""
+    store = CellStore(spec.output / "cells")
+    selection = [fixed_cell(spec, f, g, spec.selection_seed) for f in spec.scripted_filters for g in spec.gains]
+    trained = trained_cells(spec)
+    results = run_cells([*selection, *trained], backend, store, desc="headline")
+    chosen = {f: best_gain([r for c, r in zip(selection, results) if c.filter == f]) for f in spec.scripted_filters}
+    final = [fixed_cell(spec, f, chosen[f], spec.eval_seed) for f in spec.scripted_filters]
+    final.append(fixed_cell(spec, spec.scripted_filters[-1], None, spec.eval_seed))
+    fixed = run_cells(final, backend, store, desc="headline evaluation")
+    by_row: dict[str, list[dict]] = {}
+    for cell, result in zip(trained, results[len(selection):]):
+        by_row.setdefault(cell.label, []).append(result)
+    rows = [trained_row(label, by_row[label]) for label, _ in spec.rows]
+    rows += [fixed_row(f"scripted controller (gain {chosen[f]:g})", r, "scripted")
+             for f, r in zip(spec.scripted_filters, fixed)]
+    rows.append(fixed_row("random", fixed[-1], "random"))
+    return {"rows": rows, "spec": {"seeds": spec.seeds, "episodes": spec.episodes, "eval_seed": spec.eval_seed,
+                                   "selection_seed": spec.selection_seed, "gains": list(spec.gains),
+                                   "overrides": list(spec.overrides), "threads": spec.threads},
+            "selection": [{"filter": c.filter, "gain": c.gain, "success": mean_se(r["success"])[0]}
+                          for c, r in zip(selection, results)],
+            "runs": [{"label": c.label, "seed": c.seed, "run_dir": c.run_dir} for c in trained]}

@@ -1,0 +1,78 @@
+"""Every setting of one ``bench headline`` run in a frozen :class:`HeadlineSpec`, with ``quick()``
+(``--quick``); the field defaults are the full run, and this module is the only place that states a
+default."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+DEFAULT_OUTPUT = "outputs/bench/headline"
+"""``bench headline``'s ``--output``."""
+
+TRAINED_ROWS = (
+    ("default job (SIR warm start, then ESCORT)", ()),
+    ("PPO on SIR beliefs only", ("filter=sir_rough", "trainer.warm_start_iterations=0")),
+)
+"""The trained rows: a label and the overrides on top of the default job. The SIR-only row trains
+for the default job's 33 iterations, all on its warm-start filter (``sir_rough``): equal frames."""
+
+SCRIPTED_FILTERS = ("escort_train", "sir_rough")
+"""The beliefs the scripted controller acts on: each trained row's filter."""
+
+_QUICK = dict(seeds=2, episodes=4, gains=(1.0, 3.0),
+              overrides=("trainer.iterations=2", "trainer.warm_start_iterations=1", "trainer.num_envs=4",
+                         "trainer.rollout_steps=16", "trainer.minibatches=2", "trainer.epochs=2", "env.max_steps=20",
+                         "num_particles=16", "actor.hidden=16", "filter.compile=false"))
+"""What ``bench headline --quick`` changes: 2 seeds of a tiny job (2 iterations, 20-step episodes)."""
+
+
+@dataclass(frozen=True)
+class HeadlineSpec:
+    """The headline RL table: each trained row over ``seeds`` training seeds (each evaluated greedily
+    on the same ``episodes`` episodes), the scripted controller at its best gain on each row's belief
+    and a uniform-random policy.
+
+    The gain is chosen among ``gains`` on ``episodes`` other episodes (env seeds from
+    ``selection_seed``), then evaluated on the table's episodes (from ``eval_seed``), so that the
+    choice does not select on the reported noise. ``overrides`` go under every row's own (the
+    smoke run's sizes); ``threads``: torch threads per cell.
+
+    Examples:
+        >>> HeadlineSpec().seeds, HeadlineSpec.quick().seeds
+        (5, 2)
+        >>> HeadlineSpec(seeds=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: --seeds: must be >= 1, got 0
+    """
+
+    seeds: int = 5
+    episodes: int = 100
+    eval_seed: int = 10000
+    selection_seed: int = 20000
+    gains: tuple[float, ...] = (1.0, 2.0, 3.0)
+    rows: tuple[tuple[str, tuple[str, ...]], ...] = TRAINED_ROWS
+    scripted_filters: tuple[str, ...] = SCRIPTED_FILTERS
+    overrides: tuple[str, ...] = ()
+    threads: int = 1
+    output: Path = Path(DEFAULT_OUTPUT)
+
+    def __post_init__(self) -> None:
+        for flag, value in (("--seeds", self.seeds), ("--episodes", self.episodes), ("--threads", self.threads)):
+            if int(value) < 1:
+                raise ValueError(f"{flag}: must be >= 1, got {value}")
+        if not self.gains or any(float(g) <= 0 for g in self.gains):
+            raise ValueError(f"--gains: give one or more positive velocity gains, got {list(self.gains)}")
+        object.__setattr__(self, "gains", tuple(float(g) for g in self.gains))
+        object.__setattr__(self, "overrides", tuple(self.overrides))
+        object.__setattr__(self, "output", Path(self.output))
+
+    @classmethod
+    def quick(cls, **changes) -> HeadlineSpec:
+        """``--quick``: :data:`_QUICK` with ``changes`` on top."""
+        return cls(**{**_QUICK, **changes})
+
+    def replace(self, **changes) -> HeadlineSpec:
+        return dataclasses.replace(self, **changes)
