@@ -6,12 +6,17 @@ __version__ = "0.2.0"
 
 import escort_rl.envs  # noqa: E402,F401  registers the gymnasium ids, as ``import ale_py`` does
 
+_ENTRY_POINTS = {"train": "escort_rl.trainers.entry", "evaluate": "escort_rl.trainers.evaluate",
+                 "load_policy": "escort_rl.trainers.loading"}
+
 
 def __getattr__(name: str):
-    """``escort_rl.load_policy`` (:func:`escort_rl.trainers.loading.load_policy`), imported on first
-    use so that ``import escort_rl`` stays light."""
-    if name == "load_policy":
-        from escort_rl.trainers.loading import load_policy
+    """``escort_rl.train`` (:func:`escort_rl.trainers.entry.train`), ``escort_rl.evaluate``
+    (:func:`escort_rl.trainers.evaluate.evaluate`) and ``escort_rl.load_policy``
+    (:func:`escort_rl.trainers.loading.load_policy`), imported on first use so that ``import
+    escort_rl`` stays light."""
+    if name in _ENTRY_POINTS:
+        import importlib
 
-        return load_policy
+        return getattr(importlib.import_module(_ENTRY_POINTS[name]), name)
     raise AttributeError(f"module 'escort_rl' has no attribute '{name}'")

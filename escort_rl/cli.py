@@ -42,6 +42,9 @@ OVERRIDES_HELP = (
     "collector.workers=2 output_dir=outputs/mine resume=outputs/mine (default: none)"
 )
 
+MULTIRUN_HELP = ("a sweep, as Hydra's --multirun: comma-separated values (seed=0,1,2 filter=sir,escort_train) give "
+                 "one run per combination, one after another, each in its own folder")
+
 BENCHMARKS = (
     "escort_rl.bench.throughput",
     "escort_rl.bench.cost",
@@ -77,10 +80,12 @@ def _parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="train a policy, then evaluate it (the default job)",
                          description="Train with the given overrides, then evaluate the final checkpoint.")
     run.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
+    run.add_argument("-m", "--multirun", action="store_true", help=MULTIRUN_HELP)
     train = sub.add_parser("train", help="train a policy on particle beliefs (trainer=ppo by default)",
                            description="Train; a killed run continues with resume=RUN_DIR.")
     train.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     train.add_argument("--quiet", action="store_true", help="no progress bar")
+    train.add_argument("-m", "--multirun", action="store_true", help=MULTIRUN_HELP)
     ev = sub.add_parser("evaluate", help="evaluate a checkpoint beside the scripted controller and a random policy",
                         description="Evaluates the trained policy, the domain's scripted controller on the same "
                         "filter's belief (where the domain has one) and a uniform-random policy on the same seeded "
@@ -110,13 +115,21 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _train(overrides: list[str], quiet: bool = False) -> Path:
-    from escort_rl.trainers.resume import train_config
-    from escort_rl.trainers.training import train
+    from escort_rl.trainers.entry import train
 
-    cfg, saved = train_config(overrides)
-    if saved is not None:
-        print(f"resuming from {saved['path']} (iteration {saved['trainer_state']['iteration']})")
-    return train(cfg, resume_state=saved, progress=not quiet)
+    return train(overrides, progress=not quiet)
+
+
+def _run(overrides: list[str]) -> None:
+    """Train, then evaluate the run's final checkpoint and print its summary."""
+    from escort_rl.trainers.evaluate import evaluate
+
+    run_dir = _train(overrides)
+    evaluate(run_dir)
+    out = run_dir.resolve() / "evaluation"
+    print((out / "summary.md").read_text())
+    print(f"results: {out} (summary.md, metrics.json, learning_curve.png, belief_projection.png)")
+    print(f"checkpoints and logs: {run_dir.resolve()}")
 
 
 def _quiet_compiler_notices() -> None:
@@ -181,19 +194,18 @@ def main(argv: list[str] | None = None) -> int:
             from escort_rl.models.light_dark import describe_correlations
 
             print(describe_correlations())
-        elif args.command == "train":
-            run_dir = _train(args.overrides, args.quiet)
-            print(f"checkpoints and logs: {run_dir.resolve()}")
-        elif args.command == "run":
-            from escort_rl.trainers.evaluate import evaluate
+        elif args.command in ("train", "run"):
+            from escort_rl.config.sweeps import expand_sweep
 
-            run_dir = _train(args.overrides)
-            result = evaluate(run_dir)
-            out = run_dir.resolve() / "evaluation"
-            print((out / "summary.md").read_text())
-            print(f"results: {out} (summary.md, metrics.json, learning_curve.png, belief_projection.png)")
-            print(f"checkpoints and logs: {run_dir.resolve()}")
-            _ = result
+            sweep = expand_sweep(args.overrides) if args.multirun else [args.overrides]
+            for i, overrides in enumerate(sweep):
+                if len(sweep) > 1:
+                    print(f"[{i + 1}/{len(sweep)}] {' '.join(overrides)}")
+                if args.command == "train":
+                    run_dir = _train(overrides, args.quiet)
+                    print(f"checkpoints and logs: {run_dir.resolve()}")
+                else:
+                    _run(overrides)
         elif args.command == "evaluate":
             from escort_rl.trainers.evaluate import evaluate
 

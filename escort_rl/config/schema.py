@@ -166,8 +166,8 @@ class EnvConfig:
 def env_schema(name: str, model: type, schema_name: str) -> type:
     """The schema of the env group option ``name`` (``configs/env/<name>.yaml``): the keys of
     :class:`EnvConfig` and ``model``, the schema of the model registered as ``name``."""
-    specs = [("name", str, field(default=name, metadata={"choices": [name]})),
-             ("model", model, field(default_factory=model))]
+    default = field(default_factory=dict) if typing.get_origin(model) in (dict, Dict) else field(default_factory=model)
+    specs = [("name", str, field(default=name, metadata={"choices": [name]})), ("model", model, default)]
     schema = dataclasses.make_dataclass(schema_name, specs, bases=(EnvConfig,))
     schema.__module__ = __name__
     return schema
@@ -178,8 +178,13 @@ KidnappedRobot20DEnvConfig = env_schema("kidnapped20d", KidnappedRobot20DModelCo
 MultiTargetTracking20DEnvConfig = env_schema("mtt20d", MultiTargetTracking20DModelConfig,
                                              "MultiTargetTracking20DEnvConfig")
 LinearGaussianEnvConfig = env_schema("linear_gaussian", LinearGaussianModelConfig, "LinearGaussianEnvConfig")
+CustomEnvConfig = env_schema("custom", Dict[str, Any], "CustomEnvConfig")
+"""``env=custom``: a user's own model. ``env.model`` is open: its ``_target_`` (the class, or any
+callable returning a model) and the keyword arguments that go with it, each added with
+``+env.model.KEY=VALUE``; :func:`escort_rl.trainers.builders.build_model` instantiates it."""
 ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "kidnapped20d": KidnappedRobot20DEnvConfig,
-               "mtt20d": MultiTargetTracking20DEnvConfig, "linear_gaussian": LinearGaussianEnvConfig}
+               "mtt20d": MultiTargetTracking20DEnvConfig, "linear_gaussian": LinearGaussianEnvConfig,
+               "custom": CustomEnvConfig}
 
 
 # ------------------------------------------------------------------------------------ filters

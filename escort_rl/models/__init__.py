@@ -8,12 +8,12 @@ from escort_rl.models.light_dark_1d import LightDark1D, LightDark1DParams
 from escort_rl.models.linear_gaussian import LinearGaussian, LinearGaussianParams
 from escort_rl.models.multi_target import MultiTargetTracking20D
 from escort_rl.models.multi_target_params import MultiTargetTracking20DParams
-from escort_rl.models.protocol import POMDPModel, check_model, position_dims, position_error, velocity_dims
+from escort_rl.models.protocol import POMDPModel, check_model, has_goal, position_dims, position_error, velocity_dims
 
 # The paper's domains by their config name (``configs/env/<name>.yaml``).
 DOMAINS = {"lightdark10d": LightDark10D, "kidnapped20d": KidnappedRobot20D, "mtt20d": MultiTargetTracking20D}
 
 __all__ = ["DOMAINS", "KidnappedRobot20D", "KidnappedRobot20DParams", "LightDark10D", "LightDark10DParams",
            "LightDark1D", "LightDark1DParams", "LinearGaussian", "LinearGaussianParams", "MultiTargetTracking20D",
-           "MultiTargetTracking20DParams", "POMDPModel", "check_model", "position_dims", "position_error",
+           "MultiTargetTracking20DParams", "POMDPModel", "check_model", "has_goal", "position_dims", "position_error",
            "velocity_dims"]

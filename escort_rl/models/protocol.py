@@ -102,6 +102,12 @@ def check_model(model: object) -> None:
             )
 
 
+def has_goal(model) -> bool:
+    """Whether ``model`` has a goal: a ``distance_to_goal(s)`` method (episodes that end at the goal
+    then count as successes). Without one, evaluation reports the return alone."""
+    return callable(getattr(model, "distance_to_goal", None))
+
+
 def position_dims(model) -> tuple[int, ...]:
     """The state indices of the position: ``model.position_dims``, else the first ``model.n_pos``
     coordinates, else all of them."""

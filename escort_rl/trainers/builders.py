@@ -44,15 +44,51 @@ def _prefixed(where: str, err: Exception) -> str:
 
 def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
     """The POMDP model of ``env.model._target_`` (configs saved without one: the model named by
-    ``env.name``) with the other keys of ``env.model`` as keyword arguments."""
+    ``env.name``) with the other keys of ``env.model`` as keyword arguments, and ``device`` when
+    the target takes it. The result is checked against the model protocol
+    (:func:`escort_rl.models.check_model`)."""
+    from escort_rl.models import check_model
+
     model_cfg = env_cfg.get("model") or {}
+    if OmegaConf.is_config(model_cfg) and OmegaConf.is_missing(model_cfg, "_target_"):
+        raise ConfigError("env.model._target_: missing (???); name your model's class, e.g. env=custom "
+                          "env.model._target_=my_pkg.models.MyModel +env.model.KEY=VALUE")
     target = model_cfg.get("_target_")
     if target is None:
         target = registry.target("model", env_cfg.name)
+    extra = {"device": device} if _takes(target, "device") else {}
     try:
-        return _instantiate(target, _kwargs(model_cfg, exclude=("_target_",)), "env.model", device=device)
+        model = _instantiate(target, _kwargs(model_cfg, exclude=("_target_",)), "env.model", **extra)
+        check_model(model)
     except (TypeError, ValueError) as err:
         raise ConfigError(_prefixed("env.model", err)) from None
+    return model
+
+
+def _takes(target: str, name: str) -> bool:
+    """Whether the callable at dotted path ``target`` takes a keyword ``name`` (or ``**kwargs``);
+    ``True`` when it cannot be imported here (instantiating then names the failure)."""
+    import importlib
+    import inspect
+
+    parts = str(target).split(".")
+    obj = None
+    for i in range(len(parts) - 1, 0, -1):  # the longest importable module prefix, then attributes
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        try:
+            for attr in parts[i:]:
+                obj = getattr(obj, attr)
+        except AttributeError:
+            return True
+        break
+    try:
+        params = inspect.signature(obj).parameters.values()
+    except (TypeError, ValueError):  # not found, or no signature: instantiate reports it
+        return True
+    return any(p.name == name or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
 def build_filter(filter_cfg: DictConfig):

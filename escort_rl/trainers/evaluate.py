@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from escort_rl.models import position_dims, position_error
+from escort_rl.models import has_goal, position_dims, position_error
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.planners import ScriptedBeliefController
 from escort_rl.reporting.metadata import with_metadata
@@ -34,7 +34,8 @@ def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor 
     ``[E, T]`` (NaN after the episode ends), where the position error is ``‖E_b[pos] − pos_true‖₂``
     of the belief after each rollout step. ``belief_mean``
     ``[E, T, d]``: the state estimate after each step when the rollout carries no particles (DVRL's
-    readout); default: the weighted mean of ``("next", "particles")``.
+    readout); default: the weighted mean of ``("next", "particles")``. For a model without a goal
+    (:func:`~escort_rl.models.has_goal`) ``final_distance`` and ``success`` are NaN.
     """
     done = rollout["next", "done"].squeeze(-1)  # [E, T]
     e, t = done.shape
@@ -49,10 +50,11 @@ def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor 
         belief_w = torch.softmax(rollout["next", "particle_log_weights"], -1).unsqueeze(-1)
         belief_mean = (belief_w * rollout["next", "particles"]).sum(-2)  # [E, T, d]
     pos_err = position_error(model, belief_mean, true_state)
+    goal = has_goal(model)
     return {
-        "final_distance": (model.distance_to_goal(final_state) if hasattr(model, "distance_to_goal")
-                           else torch.full((e,), float("nan"))),
-        "success": rollout["next", "terminated"].squeeze(-1)[torch.arange(e), end],
+        "final_distance": model.distance_to_goal(final_state) if goal else torch.full((e,), float("nan")),
+        "success": (rollout["next", "terminated"].squeeze(-1)[torch.arange(e), end].double() if goal
+                    else torch.full((e,), float("nan"), dtype=torch.float64)),
         "episode_return": (rewards * inside).sum(1),
         "length": end + 1,
         # env steps: with an action repeat a decision spans several
@@ -64,11 +66,14 @@ def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor 
 
 def summarise_episodes(metrics: dict) -> dict:
     """Mean and standard error over episodes of the :func:`first_episode_metrics` (the final and the
-    time-averaged position error, final distance to goal, success, return, length)."""
+    time-averaged position error, final distance to goal, success, return, length); a metric that
+    does not apply (no goal: distance and success) is ``None``."""
     n = metrics["final_distance"].numel()
 
-    def mean_se(x: torch.Tensor) -> tuple[float, float]:
+    def mean_se(x: torch.Tensor) -> tuple[float | None, float | None]:
         x = x.double()
+        if x.isnan().all():  # a model without a goal has no distance or success: None in JSON
+            return None, None
         return float(x.mean()), float(x.std() / n**0.5) if n > 1 else 0.0
 
     fd, fd_se = mean_se(metrics["final_distance"])
@@ -224,11 +229,13 @@ def _markdown(r: dict) -> str:
         if name not in r:
             continue
         m = r[name]
+
+        def cell(key: str, digits: int) -> str:
+            return "—" if m[key] is None else f"{m[key]:.{digits}f} ± {m[f'{key}_se']:.{digits}f}"
+
         rows.append(
-            f"| {name} | {m['final_distance']:.3f} ± {m['final_distance_se']:.3f} | "
-            f"{m['success_rate']:.3f} ± {m['success_rate_se']:.3f} | "
-            f"{m['episode_return']:.1f} ± {m['episode_return_se']:.1f} | "
-            f"{m['final_position_error']:.3f} ± {m['final_position_error_se']:.3f} | "
+            f"| {name} | {cell('final_distance', 3)} | {cell('success_rate', 3)} | {cell('episode_return', 1)} | "
+            f"{cell('final_position_error', 3)} | "
             f"{m['mean_length']:.0f} | {1e3 * m['seconds_per_step']:.2f} |"
         )
     return "\n".join([
@@ -237,7 +244,8 @@ def _markdown(r: dict) -> str:
         f"Checkpoint `{r['checkpoint']}` ({r.get('trainer', 'reinforce')}) after {r['trained_iterations']} "
         f"iterations ({r.get('frames', 0)} frames); {r['episodes']} episodes with env seed {r['eval_seed']}, "
         f"the same for every policy; trained policy {'greedy' if r['greedy'] else 'sampled'}. "
-        "scripted: the domain's PD controller on the belief mean of the same filter. Mean ± standard error.",
+        + ("scripted: the domain's PD controller on the belief mean of the same filter. " if "scripted" in r else "")
+        + "Mean ± standard error; — where the model has no goal.",
         "",
         "| policy | final distance to goal | success rate | return | final position error | steps | "
         "ms per step (batch) |",

@@ -100,12 +100,12 @@ def _write_into(cfg: DictConfig, run_dir: Path) -> None:
         return
     cfg.output_dir = str(run_dir)
     if cfg.get("overrides") is not None:
-        new = f"output_dir={_quoted(str(run_dir))}"
+        new = f"output_dir={quoted_override(str(run_dir))}"
         out = [new if _override_key(o) == "output_dir" else o for o in cfg.overrides]
         cfg.overrides = out if new in out else [*out, new]
 
 
-def _quoted(value: str) -> str:
+def quoted_override(value: str) -> str:
     """``value`` as a single-quoted Hydra override value (any path parses back to itself)."""
     return "'" + value.replace("'", "\\'") + "'"
 

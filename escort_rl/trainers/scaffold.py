@@ -41,6 +41,7 @@ from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.record.loggers import TensorboardLogger
 from tqdm import tqdm
 
+from escort_rl.models import has_goal
 from escort_rl.trainers.algorithm import Algorithm
 from escort_rl.trainers.checkpointing import checkpoint_dir, remove_interrupted_writes, save_checkpoint
 from escort_rl.trainers.resume import restore
@@ -237,9 +238,10 @@ class CollectorAlgorithm(Algorithm):
 
 
 def episode_stats(batch: TensorDictBase, model) -> dict:
-    """Mean return, final distance to goal and success rate of the episodes that end in ``batch``
-    ``[E, T]`` (episode returns by one ``index_add`` over episode ids; an episode that started before
-    the batch counts only its steps inside it)."""
+    """Mean return, final distance to goal and success rate (NaN for a model without a goal,
+    :func:`~escort_rl.models.has_goal`) of the episodes that end in ``batch`` ``[E, T]`` (episode
+    returns by one ``index_add`` over episode ids; an episode that started before the batch counts
+    only its steps inside it)."""
     done = batch["next", "done"].squeeze(-1)
     reward = batch["next", "reward"].squeeze(-1)
     e, t = done.shape
@@ -252,12 +254,13 @@ def episode_stats(batch: TensorDictBase, model) -> dict:
         return {"episode_return": float("nan"), "final_distance": float("nan"), "success_rate": float("nan"),
                 "episodes": 0}
     final_state = batch["next", "true_state"][rows, steps]
-    distance = (model.distance_to_goal(final_state) if hasattr(model, "distance_to_goal")
-                else torch.full((rows.numel(),), float("nan")))
+    goal = has_goal(model)  # without a goal, distance and success are NaN: the return says it all
+    distance = model.distance_to_goal(final_state) if goal else torch.full((rows.numel(),), float("nan"))
+    success = batch["next", "terminated"].squeeze(-1)[rows, steps].float().mean() if goal else float("nan")
     return {
         "episode_return": float(returns[episode_id[rows, steps]].mean()),
         "final_distance": float(distance.mean()),
-        "success_rate": float(batch["next", "terminated"].squeeze(-1)[rows, steps].float().mean()),
+        "success_rate": float(success),
         "episodes": int(rows.numel()),
     }
 

@@ -34,6 +34,9 @@ def train(cfg: DictConfig, resume_state: dict | None = None, progress: bool = Tr
     torch.manual_seed(int(cfg.seed))  # the networks' initial weights
     model = build_model(cfg.env, cfg.device)
     name = algorithm(cfg)
-    watch = ("episode_return", "elbo") if name == "dvrl_a2c" else ("episode_return", "final_distance", "success_rate")
+    from escort_rl.models import has_goal
+
+    goal = ("final_distance", "success_rate") if has_goal(model) else ()
+    watch = ("episode_return", "elbo") if name == "dvrl_a2c" else ("episode_return", *goal)
     return run_training(cfg, build_algorithm(cfg, model), resume_state=resume_state, progress=progress,
                         desc=f"train {name}", watch=watch)

@@ -32,3 +32,15 @@ def test_a_folder_holding_another_run_is_refused_unless_resumed(tmp_path):
     cfg, state = train_config([f"resume={run}", "trainer.iterations=2"])  # and resume= continues it
     assert state is not None
     train(cfg, resume_state=state, progress=False)
+
+
+def test_a_multirun_trains_one_run_per_seed_each_in_its_own_folder(tmp_path, capsys):
+    from escort_rl.cli import main
+
+    overrides = tiny_overrides("trainer.iterations=1", "seed=3,4", f"output_dir={tmp_path}/seed" + "${seed}")
+    assert main(["train", "--quiet", "-m", *overrides]) in (0, None)
+    printed = capsys.readouterr().out
+    assert "[1/2]" in printed and "[2/2]" in printed
+    for seed in (3, 4):
+        saved = (tmp_path / f"seed{seed}" / "config.yaml").read_text()
+        assert f"seed: {seed}" in saved

@@ -26,8 +26,9 @@ def headline_markdown(result: dict) -> str:
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in result["rows"]:
         trained = r["kind"] == "trained"
+        belief = r["filter"] if r["kind"] != "random" else "—"
         lines.append(
-            f"| {r['policy']} | {r['filter'] if r['kind'] != 'random' else '—'} | {_cell(r['success'], r['success_se'], 3)} | "
+            f"| {r['policy']} | {belief} | {_cell(r['success'], r['success_se'], 3)} | "
             f"{_cell(r['final_distance'], r['final_distance_se'], 2)} | "
             f"{_cell(r['episode_return'], r['episode_return_se'], 1)} | {_cell(r['steps'], r['steps_se'], 0)} | "
             f"{r['frames'] if trained else '—'} | "

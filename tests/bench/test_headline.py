@@ -1,0 +1,60 @@
+"""``bench headline``: the trained rows over seeds, the scripted gain chosen on held-out episodes,
+aggregation across seeds, and a rerun that loads what finished."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from escort_rl.bench.core.runner import make_backend
+from escort_rl.bench.headline.run import best_gain, mean_se, run_headline, trained_row
+from escort_rl.bench.headline.spec import HeadlineSpec
+
+
+def test_mean_se_is_the_sample_mean_and_its_standard_error():
+    m, se = mean_se([1.0, 2.0, 4.0, float("nan")])  # NaN (no goal) is left out
+    assert m == pytest.approx(7 / 3)
+    assert se == pytest.approx(math.sqrt(((1 - 7 / 3) ** 2 + (2 - 7 / 3) ** 2 + (4 - 7 / 3) ** 2) / 2 / 3))
+    assert mean_se([3.0]) == (3.0, 0.0) and all(math.isnan(v) for v in mean_se([]))
+
+
+def test_the_gain_of_the_highest_success_wins_then_the_lower_distance():
+    results = [{"gain": 1.0, "success": [1, 0], "final_distance": [0.1, 2.0]},
+               {"gain": 2.0, "success": [1, 1], "final_distance": [0.4, 0.4]},
+               {"gain": 3.0, "success": [1, 1], "final_distance": [0.2, 0.2]}]
+    assert best_gain(results) == 3.0
+
+
+def test_a_trained_row_aggregates_across_seeds_not_episodes():
+    def seed(success, distance, ret, steps, seconds):
+        return {"filter": "sir", "success": [success] * 4, "final_distance": [distance] * 4,
+                "episode_return": [ret] * 4, "steps": [steps] * 4, "frames": 100, "train_seconds": seconds}
+
+    seeds = [seed(1.0, 0.0, -1.0, 10.0, 60.0), seed(0.0, 1.0, -3.0, 20.0, 120.0)]
+    row = trained_row("x", seeds)
+    assert row["success"] == 0.5 and row["success_se"] == pytest.approx(0.5)  # s.d. of (1, 0) over sqrt(2)
+    assert row["per_seed"]["success"] == [1.0, 0.0] and row["train_minutes"] == pytest.approx(1.5)
+
+
+def test_the_table_has_its_rows_and_a_rerun_loads_the_finished_cells(tmp_path):
+    spec = HeadlineSpec.quick(seeds=1, episodes=2, gains=(1.0, 3.0), output=tmp_path)
+    result = run_headline(spec, make_backend("inprocess"))
+    policies = [r["policy"] for r in result["rows"]]
+    assert policies[:2] == [label for label, _ in spec.rows]
+    assert policies[-1] == "random" and sum(p.startswith("scripted controller (gain ") for p in policies) == 2
+    assert [r["filter"] for r in result["rows"][:2]] == ["escort_train", "sir_rough"]
+    assert {(s["filter"], s["gain"]) for s in result["selection"]} == {
+        (f, g) for f in ("escort_train", "sir_rough") for g in (1.0, 3.0)}
+    checkpoints = sorted(p.stat().st_mtime_ns for p in (tmp_path / "runs").rglob("manifest.json"))
+    assert checkpoints  # every trained cell wrote its run
+    again = run_headline(spec, make_backend("inprocess"))
+    assert again["rows"] == result["rows"]
+    assert sorted(p.stat().st_mtime_ns for p in (tmp_path / "runs").rglob("manifest.json")) == checkpoints
+
+
+def test_bad_settings_name_their_option():
+    with pytest.raises(ValueError, match=r"^--episodes: must be >= 1, got 0$"):
+        HeadlineSpec(episodes=0)
+    with pytest.raises(ValueError, match=r"^--gains: give one or more positive velocity gains"):
+        HeadlineSpec(gains=(1.0, -2.0))
