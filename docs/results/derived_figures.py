@@ -10,15 +10,15 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 DOMAINS = ("lightdark10d", "kidnapped20d", "mtt20d")
 
-# Table 1 of the paper (average position error, mean ± s.e.), typed from its LaTeX source.
+# Table 1 of the paper (average position error: mean, s.e.), typed from its LaTeX source.
 PAPER_TABLE1 = {
-    "escort": (0.347, 9.063, 3.665),
-    "escort_nocorr": (0.381, 10.246, 4.213),
-    "escort_notemp": (0.321, 10.859, 3.874),
-    "escort_noproj": (0.359, 9.654, 3.90),
-    "svgd": (0.379, 10.906, 4.295),
-    "dvrl": (1.557, 14.309, 4.33),
-    "pomcpow": (2.12, 12.023, 4.611),
+    "escort": ((0.347, 0.03), (9.063, 0.51), (3.665, 0.31)),
+    "escort_nocorr": ((0.381, 0.07), (10.246, 0.35), (4.213, 0.59)),
+    "escort_notemp": ((0.321, 0.03), (10.859, 0.51), (3.874, 0.43)),
+    "escort_noproj": ((0.359, 0.09), (9.654, 0.32), (3.90, 0.42)),
+    "svgd": ((0.379, 0.03), (10.906, 0.49), (4.295, 0.22)),
+    "dvrl": ((1.557, 0.10), (14.309, 0.60), (4.33, 0.09)),
+    "pomcpow": ((2.12, 0.24), (12.023, 0.55), (4.611, 0.09)),
 }
 # The paper's Flickering-Atari table, Pong (50M frames).
 PAPER_PONG = {"escort_latent": 17.97, "dvrl": 18.17}
@@ -65,16 +65,21 @@ def protocol_b(folder, method):
 
 
 def table1():
-    print("Table 1: final position error, ours (mean ± s.e., seeds or episodes, steps) / paper")
+    print("Table 1: final position error, ours (mean ± s.e., seeds or episodes, steps) / paper,")
+    print("  ours/paper, z = (ours − paper) / sqrt(s.e.² + paper s.e.²)")
     rows = [(label, folder, protocol_a(folder, method), paper) for label, folder, method, paper in TABLE1_ROWS]
     rows += [(label, folder, protocol_b(folder, method), paper) for label, folder, method, paper in POMCPOW_ROWS]
     for label, folder, cells, paper in rows:
         parts = []
         for i, domain in enumerate(DOMAINS):
             mean, se, n, steps = cells[domain]
-            ref = f"{PAPER_TABLE1[paper][i]}" if paper else "-"
-            ratio = f", ours/paper {mean / PAPER_TABLE1[paper][i]:.2f}" if paper else ""
-            parts.append(f"{mean:.3f} ± {se:.3f} (n={n}, T={steps}) / {ref}{ratio}")
+            if paper:
+                p_mean, p_se = PAPER_TABLE1[paper][i]
+                z = (mean - p_mean) / (se**2 + p_se**2) ** 0.5
+                ref = f"{p_mean} ± {p_se}, ours/paper {mean / p_mean:.2f}, z {z:+.1f}"
+            else:
+                ref = "-"
+            parts.append(f"{mean:.3f} ± {se:.3f} (n={n}, T={steps}) / {ref}")
         print(f"  {label:24s} [{folder}] " + " | ".join(parts))
 
 
