@@ -70,15 +70,17 @@ def summarise_episodes(metrics: dict) -> dict:
     does not apply (no goal: distance and success) is ``None``."""
     n = metrics["final_distance"].numel()
 
-    def mean_se(x: torch.Tensor) -> tuple[float | None, float | None]:
+    def mean_se(x: torch.Tensor) -> tuple[float, float]:
         x = x.double()
-        if x.isnan().all():  # a model without a goal has no distance or success: None in JSON
-            return None, None
         return float(x.mean()), float(x.std() / n**0.5) if n > 1 else 0.0
 
-    fd, fd_se = mean_se(metrics["final_distance"])
+    def goal_mean_se(x: torch.Tensor) -> tuple[float | None, float | None]:
+        # a model without a goal has no distance or success (all NaN): None in JSON
+        return (None, None) if x.double().isnan().all() else mean_se(x)
+
+    fd, fd_se = goal_mean_se(metrics["final_distance"])
     ret, ret_se = mean_se(metrics["episode_return"])
-    sr, sr_se = mean_se(metrics["success"].double())
+    sr, sr_se = goal_mean_se(metrics["success"].double())
     pe = metrics["position_error"]
     pe_final = pe[torch.arange(pe.shape[0]), metrics["length"] - 1]
     pe_m, pe_se = mean_se(pe_final)
