@@ -149,6 +149,9 @@ class ESCORTParams(SVGDParams):
         temporal_ascent_steps: gradient-ascent steps that refine the directions ``θ_j`` of ``F_temp``
             toward the maximal projected W1 (default 10; each step sorts both sets along every ``θ_j``,
             which at ``K = 15`` costs about as much as ten iterations of the loop).
+        projection_ascent_steps: gradient-ascent steps that refine the learned correlation projections
+            toward the maximal projected W1 between the particles and the weighted target samples
+            (default 10, the same ascent as ``temporal_ascent_steps``).
         likelihood_pull: the paper's ``α w_i (μ_obs − x̃_i)`` pull, applied once after prediction
             when ``> 0`` (needs a model with ``position``-like observations: ``o`` compared with the
             first ``obs_dim`` coordinates). Default 0 (off).
@@ -172,6 +175,7 @@ class ESCORTParams(SVGDParams):
     temp_schedule: str = param("anneal", choices=["anneal", "constant"])
     temp_clip: float = param(10.0, gt=0)
     temporal_ascent_steps: int = param(10, ge=0)
+    projection_ascent_steps: int = param(10, ge=0)
     likelihood_pull: float = param(0.0, ge=0)
     ess_floor: float = param(0.2, ge=0, le=1)
 
@@ -320,7 +324,8 @@ class ESCORTFilter(HasParams, BeliefFilter):
             # shape, and once per update eager is as fast
             refine = (self._compiled(correlation_projections) if self.projection_every < k_total
                       else correlation_projections)
-            projections, proj_weights = refine(x, target_samples, target_log_weights, self.n_proj, self.proj_dim)
+            projections, proj_weights = refine(x, target_samples, target_log_weights, self.n_proj, self.proj_dim,
+                                               ascent_steps=self.projection_ascent_steps)
         else:
             projections = random_deflated_projections(x.shape[:-2], d, self.n_proj, self.proj_dim, generator,
                                                       x.device, x.dtype)

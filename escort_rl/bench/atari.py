@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
 from escort_rl.bench.methods import check_choices
+from escort_rl.envs.flickering import flickering_game, game_names
 from escort_rl.reporting.paths import write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
 
@@ -33,23 +34,24 @@ LAST_GAMES = 100  # the returns of the last games of each seed that the table av
 PAPER_METHOD = {"escort_latent": "escort", "dvrl": "dvrl"}  # our agent -> the paper's Table 4 column
 
 
-def settings_path() -> Path:
+def settings_path(tier: str = "atari") -> Path:
+    """``configs/bench/atari.yaml`` (Atari's settings) or ``configs/bench/minatar.yaml`` (MinAtar's)."""
     from escort_rl.config import config_dir
 
-    return config_dir() / "bench" / "atari.yaml"
+    return config_dir() / "bench" / f"{tier}.yaml"
 
 
-def load_settings(overrides: tuple[str, ...] | list[str] = ()) -> DictConfig:
-    """``configs/bench/atari.yaml`` with ``overrides`` (``KEY=VALUE``, e.g. ``escort.num_steps=10``),
-    typed and checked (:class:`escort_rl.config.bench_schemas.AtariBenchConfig`); a bad key or value raises
-    ``ConfigError`` naming it."""
+def load_settings(overrides: tuple[str, ...] | list[str] = (), tier: str = "atari") -> DictConfig:
+    """The settings of ``tier`` (:func:`settings_path`) with ``overrides`` (``KEY=VALUE``, e.g.
+    ``escort.num_steps=10``), typed and checked (:class:`escort_rl.config.bench_schemas.AtariBenchConfig`);
+    a bad key or value raises ``ConfigError`` naming it."""
     from omegaconf.errors import OmegaConfBaseException
 
     from escort_rl.config import ConfigError
     from escort_rl.config.bench_schemas import AtariBenchConfig
     from escort_rl.config.checking import check_config, describe_error, load_typed
 
-    settings = load_typed(settings_path(), AtariBenchConfig)
+    settings = load_typed(settings_path(tier), AtariBenchConfig)
     bad = [o for o in overrides if "=" not in o]
     if bad:
         raise ConfigError(f"overrides: '{bad[0]}' is not KEY=VALUE, e.g. escort.num_steps=10")
@@ -132,8 +134,8 @@ class AtariCell(Cell):
 
     def run(self) -> dict:
         run_dir = Path(self.runs) / self.game / self.agent / f"seed{self.seed}"
-        cfg = cell_config(load_settings(self.overrides), self.game, self.agent, self.seed, self.frames, run_dir,
-                          self.device)
+        settings = load_settings(self.overrides, flickering_game(self.game).tier)
+        cfg = cell_config(settings, self.game, self.agent, self.seed, self.frames, run_dir, self.device)
         return run_atari_cell(cfg)
 
 
@@ -157,13 +159,14 @@ def summarise(results: list[dict]) -> list[dict]:
     return out
 
 
-def markdown_table(rows: list[dict], paper: DictConfig) -> str:
-    """Ours beside the paper's Table 4, each with its budget in frames (agent steps)."""
+def markdown_table(rows: list[dict], paper: DictConfig | None) -> str:
+    """Ours beside the paper's Table 4 (where ``paper`` has the game), each with its budget in frames
+    (agent steps)."""
     lines = ["| game | agent | ours: last 100 games, mean ± s.e. | games (seeds) | our frames | frames/s "
              "| paper (same method) | paper frames |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for row in rows:
         method = PAPER_METHOD.get(row["agent"])
-        ref = paper.table4.get(row["game"], {}).get(method) if method else None
+        ref = paper.table4.get(row["game"], {}).get(method) if method and paper is not None else None
         paper_text, paper_frames = ((f"{ref[0]} ± {ref[1]} ({method.upper()})", f"{int(paper.frames):,}")
                                     if ref is not None else ("—", "—"))
         lines.append(f"| {row['game']} | {row['agent']} | {format_mean_se(row['return'], 2)} | {row['games']} "
@@ -212,10 +215,9 @@ QUICK_FRAMES = 256
 
 
 def main(args) -> None:
-    from escort_rl.envs.atari import GAMES
     from escort_rl.trainers.atari_a2c import AGENTS
 
-    check_choices("--games", args.games or [], list(GAMES), "game")
+    check_choices("--games", args.games or [], game_names(), "game")
     check_choices("--agents", args.agents, list(AGENTS), "agent")
     from escort_rl.config.schema import check_device
 
@@ -226,10 +228,10 @@ def main(args) -> None:
     if frames is None:
         raise ValueError("--frames: give the frames (agent steps) per run, e.g. --frames 10000000, or --quick")
     games = args.games if args.games is not None else ["pong"]
-    settings = load_settings(tuple(args.overrides))
+    settings = {tier: load_settings(tuple(args.overrides), tier) for tier in {flickering_game(g).tier for g in games}}
     out = Path(args.output).expanduser()
     for game in games:  # checks --frames before any run starts
-        cell_config(settings, game, args.agents[0], 0, frames, out, args.device)
+        cell_config(settings[flickering_game(game).tier], game, args.agents[0], 0, frames, out, args.device)
     cells = [AtariCell(game=g, agent=a, seed=s, frames=frames, runs=str(out / "runs"), overrides=tuple(args.overrides),
                        threads=args.threads or 1, device=args.device)
              for g in games for a in args.agents for s in range(args.seeds)]
@@ -237,10 +239,13 @@ def main(args) -> None:
     results = run_cells(cells, backend_from_args(args), CellStore(out / "cells"), desc="atari cells")
     rows = summarise(results)
     curves = plot_curves(results, out / "learning_curves.png")
-    markdown = (f"# Flickering Atari (Table 4): {frames:,} frames per run\n\n"
-                + markdown_table(rows, settings.paper)
-                + f"\nFrames are agent steps (4 emulator frames each), as DVRL counted them. The paper's rows ran "
-                f"{int(settings.paper.frames):,} frames. Learning curves: {curves.name}.\n")
+    paper = settings["atari"].paper if "atari" in settings else None
+    markdown = (f"# Flickering games (Table 4): {frames:,} frames per run\n\n"
+                + markdown_table(rows, paper)
+                + "\nFrames are agent steps (4 emulator frames each on Atari, as DVRL counted them; one MinAtar "
+                "step each). Random: a uniform-random policy on the same games."
+                + (f" The paper's rows ran {int(paper.frames):,} frames." if paper is not None else "")
+                + f" Learning curves: {curves.name}.\n")
     write_results(out, "atari", {"rows": rows, "runs": results}, markdown, time.perf_counter() - t0)
 
 
@@ -253,7 +258,9 @@ def register(subparsers) -> None:
                               "curves. Rerunning the same command resumes unfinished runs from their checkpoints.")
     options.add_overrides_argument(p, "overrides of configs/bench/atari.yaml, e.g. escort.num_steps=10 "
                            "trainer.parallel_envs=true")
-    p.add_argument("--games", nargs="+", default=None, help="of pong icehockey mspacman asteroids (default: pong)")
+    p.add_argument("--games", nargs="+", default=None,
+                   help="of pong icehockey mspacman asteroids (Atari) and breakout spaceinvaders asterix freeway "
+                   "seaquest (MinAtar) (default: pong)")
     p.add_argument("--agents", nargs="+", default=["dvrl", "escort_latent", "gru"], help="of dvrl escort_latent gru")
     p.add_argument("--frames", type=int, default=None,
                    help=f"frames (agent steps) per run; required but for --quick (default: none; --quick: "

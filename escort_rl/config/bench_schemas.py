@@ -125,8 +125,11 @@ class AtariVRNNConfig:
 
 @dataclass
 class AtariESCORTConfig:
-    """ESCORT-latent's particle evolution (``ESCORTFilter``'s arguments)."""
+    """ESCORT-latent: where it reads the likelihood and which ELBO it learns by (``ESCORTLatent``'s
+    ``likelihood`` and ``elbo``), and its particle evolution (``ESCORTFilter``'s arguments)."""
 
+    likelihood: str = _f(MISSING, choices=["pixels", "features"])
+    elbo: str = _f(MISSING, choices=["proposal", "prior"])
     num_steps: int = _f(MISSING, ge=1)
     step_size: float = _f(MISSING, gt=0)
     lambda_corr: float = _f(MISSING, ge=0)
@@ -134,6 +137,9 @@ class AtariESCORTConfig:
     n_proj: int = _f(MISSING, ge=1)
     proj_dim: int = _f(MISSING, ge=1)
     jitter: float = _f(MISSING, ge=0)
+    temporal_ascent_steps: int = _f(MISSING, ge=0)
+    projection_ascent_steps: int = _f(MISSING, ge=0)
+    compile: bool = MISSING
 
 
 @dataclass
@@ -151,10 +157,11 @@ class AtariPaperConfig:
 
 @dataclass
 class AtariBenchConfig:
-    """``configs/bench/atari.yaml`` (Flickering Atari, the paper's Table 4)."""
+    """``configs/bench/atari.yaml`` (Flickering Atari, the paper's Table 4) and
+    ``configs/bench/minatar.yaml`` (Flickering MinAtar, which has no paper figures: ``paper: null``)."""
 
     trainer: AtariTrainerConfig = _sub(AtariTrainerConfig)
     vrnn: AtariVRNNConfig = _sub(AtariVRNNConfig)
     escort: AtariESCORTConfig = _sub(AtariESCORTConfig)
     gru: AtariGRUConfig = _sub(AtariGRUConfig)
-    paper: AtariPaperConfig = _sub(AtariPaperConfig)
+    paper: Optional[AtariPaperConfig] = None

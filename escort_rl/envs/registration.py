@@ -32,12 +32,14 @@ def domain_max_steps(domain: str) -> int:
 
 
 def register_gymnasium_envs() -> None:
-    """Register the domains' ids and the flickering Atari ids (idempotent; imports nothing from
-    ``ale_py``)."""
+    """Register the domains' ids and the flickering Atari and MinAtar ids (idempotent; imports nothing
+    from ``ale_py`` or ``minatar``)."""
     from escort_rl.envs.atari import register_atari_envs
+    from escort_rl.envs.minatar import register_minatar_envs
 
     for env_id, domain in GYM_IDS.items():
         if env_id not in gym.registry:
             gym.register(id=env_id, entry_point="escort_rl.envs.gym_adapter:make_domain_gym",
                          max_episode_steps=domain_max_steps(domain), kwargs={"domain": domain})
     register_atari_envs()
+    register_minatar_envs()

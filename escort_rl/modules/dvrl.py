@@ -35,14 +35,13 @@ from torch import Tensor, nn
 
 from escort_rl.config import ConfigError
 from escort_rl.modules.dvrl_networks import (
-    ATARI_SIZE,
     SUMMARIES,
-    AtariEncoder,
     GaussianEmission,
     GaussianHead,
     GRURecurrence,
     ImageEmission,
     VectorEncoder,
+    frame_networks,
     mlp,
 )
 
@@ -97,7 +96,8 @@ class DVRL(nn.Module):
     """The DVRL belief model with actor and critic heads.
 
     Args:
-        obs_shape: ``obs_dim`` (an int) for vector observations, or ``(C, 84, 84)`` for frames.
+        obs_shape: ``obs_dim`` (an int) for vector observations, or frames: ``(C, 84, 84)`` (Atari) or
+            ``(C, 10, 10)`` (MinAtar).
         n_actions: number of discrete actions.
         latent_dim: ``Z``, the size of ``z`` (the paper's ``d_belief``).
         hidden: ``H``, the size of ``h`` (the paper's ``d_h``), and the width of the heads.
@@ -153,13 +153,14 @@ class DVRL(nn.Module):
         self.action_encoder = mlp([n_actions, e])  # φ(a) of a one-hot action (zeros: no action)
         is_image = len(self.obs_shape) == 3
         if observation_encoder is None:
-            observation_encoder = (AtariEncoder(self.obs_shape[0], e) if is_image
+            observation_encoder = (frame_networks(self.obs_shape)[0](self.obs_shape[0], e) if is_image
                                    else VectorEncoder(self.obs_shape[0], e))
         self.observation_encoder = observation_encoder
         self.prior = prior if prior is not None else GaussianHead(hidden + e, latent_dim, hidden)
         self.proposal = proposal if proposal is not None else GaussianHead(hidden + 2 * e, latent_dim, hidden)
         if emission is None:
-            emission = (ImageEmission(self.latent_encoder, hidden + 2 * e, self.obs_shape[0]) if is_image
+            emission = (ImageEmission(self.latent_encoder, hidden + 2 * e, self.obs_shape[0], self.obs_shape[1])
+                        if is_image
                         else GaussianEmission(self.latent_encoder, hidden + 2 * e, self.obs_shape[0], hidden))
         self.emission = emission
         self.recurrence = recurrence if recurrence is not None else GRURecurrence(self.latent_encoder, 3 * e, hidden)
@@ -291,9 +292,16 @@ class DVRL(nn.Module):
         z = q.mean + q.stddev * eps  # reparameterised sample of q
         log_q = _check_log_prob(q.log_prob(z), "proposal", b, k)
         log_prior = _check_log_prob(self.prior(h, action_k).log_prob(z), "prior", b, k)
-        obs_rep = observation.unsqueeze(1).expand(b, k, *observation.shape[1:])
-        log_lik = _check_log_prob(self.emission(h, z, action_k).log_prob(obs_rep), "emission", b, k)
+        log_lik = _check_log_prob(self.observation_log_prob(h, z, action_k, observation, obs_k), "emission", b, k)
         return z, log_prior + log_lik - log_q
+
+    def observation_log_prob(self, h: Tensor, z: Tensor, action_k: Tensor, observation: Tensor,
+                             obs_k: Tensor) -> Tensor:
+        """``log p(o | h, z, a)`` ``[B, K]`` of the emission, at every particle: ``observation
+        [B, *obs_shape]``, its encoding ``obs_k [B, K, E]`` (unused here; a subclass may read it)."""
+        b, k = h.shape[:2]
+        obs_rep = observation.unsqueeze(1).expand(b, k, *observation.shape[1:])
+        return self.emission(h, z, action_k).log_prob(obs_rep)
 
     def summarize(self, state: DVRLState) -> Tensor:
         """The belief summary ``[B, summary_dim]`` of the particles ``(h, φ(z), w)``."""
@@ -352,9 +360,10 @@ def _check_obs_shape(obs_shape: int | Sequence[int]) -> tuple[int, ...]:
     shape = (int(obs_shape),) if isinstance(obs_shape, int) else tuple(int(s) for s in obs_shape)
     if len(shape) == 1 and shape[0] >= 1:
         return shape
-    if len(shape) == 3 and shape[0] >= 1 and shape[1:] == (ATARI_SIZE, ATARI_SIZE):
+    if len(shape) == 3 and shape[0] >= 1:
+        frame_networks(shape)  # raises for a frame size without networks
         return shape
-    raise ValueError(f"obs_shape: expected obs_dim (an int) or (C, {ATARI_SIZE}, {ATARI_SIZE}), got {obs_shape!r}")
+    raise ValueError(f"obs_shape: expected obs_dim (an int) or frames (C, S, S), got {obs_shape!r}")
 
 
 def _check_log_prob(value: Tensor, name: str, b: int, k: int) -> Tensor:

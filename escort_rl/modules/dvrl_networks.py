@@ -16,6 +16,7 @@ from torch import Tensor, nn
 from torch.distributions import Independent, Normal
 
 ATARI_SIZE = 84  # the side of the original's Atari frames
+MINATAR_SIZE = 10  # the side of MinAtar's grids
 
 
 def mlp(sizes: list[int], last_activation: bool = True) -> nn.Sequential:
@@ -84,6 +85,53 @@ class AtariDecoder(nn.Module):
         return y.reshape(*lead, *y.shape[1:])
 
 
+class MinAtarEncoder(nn.Module):
+    """φ(o) for MinAtar's ``10×10`` grids: the conv layer of MinAtar's own DQN, then a linear layer.
+
+    ``Conv(C→16, 3, stride 1)`` and ReLU give ``[16, 8, 8]``, flattened and mapped to ``encoding_dim``.
+    ``[*, C, 10, 10] -> [*, encoding_dim]``.
+    """
+
+    conv_out_shape = (16, 8, 8)
+
+    def __init__(self, channels: int, encoding_dim: int) -> None:
+        super().__init__()
+        self.conv = nn.Sequential(nn.Conv2d(channels, 16, 3, stride=1), nn.ReLU())
+        self.linear = nn.Sequential(nn.Linear(math.prod(self.conv_out_shape), encoding_dim), nn.ReLU())
+
+    def forward(self, observation: Tensor) -> Tensor:
+        lead = observation.shape[:-3]
+        x = self.conv(observation.reshape(-1, *observation.shape[-3:]))
+        return self.linear(x.flatten(1)).reshape(*lead, -1)
+
+
+class MinAtarDecoder(nn.Module):
+    """The mirror of :class:`MinAtarEncoder`: ``[*, in_dim] -> [*, C, 10, 10]`` (8 → 10)."""
+
+    def __init__(self, in_dim: int, channels: int) -> None:
+        super().__init__()
+        self.linear = nn.Sequential(nn.Linear(in_dim, math.prod(MinAtarEncoder.conv_out_shape)), nn.ReLU())
+        self.deconv = nn.ConvTranspose2d(16, channels, 3, stride=1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        lead = x.shape[:-1]
+        y = self.deconv(self.linear(x.reshape(-1, x.shape[-1])).reshape(-1, *MinAtarEncoder.conv_out_shape))
+        return y.reshape(*lead, *y.shape[1:])
+
+
+FRAME_NETWORKS = {ATARI_SIZE: (AtariEncoder, AtariDecoder), MINATAR_SIZE: (MinAtarEncoder, MinAtarDecoder)}
+"""Frame side -> (encoder, decoder) classes: Atari's ``84×84`` frames and MinAtar's ``10×10`` grids."""
+
+
+def frame_networks(obs_shape: tuple[int, ...]) -> tuple[type[nn.Module], type[nn.Module]]:
+    """The (encoder, decoder) classes for frames of ``obs_shape = (C, S, S)``; other shapes raise
+    ``ValueError`` naming the sizes there are networks for."""
+    if len(obs_shape) != 3 or obs_shape[1] != obs_shape[2] or obs_shape[1] not in FRAME_NETWORKS:
+        sizes = ", ".join(f"(C, {s}, {s})" for s in FRAME_NETWORKS)
+        raise ValueError(f"obs_shape: frames must be one of {sizes}, got {tuple(obs_shape)}")
+    return FRAME_NETWORKS[obs_shape[1]]
+
+
 # ---------------------------------------------------------------------------------- distributions
 class GaussianHead(nn.Module):
     """A diagonal Gaussian from concatenated inputs: ``N(μ(x), diag σ(x)²)``, ``σ = softplus(·) + min_std``.
@@ -124,21 +172,44 @@ class GaussianEmission(nn.Module):
 
 
 class ImageEmission(nn.Module):
-    """``p(o|h, z, a)`` for ``[C, 84, 84]`` frames: per-pixel Gaussians, the mean decoded by
-    :class:`AtariDecoder` from ``[h, φ(z), φ(a)]`` and one learned standard deviation.
+    """``p(o|h, z, a)`` for ``[C, S, S]`` frames: per-pixel Gaussians, the mean decoded from
+    ``[h, φ(z), φ(a)]`` by the decoder of :func:`frame_networks` (:class:`AtariDecoder` for ``S = 84``,
+    :class:`MinAtarDecoder` for ``S = 10``) and one learned standard deviation.
 
-    ``log_prob(o [B, K, C, 84, 84]) -> [B, K]``.
+    ``log_prob(o [B, K, C, S, S]) -> [B, K]``.
     """
 
-    def __init__(self, latent_encoder: nn.Module, in_dim: int, channels: int) -> None:
+    def __init__(self, latent_encoder: nn.Module, in_dim: int, channels: int, frame_size: int = ATARI_SIZE) -> None:
         super().__init__()
         self.latent_encoder = latent_encoder
-        self.decoder = AtariDecoder(in_dim, channels)
+        self.decoder = frame_networks((channels, frame_size, frame_size))[1](in_dim, channels)
         self.log_std = nn.Parameter(torch.zeros(()))
 
     def forward(self, h: Tensor, z: Tensor, action_enc: Tensor) -> Independent:
         mean = self.decoder(torch.cat([h, self.latent_encoder(z), action_enc], dim=-1))
         return Independent(Normal(mean, self.log_std.exp().expand_as(mean)), 3)
+
+
+class FeatureEmission(nn.Module):
+    """``p(φ(o)|h, z, a)``: a diagonal Gaussian over the observation's encoding instead of its pixels,
+    the mean an MLP of ``[h, φ(z), φ(a)]`` and one learned standard deviation.
+
+    The likelihood of an observation read in the encoder's feature space: an MLP pass per particle
+    instead of a decoder pass. The caller gives the encoding detached (``log_prob(φ(o).detach())``), so
+    that the encoder cannot shrink its features to raise the likelihood.
+    ``forward(h [B, K, H], z [B, K, Z], action_enc [B, K, E]) -> Independent(Normal)`` with event shape
+    ``[encoding_dim]``: ``log_prob(φ(o) [B, K, E]) -> [B, K]``.
+    """
+
+    def __init__(self, latent_encoder: nn.Module, in_dim: int, encoding_dim: int, hidden: int) -> None:
+        super().__init__()
+        self.latent_encoder = latent_encoder
+        self.mean = nn.Sequential(mlp([in_dim, hidden]), nn.Linear(hidden, encoding_dim))
+        self.log_std = nn.Parameter(torch.zeros(()))
+
+    def forward(self, h: Tensor, z: Tensor, action_enc: Tensor) -> Independent:
+        mean = self.mean(torch.cat([h, self.latent_encoder(z), action_enc], dim=-1))
+        return Independent(Normal(mean, self.log_std.exp().expand_as(mean)), 1)
 
 
 # ---------------------------------------------------------------------------------------- recurrence

@@ -1,14 +1,15 @@
 """A GRU actor-critic on frames: the model-free baseline of Flickering Atari (DVRL's "RNN" agent).
 
-    o_t ──AtariEncoder──▶ φ(o_t) ─┐
+    o_t ──encoder──▶     φ(o_t) ─┐
     a_{t-1} ──one-hot, Linear──▶ φ(a) ─┴─▶ GRUCell(h_{t-1}) ──▶ h_t ──┬──▶ actor head ──▶ logits ──▶ action
                                                                       └──▶ critic head ──▶ state_value
 
 :class:`FrameGRUPolicy` runs it on a tensordict with the same keys as
 :class:`~escort_rl.modules.dvrl_torchrl.DVRLPolicy` (``*B`` the env batch, ``H`` the width):
 
-- read: ``"observation"`` ``[*B, C, 84, 84]``, ``"is_init"`` ``[*B, 1]`` (where the hidden state
-  restarts from zeros), ``"gru_h"`` ``[*B, H]`` and ``"gru_prev_action"`` ``[*B]`` int64;
+- read: ``"observation"`` ``[*B, C, S, S]`` (``S`` = 84 on Atari, 10 on MinAtar), ``"is_init"``
+  ``[*B, 1]`` (where the hidden state restarts from zeros), ``"gru_h"`` ``[*B, H]`` and
+  ``"gru_prev_action"`` ``[*B]`` int64;
 - written: ``"logits"`` ``[*B, A]``, ``"action"`` ``[*B]``, ``"action_log_prob"`` ``[*B]``,
   ``"state_value"`` ``[*B, 1]``, and ``("next", "gru_h")``, ``("next", "gru_prev_action")``.
 
@@ -25,21 +26,23 @@ from torch import Tensor, nn
 from torchrl.data import Unbounded
 from torchrl.envs.transforms import TensorDictPrimer
 
-from escort_rl.modules.dvrl_networks import AtariEncoder, mlp
+from escort_rl.modules.dvrl_networks import ATARI_SIZE, frame_networks, mlp
 from escort_rl.modules.dvrl_torchrl import sample_action
 
 
 class FrameGRU(nn.Module):
-    """The networks: ``step(h [B, H], action_prev [B], observation [B, C, 84, 84], reset [B])`` ->
-    ``(h' [B, H], logits [B, A], value [B])``; rows with ``reset`` start from ``h = 0`` and no action."""
+    """The networks: ``step(h [B, H], action_prev [B], observation [B, C, S, S], reset [B])`` ->
+    ``(h' [B, H], logits [B, A], value [B])``; rows with ``reset`` start from ``h = 0`` and no action.
+    The frame encoder is :func:`~escort_rl.modules.dvrl_networks.frame_networks`'s for ``S = frame_size``
+    (84: Atari, 10: MinAtar)."""
 
-    def __init__(self, channels: int, n_actions: int, hidden: int = 256) -> None:
+    def __init__(self, channels: int, n_actions: int, hidden: int = 256, frame_size: int = ATARI_SIZE) -> None:
         super().__init__()
         for name, value in (("channels", channels), ("n_actions", n_actions), ("hidden", hidden)):
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ValueError(f"{name}: expected a positive int, got {value!r}")
         self.n_actions, self.hidden = n_actions, hidden
-        self.encoder = AtariEncoder(channels, hidden)
+        self.encoder = frame_networks((channels, frame_size, frame_size))[0](channels, hidden)
         self.action_encoder = mlp([n_actions, hidden])
         self.cell = nn.GRUCell(2 * hidden, hidden)
         self.actor_head = nn.Linear(hidden, n_actions)

@@ -31,13 +31,12 @@ from torchrl.envs import Compose, InitTracker, ParallelEnv, SerialEnv, Transform
 
 from escort_rl.belief import ESCORTFilter
 from escort_rl.config import ConfigError
-from escort_rl.envs.atari import FRAME_SIZE, check_game, make_atari_torchrl_env
+from escort_rl.envs.flickering import flickering_game, game_spaces, make_flickering_torchrl_env
 from escort_rl.modules import DVRL, DVRLPolicy, ESCORTLatent, FrameGRU, FrameGRUPolicy
 from escort_rl.trainers.algorithm import Algorithm
 from escort_rl.trainers.dvrl_a2c import a2c_loss
 
 AGENTS = ("dvrl", "escort_latent", "gru")
-OBS_SHAPE = (1, FRAME_SIZE, FRAME_SIZE)
 
 
 def check_agent(agent: str) -> str:
@@ -46,33 +45,25 @@ def check_agent(agent: str) -> str:
     return agent
 
 
-def n_actions_of(game: str) -> int:
-    """The size of ``game``'s minimal action set (from one env, closed at once)."""
-    env = make_atari_torchrl_env(game)
-    try:
-        return int(env.action_spec.space.n)
-    finally:
-        env.close()
-
-
-def build_atari_policy(cfg: DictConfig, n_actions: int) -> DVRLPolicy | FrameGRUPolicy:
-    """The policy of ``cfg.agent`` for a game with ``n_actions`` actions."""
+def build_atari_policy(cfg: DictConfig, obs_shape: tuple[int, ...], n_actions: int) -> DVRLPolicy | FrameGRUPolicy:
+    """The policy of ``cfg.agent`` for a game with frames of ``obs_shape`` (``(C, S, S)``) and
+    ``n_actions`` actions."""
     agent = check_agent(cfg.agent)
     if agent == "gru":
-        return FrameGRUPolicy(FrameGRU(OBS_SHAPE[0], n_actions, hidden=int(cfg.gru.hidden)))
+        return FrameGRUPolicy(FrameGRU(obs_shape[0], n_actions, hidden=int(cfg.gru.hidden), frame_size=obs_shape[1]))
     vrnn = {k: cfg.vrnn[k] for k in ("num_particles", "latent_dim", "hidden", "encoding_dim", "summary")}
     if agent == "dvrl":
-        return DVRLPolicy(DVRL(OBS_SHAPE, n_actions, resample=True, **vrnn))
-    escort = ESCORTFilter(**{k: cfg.escort[k] for k in ("num_steps", "step_size", "lambda_corr", "lambda_temp",
-                                                      "n_proj", "proj_dim", "jitter")})
-    return DVRLPolicy(ESCORTLatent(OBS_SHAPE, n_actions, escort=escort, **vrnn))
+        return DVRLPolicy(DVRL(obs_shape, n_actions, resample=True, **vrnn))
+    latent = ("likelihood", "elbo")
+    escort = ESCORTFilter(**{k: v for k, v in cfg.escort.items() if k not in latent})
+    return DVRLPolicy(ESCORTLatent(obs_shape, n_actions, escort=escort, **{k: cfg.escort[k] for k in latent}, **vrnn))
 
 
 def make_atari_env(game: str, num_envs: int, primer, parallel: bool = False, seed: int | None = None,
                    device: str = "cpu") -> TransformedEnv:
     """``num_envs`` flickering games (a ``SerialEnv``, or a ``ParallelEnv`` of spawned workers) with
     ``InitTracker`` and the agent's state ``primer``, their tensors on ``device``."""
-    factory = functools.partial(make_atari_torchrl_env, check_game(game), device=device)
+    factory = functools.partial(make_flickering_torchrl_env, flickering_game(game).name, device=device)
     batched = (ParallelEnv(num_envs, factory, mp_start_method="spawn") if parallel
                else SerialEnv(num_envs, factory))
     env = TransformedEnv(batched, Compose(InitTracker(), primer))
@@ -105,7 +96,7 @@ class AtariA2C(Algorithm):
         super().__init__(cfg)
         t = cfg.trainer
         self.agent = check_agent(cfg.agent)
-        self.policy = build_atari_policy(cfg, n_actions_of(cfg.game)).to(cfg.device)
+        self.policy = build_atari_policy(cfg, *game_spaces(cfg.game)).to(cfg.device)
         self.optimizer = torch.optim.RMSprop(self.policy.parameters(), lr=float(t.lr), alpha=float(t.rmsprop_alpha),
                                              eps=float(t.rmsprop_eps))
         self.games = GameLog()
