@@ -4,6 +4,7 @@
   list raises.
 - :func:`gen` (import it: ``from conftest import gen``): a CPU generator with a given seed, for tests
   whose expected values were worked out for that seed.
+- :func:`hoeffding` (import it): the half-width of a confidence bound on a mean of draws in [0, 1].
 - The ``per_test_seed`` and ``per_test_generator`` fixtures: a seed of the test's own, stable (hashed
   from the test's id, so a failure replays) and different between tests (they do not share random
   streams).
@@ -36,6 +37,14 @@ def config_error(overrides) -> str:
     message = str(info.value)
     assert "\n" not in message, message
     return message
+
+
+def hoeffding(n: int, delta: float = 1e-9) -> float:
+    """Half-width of a two-sided Hoeffding bound on the mean of ``n`` draws in [0, 1]: a correct
+    sampler's mean lies this close to its expectation with probability ``1 - delta``, whatever the seed."""
+    import math
+
+    return math.sqrt(math.log(2 / delta) / (2 * n))
 
 
 def gen(seed: int) -> torch.Generator:

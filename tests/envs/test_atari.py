@@ -15,6 +15,7 @@ from torchrl.envs import ParallelEnv
 from torchrl.envs.utils import check_env_specs
 
 import escort_rl.envs  # noqa: F401  (registers the ids)
+from conftest import hoeffding
 from escort_rl.config import ConfigError
 from escort_rl.envs.atari import (
     GAMES,
@@ -24,13 +25,6 @@ from escort_rl.envs.atari import (
     make_atari_torchrl_env,
     make_flickering_atari,
 )
-
-DELTA = 1e-9  # failure probability of each confidence bound below, for a correct wrapper and any seed
-
-
-def hoeffding(n: int, delta: float = DELTA) -> float:
-    """Half-width of a two-sided Hoeffding bound on the mean of ``n`` draws in [0, 1]."""
-    return math.sqrt(math.log(2 / delta) / (2 * n))
 
 
 class Ones(gym.Env):
@@ -175,7 +169,7 @@ def tiny_atari_config(agent: str, tmp_path, **trainer) -> OmegaConf:
     settings = OmegaConf.to_container(load_typed(config_dir() / "bench" / "atari.yaml", AtariBenchConfig))
     settings["trainer"].update(num_envs=2, rollout_steps=5, updates_per_iteration=10, lr=1e-3, **trainer)
     settings["vrnn"].update(num_particles=3, latent_dim=4, hidden=8, encoding_dim=8)
-    settings["escort"].update(num_steps=2)
+    settings["escort"].update(num_steps=2, compile=False)  # compiling would dominate the test's time
     settings["gru"].update(hidden=8)
     return OmegaConf.create({"seed": 0, "device": "cpu", "output_dir": str(tmp_path / agent),
                              "logger": {"backend": "csv"}, "game": "pong", "agent": agent, **settings})
@@ -237,7 +231,7 @@ import json  # noqa: E402
 from escort_rl.bench import atari as atari_bench  # noqa: E402
 
 TINY_SET = ["trainer.num_envs=2", "trainer.updates_per_iteration=10", "vrnn.num_particles=3", "vrnn.latent_dim=4",
-            "vrnn.hidden=8", "vrnn.encoding_dim=8", "escort.num_steps=2", "gru.hidden=8"]
+            "vrnn.hidden=8", "vrnn.encoding_dim=8", "escort.num_steps=2", "escort.compile=false", "gru.hidden=8"]
 
 
 def bench_args(*argv: str) -> argparse.Namespace:
