@@ -108,6 +108,7 @@ class AtariTrainerConfig:
     max_grad_norm: float = _f(MISSING, gt=0)
     reward_clip: bool = MISSING
     parallel_envs: bool = MISSING
+    vectorized_envs: bool = False  # Atari only; optional so that configs/bench/minatar.yaml needs no key
     checkpoint_every: int = _f(MISSING, ge=1)
     keep_checkpoints: int = _f(MISSING, ge=1)
 

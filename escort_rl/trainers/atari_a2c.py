@@ -60,12 +60,22 @@ def build_atari_policy(cfg: DictConfig, obs_shape: tuple[int, ...], n_actions: i
 
 
 def make_atari_env(game: str, num_envs: int, primer, parallel: bool = False, seed: int | None = None,
-                   device: str = "cpu") -> TransformedEnv:
-    """``num_envs`` flickering games (a ``SerialEnv``, or a ``ParallelEnv`` of spawned workers) with
+                   device: str = "cpu", vectorized: bool = False) -> TransformedEnv:
+    """``num_envs`` flickering games (a ``SerialEnv``, a ``ParallelEnv`` of spawned workers, or with
+    ``vectorized`` the Atari games on ALE's C++ vector env,
+    :class:`~escort_rl.envs.atari_vector.FlickeringAtariVectorEnv`: the same frames, faster) with
     ``InitTracker`` and the agent's state ``primer``, their tensors on ``device``."""
+    if vectorized and parallel:
+        raise ValueError("vectorized: ALE's vector env runs the games on its own threads; pass parallel=False "
+                         "with it")
     factory = functools.partial(make_flickering_torchrl_env, flickering_game(game).name, device=device)
-    batched = (ParallelEnv(num_envs, factory, mp_start_method="spawn") if parallel
-               else SerialEnv(num_envs, factory))
+    if vectorized:
+        from escort_rl.envs.atari_vector import make_atari_vector_env
+
+        batched = make_atari_vector_env(game, num_envs, device=device)
+    else:
+        batched = (ParallelEnv(num_envs, factory, mp_start_method="spawn") if parallel
+                   else SerialEnv(num_envs, factory))
     env = TransformedEnv(batched, Compose(InitTracker(), primer))
     if seed is not None:
         env.set_seed(int(seed))
@@ -100,8 +110,12 @@ class AtariA2C(Algorithm):
         self.optimizer = torch.optim.RMSprop(self.policy.parameters(), lr=float(t.lr), alpha=float(t.rmsprop_alpha),
                                              eps=float(t.rmsprop_eps))
         self.games = GameLog()
+        vectorized = bool(t.get("vectorized_envs", False))
+        if vectorized and t.parallel_envs:
+            raise ConfigError("trainer.vectorized_envs: ALE's vector env runs the games on its own threads; set "
+                              "trainer.parallel_envs=false with it")
         self.env = make_atari_env(cfg.game, int(t.num_envs), self.policy.make_tensordict_primer(),
-                                  parallel=bool(t.parallel_envs), device=cfg.device)
+                                  parallel=bool(t.parallel_envs), device=cfg.device, vectorized=vectorized)
         self.td = None  # the envs' current tensordict, carried across iterations
         self.running = torch.zeros(int(t.num_envs))  # the unclipped return of each env's current game
         self.frames = 0  # frames of this session (for the game log, offset by the resumed frames)

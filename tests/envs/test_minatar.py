@@ -11,12 +11,12 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from conftest import hoeffding
 from omegaconf import OmegaConf
 from torchrl.envs import ParallelEnv
 from torchrl.envs.utils import check_env_specs
 
 import escort_rl  # noqa: F401  (registers the ids)
+from conftest import hoeffding
 from escort_rl.config import ConfigError
 from escort_rl.envs.flickering import flickering_game, game_spaces, make_flickering_torchrl_env
 from escort_rl.envs.minatar import GAMES, MinAtarFrames, make_flickering_minatar
