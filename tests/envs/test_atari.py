@@ -262,16 +262,42 @@ def test_bench_cell_resumes_from_its_checkpoint_and_reports_beside_the_paper(tmp
     capsys.readouterr()
 
 
-def test_bench_report_puts_paper_rows_beside_ours():
+def run_result(agent, seed, returns, seconds_per_game=1.0, frames=1000, fps=5.0):
+    n = len(returns)
+    return {"game": "pong", "agent": agent, "seed": seed, "frames": frames, "fps": fps, "seconds": frames / fps,
+            "game_returns": returns, "game_frames": list(range(n)),
+            "game_seconds": [seconds_per_game * (i + 1) for i in range(n)]}
+
+
+def test_bench_report_puts_random_and_paper_rows_beside_ours():
     rows = atari_bench.summarise([
-        {"game": "pong", "agent": "escort_latent", "seed": 0, "frames": 1000, "fps": 5.0,
-         "game_returns": [-21.0] * 150 + [-19.0] * 100, "game_frames": list(range(250))},
-        {"game": "pong", "agent": "escort_latent", "seed": 1, "frames": 1200, "fps": 7.0,
-         "game_returns": [-17.0, -21.0], "game_frames": [5, 9]}])
-    assert len(rows) == 1 and rows[0]["games"] == 102 and rows[0]["frames"] == 1000 and rows[0]["fps"] == 6.0
-    assert rows[0]["return"][0] == pytest.approx((100 * -19.0 - 38.0) / 102)
+        run_result("escort_latent", 0, [-21.0] * 150 + [-19.0] * 100),
+        run_result("escort_latent", 1, [-17.0, -21.0], frames=1200, fps=7.0),
+        run_result("gru", 0, [-21.0] * 50 + [-20.0] * 50, fps=50.0),  # done in 20 s: the equal wall-clock
+        run_result("random", 0, [-21.0] * 99 + [-20.0], fps=float("nan"))])
+    by_agent = {row["agent"]: row for row in rows}
+    row = by_agent["escort_latent"]
+    assert row["seeds"] == 2 and row["games"] == 102 and row["frames"] == 1000 and row["fps"] == 6.0
+    assert row["return"][0] == pytest.approx((100 * -19.0 - 38.0) / 102)
+    assert row["seed_means"] == [-19.0, -19.0]
+    # at 20 s, seed 0 had ended 20 games (all -21) and seed 1 its two
+    assert row["equal_seconds"] == 20.0 and row["games_equal_time"] == 22
+    assert row["return_equal_time"][0] == pytest.approx((20 * -21.0 - 38.0) / 22)
+    random_mean, random_se = by_agent["random"]["return"]
+    se = math.hypot(row["return"][1], random_se)
+    assert row["above_random"] == pytest.approx((row["return"][0] - random_mean) / se)
+    assert by_agent["random"]["above_random"] is None
     table = atari_bench.markdown_table(rows, atari_bench.load_settings().paper)
     assert "17.97 ± 3.74 (ESCORT)" in table and "50,000,000" in table
+    assert "| pong | random | -20.99 ± 0.01 | — | — |" in table
+
+
+def test_the_random_policy_plays_whole_games_on_both_tiers():
+    for game in ("pong", "breakout"):
+        result = atari_bench.run_random_cell(game, seed=0, frames=20000, games=3)
+        assert len(result["game_returns"]) == 3 and result["frames"] == result["game_frames"][-1]
+        if game == "pong":  # a whole game of Pong ends at 21 points to one side
+            assert all(-21 <= r <= -15 for r in result["game_returns"])
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -166,3 +166,24 @@ def test_each_agent_trains_a_few_hundred_minatar_frames(agent, tmp_path):
         assert any(part in k for k in changed), (part, changed)
     if agent != "gru":  # the model learns from its ELBO: the emission moves
         assert any("emission" in k for k in changed)
+
+
+def test_bench_atari_trains_on_minatar_and_reports_beside_random(tmp_path):
+    import argparse
+    import json
+
+    from escort_rl.bench import atari as atari_bench
+
+    parser = argparse.ArgumentParser()
+    atari_bench.register(parser.add_subparsers())
+    tiny = ["trainer.num_envs=4", "trainer.updates_per_iteration=10", "gru.hidden=16"]
+    args = parser.parse_args(["atari", *tiny, "--games", "breakout", "--agents", "gru", "random", "--frames", "400",
+                              "--output", str(tmp_path)])
+    args.handler(args)
+    rows = {row["agent"]: row for row in json.loads((tmp_path / "atari.json").read_text())["rows"]}
+    assert rows["gru"]["frames"] == 400 and rows["gru"]["games"] > 0 and rows["gru"]["above_random"] is not None
+    assert rows["random"]["games"] > 0 and rows["random"]["above_random"] is None
+    assert "| breakout | gru |" in (tmp_path / "atari.md").read_text()
+    run_cfg = OmegaConf.load(tmp_path / "runs" / "breakout" / "gru" / "seed0" / "config.yaml")
+    assert run_cfg.game == "breakout" and run_cfg.gru.hidden == 16
+    assert run_cfg.trainer.lr == atari_bench.load_settings(tier="minatar").trainer.lr  # MinAtar's settings, not Atari's
