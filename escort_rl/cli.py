@@ -63,6 +63,7 @@ BENCHMARKS = (
     "escort_rl.bench.frontier.decisions",
     "escort_rl.bench.atari",
     "escort_rl.bench.atari_envs",
+    "escort_rl.bench.atari_cost",
     "escort_rl.bench.headline",
 )
 """The modules whose ``register(subparsers)`` adds a ``bench`` subcommand, in the order of the help."""
