@@ -81,18 +81,20 @@ def markdown_table(rows: list[dict], paper: DictConfig | None) -> str:
     """Ours beside the random policy and the paper's Table 4 (where ``paper`` has the game), each with
     its budget in frames (agent steps)."""
     lines = ["| game | agent | last 100 games, mean ± s.e. | above random (s.e.) | at equal wall-clock (s) "
-             "| games (seeds) | frames | frames/s | paper (same method) | paper frames |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| games (seeds) | frames | frames/s | paper (same method) | paper frames | paper's budget at our rate "
+             "(hours per seed) |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for row in rows:
         method = PAPER_METHOD.get(row["agent"])
         ref = paper.table4.get(row["game"], {}).get(method) if method and paper is not None else None
         paper_text, paper_frames = ((f"{ref[0]} ± {ref[1]} ({method.upper()})", f"{int(paper.frames):,}")
                                     if ref is not None else ("—", "—"))
+        in_paper = paper is not None and row["game"] in paper.table4 and row["agent"] != RANDOM
+        hours = _number(int(paper.frames) / row["fps"] / 3600.0) if in_paper and row["fps"] > 0 else "—"
         equal = ("—" if row["agent"] == RANDOM or row["equal_seconds"] is None else
                  f"{format_mean_se(row['return_equal_time'], 2)} ({row['equal_seconds']:.0f})")
         lines.append(f"| {row['game']} | {row['agent']} | {format_mean_se(row['return'], 2)} | "
                      f"{_number(row['above_random'])} | {equal} | {row['games']} ({row['seeds']}) | "
-                     f"{row['frames']:,} | {_number(row['fps'])} | {paper_text} | {paper_frames} |")
+                     f"{row['frames']:,} | {_number(row['fps'])} | {paper_text} | {paper_frames} | {hours} |")
     return "\n".join(lines) + "\n"
 
 
