@@ -214,8 +214,12 @@ def test_torchrl_env_has_serial_env_specs_seeds_and_rollouts(per_test_seed):
 def test_each_env_flickers_with_its_own_seeded_stream(per_test_seed):
     n, env = 1500, make_atari_vector_env("pong", 3, frame_skip=1, **DETERMINISTIC)
     env.set_seed(per_test_seed)
-    blank = (env.rollout(n, break_when_any_done=False)["next", "observation"].flatten(2).amax(-1) == 0).double()
+    rng = np.random.default_rng(0)
+    rollout = env.rollout(n, lambda td: td.set("action", torch.as_tensor(rng.integers(6, size=3))),
+                          break_when_any_done=False)
     env.close()
+    assert not rollout["next", "done"].any()  # 1500 frames of Pong: no reset draws in between
+    blank = (rollout["next", "observation"].flatten(2).amax(-1) == 0).double()
     assert blank.shape == (3, n)
     assert (abs(blank.mean(1) - 0.5) <= hoeffding(n)).all()
     for a, b in ((0, 1), (0, 2), (1, 2)):  # independent fair coins agree half the time
