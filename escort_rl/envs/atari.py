@@ -70,6 +70,38 @@ def area_resize_matrix(source: int, target: int) -> np.ndarray:
     return (overlap / overlap.sum(1, keepdims=True)).astype(np.float32)
 
 
+def area_taps(source: int, target: int) -> tuple[np.ndarray, np.ndarray]:
+    """The weights of :func:`~escort_rl.envs.atari.area_resize_matrix` ``(source, target)`` as integer
+    taps: ``(index [target, k], weight [target, k])``, ``weight / source`` the matrix's nonzero entries,
+    ``k`` the most source pixels one output pixel overlaps (spare taps weigh 0). An entry is an
+    overlap over the box width ``source / target``, and overlaps are multiples of ``1 / target`` (the
+    box edges are), so ``entry · source`` (the overlap in ``1/target`` of a pixel) is an integer and a
+    row's weights sum to ``source``. The weights are ``float32`` holding integers."""
+    exact = np.rint(area_resize_matrix(source, target).astype(np.float64) * source)
+    k = int((exact > 0).sum(1).max())
+    index = np.argsort(exact == 0, axis=1, kind="stable")[:, :k]  # each row's nonzero columns first
+    return index, np.take_along_axis(exact, index, 1).astype(np.float32)
+
+
+def resize_screens(screens: np.ndarray, rows: tuple[np.ndarray, np.ndarray],
+                   cols: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """``[B, H, W]`` ``uint8`` screens -> ``[B, 1, S, S]`` ``float32`` in ``[0, 1]``: DVRLAtari's area
+    resize, exactly. ``rows`` and ``cols`` are :func:`area_taps` ``(H, S)`` and ``(W, S)``; every sum
+    of weighted pixels is an integer below ``2**24`` (at most ``H·W·255``), so exact in ``float32``, and
+    the one division by ``H·W·255`` rounds the box average once."""
+    (row_index, row_weight), (col_index, col_weight) = rows, cols
+    _, h, w = screens.shape
+    if h * w * 255 >= 2**24:
+        raise ValueError(f"screens: {h}×{w} is too large for exact float32 sums (at most 2**24 / 255 pixels)")
+    x = row_weight[None, :, 0, None] * screens[:, row_index[:, 0], :]  # [B, S, W]
+    for t in range(1, row_index.shape[1]):
+        x += row_weight[None, :, t, None] * screens[:, row_index[:, t], :]
+    y = col_weight[None, None, :, 0] * x[:, :, col_index[:, 0]]  # [B, S, S]
+    for t in range(1, col_index.shape[1]):
+        y += col_weight[None, None, :, t] * x[:, :, col_index[:, t]]
+    return (y / np.float32(h * w * 255))[:, None]
+
+
 class DVRLAtari(gym.Env):
     """One ALE game with DVRL's preprocessing (see the module docstring).
 
@@ -108,12 +140,13 @@ class DVRLAtari(gym.Env):
         meanings = self.ale_env.get_action_meanings()
         self._fire = meanings.index("FIRE") if "FIRE" in meanings else None
         height, width = self.ale_env.observation_space.shape
-        self._rows, self._cols = area_resize_matrix(height, FRAME_SIZE), area_resize_matrix(width, FRAME_SIZE).T
+        self._rows, self._cols = area_taps(height, FRAME_SIZE), area_taps(width, FRAME_SIZE)
         self._lives, self._game_over = 0, True
 
     def _frame(self, screen: np.ndarray) -> np.ndarray:
-        """``[210, 160]`` uint8 -> ``[1, 84, 84]`` float32 in ``[0, 1]``."""
-        return ((self._rows @ screen.astype(np.float32) @ self._cols) / 255.0)[None]
+        """``[210, 160]`` uint8 -> ``[1, 84, 84]`` float32 in ``[0, 1]`` (:func:`resize_screens`: exact
+        integer sums, no BLAS call, whose threads would contend with the emulator's and the agent's)."""
+        return resize_screens(screen[None], self._rows, self._cols)[0]
 
     def _emulate(self, action: int) -> tuple[np.ndarray, float, bool, bool]:
         """``frame_skip`` emulator frames of ``action``: (max of the last two screens, summed reward,

@@ -15,13 +15,11 @@ How it is built, and why:
   starts a new game), reward clipping and frame stacking. The rest is done here as DVRLAtari does it:
   the no-op count, FIRE then action 2 at every reset, a lost life ending the episode but not the game
   (the next reset takes one no-op step), ``game_over`` at the end of the game.
-- The resize is DVRLAtari's box average (the weights of
-  :func:`~escort_rl.envs.atari.area_resize_matrix`) computed exactly over the whole batch
-  (:func:`resize_screens`: integer sums, exact in ``float32``, one rounding division). DVRLAtari's
-  two ``float32`` matrix products round at each step, so the frames agree to ``float32`` rounding
-  (at most a few ulps, about 1e-7), not bit for bit. Not the same BLAS products: OpenBLAS's threads
-  spin between calls, and on a busy machine they starved ALE's threads (a step of 2 games took 24 ms
-  instead of 0.8).
+- The resize is DVRLAtari's own, :func:`~escort_rl.envs.atari.resize_screens` (the box average of
+  :func:`~escort_rl.envs.atari.area_resize_matrix` by integer sums, exact in ``float32``, one rounding
+  division) over the whole batch, so the frames are DVRLAtari's bit for bit. Not BLAS matrix
+  products: OpenBLAS's threads spin between calls, and on a busy machine they starved ALE's threads
+  (a step of 2 games took 24 ms instead of 0.8).
   Not ALE's resize (OpenCV's ``INTER_AREA``): the same box average, but in ``uint8``, every pixel
   rounded to a multiple of 1/255.
 - Seeds: a reset with seed ``s`` draws the ALE seed and the no-op count from ``default_rng(s)`` (gym's
@@ -57,8 +55,9 @@ from escort_rl.envs.atari import (
     GAMES,
     MISSING_ALE,
     P_BLANK,
-    area_resize_matrix,
+    area_taps,
     check_game,
+    resize_screens,
 )
 
 SCREEN = (210, 160)  # ALE's Atari screen, [height, width]
@@ -118,38 +117,6 @@ def serial_env_seeds(seed: int, num_envs: int, static_seed: bool = False) -> tup
     for _ in range(num_envs - 1):
         seeds.append(seeds[-1] if static_seed else seed_generator(seeds[-1]))
     return seeds, seeds[-1] if static_seed else seed_generator(seeds[-1])
-
-
-def area_taps(source: int, target: int) -> tuple[np.ndarray, np.ndarray]:
-    """The weights of :func:`~escort_rl.envs.atari.area_resize_matrix` ``(source, target)`` as integer
-    taps: ``(index [target, k], weight [target, k])``, ``weight / source`` the matrix's nonzero entries,
-    ``k`` the most source pixels one output pixel overlaps (spare taps weigh 0). An entry is an
-    overlap over the box width ``source / target``, and overlaps are multiples of ``1 / target`` (the
-    box edges are), so ``entry · source`` (the overlap in ``1/target`` of a pixel) is an integer and a
-    row's weights sum to ``source``. The weights are ``float32`` holding integers."""
-    exact = np.rint(area_resize_matrix(source, target).astype(np.float64) * source)
-    k = int((exact > 0).sum(1).max())
-    index = np.argsort(exact == 0, axis=1, kind="stable")[:, :k]  # each row's nonzero columns first
-    return index, np.take_along_axis(exact, index, 1).astype(np.float32)
-
-
-def resize_screens(screens: np.ndarray, rows: tuple[np.ndarray, np.ndarray],
-                   cols: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """``[B, H, W]`` ``uint8`` screens -> ``[B, 1, S, S]`` ``float32`` in ``[0, 1]``: DVRLAtari's area
-    resize, exactly. ``rows`` and ``cols`` are :func:`area_taps` ``(H, S)`` and ``(W, S)``; every sum
-    of weighted pixels is an integer below ``2**24`` (at most ``H·W·255``), so exact in ``float32``, and
-    the one division by ``H·W·255`` rounds the box average once."""
-    (row_index, row_weight), (col_index, col_weight) = rows, cols
-    _, h, w = screens.shape
-    if h * w * 255 >= 2**24:
-        raise ValueError(f"screens: {h}×{w} is too large for exact float32 sums (at most 2**24 / 255 pixels)")
-    x = row_weight[None, :, 0, None] * screens[:, row_index[:, 0], :]  # [B, S, W]
-    for t in range(1, row_index.shape[1]):
-        x += row_weight[None, :, t, None] * screens[:, row_index[:, t], :]
-    y = col_weight[None, None, :, 0] * x[:, :, col_index[:, 0]]  # [B, S, S]
-    for t in range(1, col_index.shape[1]):
-        y += col_weight[None, None, :, t] * x[:, :, col_index[:, t]]
-    return (y / np.float32(h * w * 255))[:, None]
 
 
 class DVRLAtariVector:

@@ -25,21 +25,20 @@ from torchrl.envs.utils import check_env_specs
 from escort_rl.config import ConfigError
 from escort_rl.envs.atari import (
     _FLICKER_STREAM,
-    DVRLAtari,
     area_resize_matrix,
+    area_taps,
     make_atari_torchrl_env,
     make_flickering_atari,
+    resize_screens,
 )
 from escort_rl.envs.atari_vector import (
     ALE_SEED_LIMIT,
     DVRLAtariVector,
-    area_taps,
     dvrl_ale_seed,
     make_atari_vector_env,
-    resize_screens,
 )
 
-ATOL = 1e-6
+ATOL = 0.0  # both envs resize by the same exact sums: the frames are equal bit for bit
 DETERMINISTIC = dict(repeat_action_probability=0.0, noop_max=0)  # the game then depends on the actions only
 
 
@@ -138,7 +137,7 @@ def play_both(game: str, seeds: list[int], steps: int, **kwargs) -> dict:
             "truncations": int(theirs["truncated"].sum()), "stale_frames": int((~close).sum())}
 
 
-def test_resize_is_the_exact_box_average_and_dvrl_atari_frame_to_rounding(per_test_seed):
+def test_resize_is_the_exact_box_average_rounded_once(per_test_seed):
     screens = np.random.default_rng(per_test_seed).integers(0, 256, (5, 210, 160), dtype=np.uint8)
     frames = resize_screens(screens, area_taps(210, 84), area_taps(160, 84))
     assert frames.shape == (5, 1, 84, 84) and frames.dtype == np.float32
@@ -150,9 +149,6 @@ def test_resize_is_the_exact_box_average_and_dvrl_atari_frame_to_rounding(per_te
         np.testing.assert_allclose(weights / n, area_resize_matrix(n, 84), rtol=1e-6)
     exact = np.stack([rows @ s @ cols.T for s in screens.astype(np.float64)])[:, None] / (210 * 160 * 255)
     assert (np.abs(frames - exact) <= np.spacing(np.float32(1.0)) / 2).all()
-    env = DVRLAtari("pong")
-    np.testing.assert_allclose(frames[:, 0], np.stack([env._frame(s)[0] for s in screens]), rtol=0, atol=ATOL)
-    env.close()
 
 
 def test_same_frames_as_dvrl_atari_across_lost_lives_and_a_finished_game(per_test_seed):
