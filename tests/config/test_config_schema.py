@@ -405,7 +405,8 @@ def test_build_errors_name_the_group():
 def test_every_packaged_yaml_is_covered():
     """Each yaml in configs/ is a group option composed above, config.yaml, or a file with a schema."""
     root = Path(config_dir())
-    covered = {"config.yaml", "bench/closed_loop.yaml", "bench/synthetic.yaml", "bench/atari.yaml"}
+    covered = {"config.yaml", "bench/closed_loop.yaml", "bench/synthetic.yaml", "bench/atari.yaml",
+               "bench/minatar.yaml"}
     for group in ("env", "filter", "trainer", "dvrl", "planner"):
         covered |= {f"{group}/{option}.yaml" for option in option_names(group)}
     assert {str(p.relative_to(root)) for p in root.rglob("*.yaml")} == covered
