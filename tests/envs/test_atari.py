@@ -319,3 +319,10 @@ def test_cli_registers_bench_atari(capsys):
 
     assert main(["bench", "atari", "--frames", "10"]) == 2
     assert "--frames: must be at least 80" in capsys.readouterr().err
+
+
+def test_a_seed_curve_is_its_running_mean_at_each_point_until_the_run_ends():
+    grid = np.array([0.0, 1.0, 2.0, 3.0, 5.0, 10.0])
+    curve = atari_bench.report.seed_curve([1, 2, 4], [1.0, 3.0, 5.0], grid, window=2, upto=6.0)
+    # nothing ended at 0; then the mean of the last two games ended by each point; nothing after the run
+    np.testing.assert_array_equal(curve, [np.nan, 1.0, 2.0, 2.0, 4.0, np.nan])

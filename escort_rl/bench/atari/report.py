@@ -98,18 +98,30 @@ def markdown_table(rows: list[dict], paper: DictConfig | None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _running_mean(points: list[tuple[float, float]], window: int) -> tuple[list[float], list[float]]:
-    xs = [x for x, _ in points]
-    ys = [sum(y for _, y in points[max(0, i - window + 1): i + 1]) / (i + 1 - max(0, i - window + 1))
-          for i in range(len(points))]
-    return xs, ys
+def seed_curve(xs: list[float], returns: list[float], grid, window: int, upto: float):
+    """One run's learning curve on ``grid``: the running mean of its last ``window`` games' returns,
+    ``xs`` the frame (or second) at which each game ended, read at each grid point from the games
+    ended by then (NaN before its first game and after the run's end, ``upto``)."""
+    import numpy as np
+
+    if not returns:
+        return np.full(len(grid), np.nan)
+    r = np.asarray(returns, dtype=float)
+    sums = np.concatenate([[0.0], np.cumsum(r)])
+    idx = np.arange(1, len(r) + 1)
+    smooth = (sums[idx] - sums[np.maximum(idx - window, 0)]) / np.minimum(idx, window)
+    ended = np.searchsorted(np.asarray(xs, dtype=float), grid, side="right")  # games ended by each point
+    out = np.where(ended > 0, smooth[np.maximum(ended - 1, 0)], np.nan)
+    return np.where(grid <= upto, out, np.nan)
 
 
-def plot_curves(results: list[dict], path: Path, window: int = 20) -> Path:
-    """Learning curves, one column per game: each agent's game returns against the frame (top) and
-    the training second (bottom) at which each game ended (all seeds pooled, smoothed by a running mean
-    over ``window`` games per seed); the random policy's mean as a dashed line."""
+def plot_curves(results: list[dict], path: Path, window: int = 20, points: int = 200) -> Path:
+    """Learning curves, one column per game: each agent's return against frames (top) and training
+    seconds (bottom): each seed's running mean over its last ``window`` games, then the mean over
+    seeds (shaded: ± one s.e. across seeds where two or more have data); the random policy's mean as a
+    dashed line."""
     import matplotlib
+    import numpy as np
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -127,14 +139,24 @@ def plot_curves(results: list[dict], path: Path, window: int = 20) -> Path:
                         ax.axhline(mean, color="grey", linestyle="--", label=f"random ({len(runs)} seeds)")
                 continue
             for ax, key in ((top, "game_frames"), (bottom, "game_seconds")):
-                points = sorted(p for r in runs for p in zip(r[key], r["game_returns"]))
-                if points:
-                    ax.plot(*_running_mean(points, window * len(runs)), label=f"{agent} ({len(runs)} seeds)")
+                extent = "frames" if key == "game_frames" else "seconds"
+                if not any(r[key] for r in runs):
+                    continue
+                grid = np.linspace(0.0, max(r[extent] for r in runs), points)
+                curves = np.stack([seed_curve(r[key], r["game_returns"], grid, window, r[extent]) for r in runs])
+                have = np.isfinite(curves).sum(0)
+                mean = np.where(have > 0, np.nanmean(np.where(have > 0, curves, 0.0), 0), np.nan)
+                line, = ax.plot(grid, mean, label=f"{agent} ({len(runs)} seeds)")
+                if len(runs) > 1:
+                    spread = np.nanstd(np.where(have > 1, curves, 0.0), 0, ddof=1) / np.sqrt(np.maximum(have, 1))
+                    band = have > 1
+                    ax.fill_between(grid[band], (mean - spread)[band], (mean + spread)[band], alpha=0.2,
+                                    color=line.get_color())
         top.set_title(f"Flickering {game}")
         top.set_xlabel("frames (agent steps)")
         bottom.set_xlabel("training seconds")
         for ax in (top, bottom):
-            ax.set_ylabel("game return")
+            ax.set_ylabel(f"game return (running mean of {window} games)")
             if ax.lines:
                 ax.legend(fontsize=8)
             else:
