@@ -283,13 +283,15 @@ def test_bench_report_puts_random_and_paper_rows_beside_ours():
     # at 20 s, seed 0 had ended 20 games (all -21) and seed 1 its two
     assert row["equal_seconds"] == 20.0 and row["games_equal_time"] == 22
     assert row["return_equal_time"][0] == pytest.approx((20 * -21.0 - 38.0) / 22)
+    # two seeds: the comparison's figure is across seeds (both -19: no spread); random has one seed: its games'
+    assert row["return_seeds"] == (-19.0, 0.0)
     random_mean, random_se = by_agent["random"]["return"]
-    se = math.hypot(row["return"][1], random_se)
-    assert row["above_random"] == pytest.approx((row["return"][0] - random_mean) / se)
+    assert row["above_random"] == pytest.approx((-19.0 - random_mean) / random_se)
     assert by_agent["random"]["above_random"] is None
     table = atari_bench.markdown_table(rows, atari_bench.load_settings().paper)
     assert "17.97 ± 3.74 (ESCORT)" in table and "50,000,000" in table
-    assert "| pong | random | -20.99 ± 0.01 | — | — |" in table
+    assert "| pong | escort_latent | -19.00 ± 0.00 | -19.00, -19.00 |" in table
+    assert "| pong | random | -20.99 ± 0.01 | -20.99 | — | — |" in table
 
 
 def test_the_random_policy_plays_whole_games_on_both_tiers():

@@ -47,7 +47,8 @@ def main(args) -> None:
     markdown = (f"# Flickering games: {frames:,} frames per run\n\n"
                 + markdown_table(rows, paper)
                 + "\nFrames are agent steps (4 emulator frames each on Atari, as DVRL counted them; one step each on "
-                "MinAtar). Returns are whole games' unclipped scores. Above random: the distance to the random "
+                "MinAtar). Returns are whole games' unclipped scores: each seed's last 100 games averaged, then "
+                "mean ± s.e. across seeds (the games' s.e. for one seed). Above random: the distance to the random "
                 "policy's mean in combined standard errors. At equal wall-clock: the last games each run had "
                 "ended by the training seconds in brackets, those the fastest agent took for its frames."
                 + (f" The paper's rows ran {int(paper.frames):,} frames." if paper is not None else "")

@@ -1,10 +1,11 @@
 """The report of ``escort-rl bench atari`` (``atari.md``, ``atari.json``, ``learning_curves.png``).
 
-Per game and agent: the mean ± s.e. of the last :data:`LAST_GAMES` games' returns (unclipped game
-scores, the last games of each seed pooled), how many standard errors it lies above the random
-policy's, the same at equal wall-clock (the games each run had ended by the time the fastest agent
-finished its frames), the frames and the training frames/s; beside it, the paper's Table 4 where the
-game is one of its. The curves show the returns against frames and against training seconds.
+Per game and agent: the mean of the last :data:`LAST_GAMES` games' returns (unclipped game scores)
+of each seed, their mean ± s.e. across seeds (the pooled games' where there is one seed), how many
+standard errors it lies above the random policy's, the same at equal wall-clock (the games each run
+had ended by the time the fastest agent finished its frames), the frames and the training frames/s;
+beside it, the paper's Table 4 where the game is one of its. The curves show the returns against
+frames and against training seconds.
 """
 
 from __future__ import annotations
@@ -47,11 +48,18 @@ def equal_seconds(results: list[dict], game: str) -> float | None:
     return min(sum(s) / len(s) for s in per_agent.values()) if per_agent else None
 
 
+def seed_level(row: dict, key: str = "return") -> tuple[float, float]:
+    """The row's mean ± s.e. with the training seeds as the samples (``<key>_seeds``) where it has two
+    or more seeds, else that of its pooled games (``<key>``): the figure every comparison uses."""
+    return row[f"{key}_seeds"] if row["seeds"] >= 2 else row[key]
+
+
 def summarise(results: list[dict]) -> list[dict]:
     """One row per (game, agent), in the order met: ``return`` (the last games of each seed pooled,
-    mean ± s.e.), ``seed_means`` (each seed's mean), ``above_random`` (:func:`margin` over the random
-    row of the game, if any), ``return_equal_time`` at ``equal_seconds``, the frames (smallest over
-    seeds), the frames/s and the training seconds (means over seeds)."""
+    mean ± s.e.), ``seed_means`` (each seed's mean) and ``return_seeds`` (their mean ± s.e.),
+    ``above_random`` (:func:`margin` of :func:`seed_level` figures over the random row of the game, if
+    any), ``return_equal_time`` and ``return_equal_time_seeds`` at ``equal_seconds``, the frames
+    (smallest over seeds), the frames/s and the training seconds (means over seeds)."""
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in results:
         groups.setdefault((r["game"], r["agent"]), []).append(r)
@@ -59,17 +67,20 @@ def summarise(results: list[dict]) -> list[dict]:
     for (game, agent), runs in groups.items():
         t_equal = equal_seconds(results, game)
         pooled = [x for r in runs for x in last_games(r)]
-        at_time = ([x for r in runs for x in last_games(r, t_equal)]
-                   if agent != RANDOM and t_equal is not None else [])
+        timed = agent != RANDOM and t_equal is not None
+        at_time = [x for r in runs for x in last_games(r, t_equal)] if timed else []
+        seed_means = [mean_se(last_games(r))[0] for r in runs]
+        seed_means_at_time = [mean_se(last_games(r, t_equal))[0] for r in runs] if timed else []
         rows.append({"game": game, "agent": agent, "seeds": len(runs), "games": len(pooled),
-                     "return": mean_se(pooled), "seed_means": [mean_se(last_games(r))[0] for r in runs],
+                     "return": mean_se(pooled), "seed_means": seed_means, "return_seeds": mean_se(seed_means),
                      "equal_seconds": t_equal, "return_equal_time": mean_se(at_time), "games_equal_time": len(at_time),
+                     "return_equal_time_seeds": mean_se(seed_means_at_time),
                      "frames": min(r["frames"] for r in runs), "fps": sum(r["fps"] for r in runs) / len(runs),
                      "seconds": sum(r["seconds"] for r in runs) / len(runs)})
-    randoms = {row["game"]: row["return"] for row in rows if row["agent"] == RANDOM}
+    randoms = {row["game"]: seed_level(row) for row in rows if row["agent"] == RANDOM}
     for row in rows:
         base = randoms.get(row["game"])
-        row["above_random"] = margin(row["return"], base) if base is not None and row["agent"] != RANDOM else None
+        row["above_random"] = margin(seed_level(row), base) if base is not None and row["agent"] != RANDOM else None
     return rows
 
 
@@ -80,9 +91,9 @@ def _number(x: float | None, digits: int = 1) -> str:
 def markdown_table(rows: list[dict], paper: DictConfig | None) -> str:
     """Ours beside the random policy and the paper's Table 4 (where ``paper`` has the game), each with
     its budget in frames (agent steps)."""
-    lines = ["| game | agent | last 100 games, mean ± s.e. | above random (s.e.) | at equal wall-clock (s) "
+    lines = ["| game | agent | last 100 games: mean ± s.e. | per seed | above random (s.e.) | at equal wall-clock (s) "
              "| games (seeds) | frames | frames/s | paper (same method) | paper frames | paper's budget at our rate "
-             "(hours per seed) |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "(hours per seed) |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for row in rows:
         method = PAPER_METHOD.get(row["agent"])
         ref = paper.table4.get(row["game"], {}).get(method) if method and paper is not None else None
@@ -91,8 +102,9 @@ def markdown_table(rows: list[dict], paper: DictConfig | None) -> str:
         in_paper = paper is not None and row["game"] in paper.table4 and row["agent"] != RANDOM
         hours = _number(int(paper.frames) / row["fps"] / 3600.0) if in_paper and row["fps"] > 0 else "—"
         equal = ("—" if row["agent"] == RANDOM or row["equal_seconds"] is None else
-                 f"{format_mean_se(row['return_equal_time'], 2)} ({row['equal_seconds']:.0f})")
-        lines.append(f"| {row['game']} | {row['agent']} | {format_mean_se(row['return'], 2)} | "
+                 f"{format_mean_se(seed_level(row, 'return_equal_time'), 2)} ({row['equal_seconds']:.0f})")
+        per_seed = ", ".join(_number(m, 2) for m in row["seed_means"])
+        lines.append(f"| {row['game']} | {row['agent']} | {format_mean_se(seed_level(row), 2)} | {per_seed} | "
                      f"{_number(row['above_random'])} | {equal} | {row['games']} ({row['seeds']}) | "
                      f"{row['frames']:,} | {_number(row['fps'])} | {paper_text} | {paper_frames} | {hours} |")
     return "\n".join(lines) + "\n"
