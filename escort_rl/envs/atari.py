@@ -38,7 +38,7 @@ GAMES = {
 }
 FRAME_SIZE = 84
 P_BLANK = 0.5
-_FLICKER_STREAM = 0x5EED_F11C  # separates the flicker's generator from the game's seed
+FLICKER_STREAM = 0x5EED_F11C  # separates the flicker's generator from the game's seed
 MISSING_ALE = "Flickering Atari needs the ale-py package: install with pip install escort-rl[atari]"
 
 
@@ -215,7 +215,7 @@ class Flicker(gym.ObservationWrapper):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         if seed is not None or self._rng is None:
-            self._rng = np.random.default_rng(None if seed is None else [int(seed), _FLICKER_STREAM])
+            self._rng = np.random.default_rng(None if seed is None else [int(seed), FLICKER_STREAM])
         obs, info = super().reset(seed=seed, options=options)
         return obs, {**info, "blank": self._blank}
 

@@ -23,7 +23,7 @@ How it is built, and why:
   Not ALE's resize (OpenCV's ``INTER_AREA``): the same box average, but in ``uint8``, every pixel
   rounded to a multiple of 1/255.
 - Seeds: a reset with seed ``s`` draws the ALE seed and the no-op count from ``default_rng(s)`` (gym's
-  ``np_random``, as DVRLAtari) and the blanks from ``default_rng([s, _FLICKER_STREAM])`` (as
+  ``np_random``, as DVRLAtari) and the blanks from ``default_rng([s, FLICKER_STREAM])`` (as
   Flicker); :meth:`FlickeringAtariVectorEnv.set_seed` gives env ``k`` the seed TorchRL's ``SerialEnv``
   gives its ``k``-th env. The same seed thus gives the same games, frames and blanks as
   ``SerialEnv(n, make_atari_torchrl_env)``, but for what follows.
@@ -50,7 +50,7 @@ from torchrl.envs import EnvBase
 
 from escort_rl.config import ConfigError
 from escort_rl.envs.atari import (
-    _FLICKER_STREAM,
+    FLICKER_STREAM,
     FRAME_SIZE,
     GAMES,
     MISSING_ALE,
@@ -186,7 +186,7 @@ class DVRLAtariVector:
         game when its game is over or it is seeded) and return the actions it still takes."""
         if seed is not None:
             self._np_random[env] = np.random.default_rng(int(seed))
-            self._flicker[env] = np.random.default_rng([int(seed), _FLICKER_STREAM])
+            self._flicker[env] = np.random.default_rng([int(seed), FLICKER_STREAM])
         if self._flicker[env] is None:
             self._flicker[env] = np.random.default_rng()
         if self._np_random[env] is None:

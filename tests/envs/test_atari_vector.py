@@ -24,7 +24,7 @@ from torchrl.envs.utils import check_env_specs
 
 from escort_rl.config import ConfigError
 from escort_rl.envs.atari import (
-    _FLICKER_STREAM,
+    FLICKER_STREAM,
     area_resize_matrix,
     area_taps,
     make_atari_torchrl_env,
@@ -221,7 +221,7 @@ def test_each_env_flickers_with_its_own_seeded_stream(per_test_seed):
     for a, b in ((0, 1), (0, 2), (1, 2)):  # independent fair coins agree half the time
         assert abs((blank[a] == blank[b]).double().mean() - 0.5) <= hoeffding(n)
     # env 0 is seeded with the seed itself: after set_seed's reset and rollout's reset, Flicker's draws
-    draws = np.random.default_rng([per_test_seed, _FLICKER_STREAM]).random(n + 2)[2:] < 0.5
+    draws = np.random.default_rng([per_test_seed, FLICKER_STREAM]).random(n + 2)[2:] < 0.5
     assert blank[0].bool().tolist() == draws.tolist()
 
 
