@@ -8,6 +8,7 @@ from functools import partial
 
 import pytest
 import torch
+from linear_gaussian_parts import CarryLatent, LinearEmission, LinearPrior, LinearProposal
 from omegaconf import OmegaConf
 from torch import nn
 from torch.distributions import Independent, MultivariateNormal, Normal
@@ -30,35 +31,6 @@ CONFIGS = config_dir() / "dvrl"
 # ------------------------------------------------------------- a linear-Gaussian model as DVRL parts
 # h carries the previous z (h_0 = 0), so with H = Z = 1:
 #   z_t ~ N(h_{t-1}, 1) = N(z_{t-1}, 1),   o_t ~ N(z_t, σ²),   q(z_t | h, o) = N(α h + β o + γ, s²).
-class LinearPrior(nn.Module):
-    def forward(self, h, action_enc):
-        return Independent(Normal(h, torch.ones_like(h)), 1)
-
-
-class LinearProposal(nn.Module):
-    def __init__(self, h_coef: float, o_coef: float, bias: float, std: float) -> None:
-        super().__init__()
-        self.h_coef, self.o_coef, self.bias, self.std = h_coef, o_coef, bias, std
-
-    def forward(self, h, action_enc, obs_enc):
-        mean = self.h_coef * h + self.o_coef * obs_enc + self.bias
-        return Independent(Normal(mean, torch.full_like(mean, self.std)), 1)
-
-
-class LinearEmission(nn.Module):
-    def __init__(self, sigma: float) -> None:
-        super().__init__()
-        self.sigma = sigma
-
-    def forward(self, h, z, action_enc):
-        return Independent(Normal(z, torch.full_like(z, self.sigma)), 1)
-
-
-class CarryLatent(nn.Module):
-    def forward(self, h, z, obs_enc, action_enc):
-        return z
-
-
 def linear_gaussian_dvrl(num_particles: int, proposal: nn.Module, sigma: float, resample: bool = True) -> DVRL:
     return DVRL(1, n_actions=2, latent_dim=1, hidden=1, num_particles=num_particles, encoding_dim=2,
                 summary="deepsets", summary_dim=2, resample=resample,

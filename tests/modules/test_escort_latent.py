@@ -7,8 +7,9 @@ import math
 
 import pytest
 import torch
+from linear_gaussian_parts import CarryLatent, LinearEmission, LinearPrior
 from torch import nn
-from torch.distributions import Independent, Normal
+from torch.distributions import Normal
 
 from escort_rl.belief import ESCORTFilter
 from escort_rl.modules import DVRL, ESCORTLatent, FrameGRU
@@ -18,25 +19,6 @@ torch.set_num_threads(1)
 
 
 # z_1 ~ N(0, 1) (h_0 = 0), o ~ N(z, σ²): p(o) = N(o; 0, 1 + σ²), the posterior N(o/(1 + σ²), σ²/(1 + σ²)).
-class LinearPrior(nn.Module):
-    def forward(self, h, action_enc):
-        return Independent(Normal(h, torch.ones_like(h)), 1)
-
-
-class LinearEmission(nn.Module):
-    def __init__(self, sigma: float) -> None:
-        super().__init__()
-        self.sigma = sigma
-
-    def forward(self, h, z, action_enc):
-        return Independent(Normal(z, torch.full_like(z, self.sigma)), 1)
-
-
-class CarryLatent(nn.Module):
-    def forward(self, h, z, obs_enc, action_enc):
-        return z
-
-
 SIGMA, OBS = 0.5, 1.5
 LOG_P = float(Normal(0.0, math.sqrt(1 + SIGMA**2)).log_prob(torch.tensor(OBS)))
 POST_MEAN, POST_STD = OBS / (1 + SIGMA**2), math.sqrt(SIGMA**2 / (1 + SIGMA**2))
