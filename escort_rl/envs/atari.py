@@ -244,10 +244,18 @@ def register_atari_envs() -> None:
 
 
 def make_atari_torchrl_env(game: str = "pong", seed: int | None = None, device: str = "cpu", **kwargs):
-    """A TorchRL ``GymEnv`` of the flickering Atari ``game``, writing ``"observation"`` ``[1, 84, 84]``
-    and ``"game_over"`` (a bool scalar per env) from the env's info: :func:`escort_rl.envs.flickering.
-    make_flickering_torchrl_env` for Atari's games only. ``kwargs`` go to :func:`make_flickering_atari`.
+    """A TorchRL ``GymEnv`` of the flickering game, writing ``"observation"`` ``[1, 84, 84]`` and
+    ``"game_over"`` (a bool scalar per env) from the env's info. ``kwargs`` go to :func:`make_flickering_atari`.
     Module level: ``functools.partial(make_atari_torchrl_env, "pong")`` is a ``ParallelEnv`` factory."""
-    from escort_rl.envs.flickering import make_flickering_torchrl_env
+    import torch
+    from torchrl.data import Categorical
+    from torchrl.envs.libs.gym import GymEnv, default_info_dict_reader
 
-    return make_flickering_torchrl_env(check_game(game), seed=seed, device=device, **kwargs)
+    register_atari_envs()
+    env_id = GAMES[check_game(game)][1]
+    env = GymEnv(env_id, device=device, categorical_action_encoding=True, **kwargs)
+    env.set_info_dict_reader(default_info_dict_reader(
+        ["game_over"], spec={"game_over": Categorical(2, shape=(), dtype=torch.bool)}))
+    if seed is not None:
+        env.set_seed(int(seed))
+    return env
