@@ -11,7 +11,7 @@ $(VENV)/.installed: pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python >= 3.11 is required (set PYTHON=...)")'
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[dev,atari,minatar,ray,wandb]"
+	$(BIN)/python -m pip install -q -e ".[dev,atari,minatar,popgym,ray,wandb]"
 	touch $@
 
 # Train ESCORT-RL's default job (Light-Dark 10D) and evaluate it; results in

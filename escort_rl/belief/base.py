@@ -21,7 +21,14 @@ from torch import Tensor
 from escort_rl.belief.checks import FiniteGuard
 from escort_rl.belief.denormals import flush_denormals
 from escort_rl.belief.particle_belief import ParticleBelief
-from escort_rl.models.protocol import check_model
+from escort_rl.models.protocol import (
+    action_in_range,
+    action_shape,
+    check_model,
+    describe_action_range,
+    is_continuous,
+    per_particle,
+)
 
 
 class BeliefFilter(ABC):
@@ -111,7 +118,8 @@ class BeliefFilter(ABC):
         observation: Tensor,
         generator: torch.Generator | None = None,
     ) -> ParticleBelief:
-        """Fold in ``action`` ``[*B]`` (integer) and the next ``observation`` ``[*B, obs_dim]``.
+        """Fold in ``action`` ``[*B]`` (integer; ``[*B, action_dim]`` real for a model with continuous
+        actions) and the next ``observation`` ``[*B, obs_dim]``.
 
         Returns the posterior belief with particles ``[*B, N, d]``. With ``check_finite``, raises
         ``NonFiniteError`` (a ``ValueError``) naming ``belief.particles``, ``belief.log_weights`` or the
@@ -139,9 +147,10 @@ class BeliefFilter(ABC):
     @staticmethod
     def _predict(model, belief: ParticleBelief, action: Tensor, generator, guard) -> tuple[Tensor, Tensor]:
         """``x̃ = model.transition(x, a)`` for the belief's particles, its shape and values checked
-        (``guard`` records them): returns ``x̃`` ``[*B, N, d]`` and the action expanded to ``[*B, N]``."""
+        (``guard`` records them): returns ``x̃`` ``[*B, N, d]`` and the action expanded to ``[*B, N]``
+        (``[*B, N, action_dim]`` for real actions)."""
         x = belief.particles
-        a = action.unsqueeze(-1).expand(x.shape[:-1])
+        a = per_particle(model, action, x.shape[:-1])
         x_next = model.transition(x, a, generator)
         check_output_shape("model.transition", x_next, x.shape, "the particles' shape [*B, N, d]")
         guard.model_values("model.transition", x_next)
@@ -191,11 +200,15 @@ def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observ
             f"belief.particles: last dimension is {belief.state_dim} but model.state_dim is "
             f"{model.state_dim}; build the filter's belief for this model"
         )
-    if not isinstance(action, Tensor) or action.shape != batch:
-        shape = tuple(action.shape) if isinstance(action, Tensor) else type(action).__name__
-        raise ValueError(f"action: expected shape {tuple(batch)} (one integer per belief), got {shape}")
-    if action.dtype.is_floating_point or action.dtype == torch.bool:
-        raise ValueError(f"action: expected an integer tensor, got dtype {action.dtype}")
+    continuous = is_continuous(model)
+    shape = (*batch, *action_shape(model))
+    if not isinstance(action, Tensor) or action.shape != shape:
+        got = tuple(action.shape) if isinstance(action, Tensor) else type(action).__name__
+        one = f"a real vector of model.action_dim = {shape[-1]}" if continuous else "one integer"
+        raise ValueError(f"action: expected shape {shape} ({one} per belief), got {got}")
+    if continuous != (action.dtype.is_floating_point and action.dtype != torch.bool):
+        kind = "a floating-point tensor (continuous actions)" if continuous else "an integer tensor"
+        raise ValueError(f"action: expected {kind}, got dtype {action.dtype}")
     if not isinstance(observation, Tensor) or observation.shape != (*batch, model.obs_dim):
         shape = tuple(observation.shape) if isinstance(observation, Tensor) else type(observation).__name__
         raise ValueError(
@@ -204,14 +217,11 @@ def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observ
     # the action range and the observation's finiteness in one host sync; the messages only on failure
     ok = torch.isfinite(observation).all()
     if action.numel():
-        ok = ok & (action >= 0).all() & (action < model.n_actions).all()
+        ok = ok & action_in_range(model, action).all()
     if bool(ok):
         return
-    if action.numel() and (int(action.min()) < 0 or int(action.max()) >= model.n_actions):
-        raise ValueError(
-            f"action: values must lie in [0, {model.n_actions}), got min {int(action.min())}, "
-            f"max {int(action.max())}"
-        )
+    if action.numel() and not bool(action_in_range(model, action).all()):
+        raise ValueError(f"action: {describe_action_range(model, action)}")
     bad = (~torch.isfinite(observation)).reshape(-1, model.obs_dim).any(-1).nonzero().flatten()
     raise ValueError(
         f"observation: contains NaN or Inf (flat batch indices {bad.tolist()[:8]}); "
@@ -235,7 +245,7 @@ def diagnose_model_outputs(model, belief: ParticleBelief, action: Tensor, observ
     dtype); returns the message naming the method, or ``None`` when both behave. For the failure path
     of :meth:`BeliefFilter.update` only."""
     x = belief.particles
-    a = action.unsqueeze(-1).expand(x.shape[:-1])
+    a = per_particle(model, action, x.shape[:-1])
     fix = "a model method must keep the particles' shape [*B, N, d] and dtype"
 
     def call(name, fn):

@@ -58,6 +58,7 @@ from escort_rl.belief.scores import (
     target_score,
 )
 from escort_rl.config.params import HasParams, build_params, param
+from escort_rl.models.protocol import action_shape, per_particle
 
 COMPILE_CACHE_ENTRIES = 64  # compiled variants kept per function (see ESCORTFilter._compiled)
 @dataclass(frozen=True)
@@ -269,7 +270,7 @@ class ESCORTFilter(HasParams, BeliefFilter):
         """``∇ log Σ_j w_j T(x | X_t[j], a)`` by autograd, with ``[*B, N, 1, d]`` against ``[*B, 1, N, d]``,
         as a :data:`ScoreTerm` (a NaN or +inf mixture means ``transition_log_prob`` gave one)."""
         src = particles.unsqueeze(-3)  # [*B, 1, N, d]
-        a = action.unsqueeze(-2)  # [*B, 1, N]
+        a = action.unsqueeze(-2 - len(action_shape(model)))  # [*B, 1, N] ([*B, 1, N, action_dim])
         log_w = torch.log_softmax(log_weights, dim=-1).unsqueeze(-2)
 
         def mixture(z: Tensor) -> Tensor:
@@ -408,7 +409,7 @@ class ESCORTFilter(HasParams, BeliefFilter):
         guard = OFF if guard is None else guard
         x_t = belief.particles
         n, d = x_t.shape[-2], x_t.shape[-1]
-        a = action.unsqueeze(-1).expand(x_t.shape[:-1])  # [*B, N]
+        a = per_particle(model, action, x_t.shape[:-1])  # [*B, N] ([*B, N, action_dim])
         timer = PartTimer(breakdown)
         std = self.jitter_std(d)
         with timer("score"):

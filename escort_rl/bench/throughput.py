@@ -9,9 +9,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from escort_rl.bench.core import options
-from escort_rl.modules import make_deepsets_policy
 from escort_rl.reporting.metadata import with_metadata
-from escort_rl.trainers.builders import build_actor, build_model, env_factory
+from escort_rl.trainers.builders import build_model, build_policy, env_factory
 from escort_rl.trainers.scaffold import make_collector
 
 
@@ -26,7 +25,7 @@ def collection_throughput(cfg: DictConfig, workers: int, num_envs: int, steps_pe
         raise ValueError(f"workers: num_envs ({num_envs}) must be divisible by workers ({workers})")
     cfg = OmegaConf.merge(cfg, {"collector": {"workers": workers}, "trainer": {"num_envs": num_envs}})
     model = build_model(cfg.env, cfg.device)
-    policy = make_deepsets_policy(build_actor(cfg, model.state_dim, model.n_actions))
+    _, policy = build_policy(cfg, model)
     frames = num_envs * steps_per_batch
     collector = make_collector(cfg, lambda n, seed: env_factory(cfg, n, seed=seed), policy, frames,
                                reset_at_each_iter=False)

@@ -99,6 +99,7 @@ class AtariTrainerConfig:
     rollout_steps: int = _f(MISSING, ge=1)
     updates_per_iteration: int = _f(MISSING, ge=1)
     lr: float = _f(MISSING, gt=0, lt=MAX_LR)
+    belief_lr: Optional[float] = _f(None, gt=0, lt=MAX_LR)  # DVRL's and ESCORT-latent's rate; None: lr
     rmsprop_alpha: float = _f(MISSING, ge=0, lt=1)
     rmsprop_eps: float = _f(MISSING, gt=0)
     gamma: float = _f(MISSING, gt=0, le=1)

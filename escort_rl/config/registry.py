@@ -24,6 +24,7 @@ from escort_rl.config.errors import ConfigError
 REGISTRY: dict[str, dict[str, str]] = {
     "model": {
         "lightdark10d": "escort_rl.models.LightDark10D",
+        "lightdark10d_continuous": "escort_rl.models.LightDark10DContinuous",
         "kidnapped20d": "escort_rl.models.KidnappedRobot20D",
         "mtt20d": "escort_rl.models.MultiTargetTracking20D",
         "linear_gaussian": "escort_rl.models.LinearGaussian",

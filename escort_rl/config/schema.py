@@ -143,6 +143,7 @@ def trainer_schema(algorithm: str, schema_name: str) -> type:
 
 # ------------------------------------------------------------------------------- env (models)
 LightDark10DModelConfig = model_schema("lightdark10d", "LightDark10DModelConfig")
+LightDark10DContinuousModelConfig = model_schema("lightdark10d_continuous", "LightDark10DContinuousModelConfig")
 
 
 KidnappedRobot20DModelConfig = model_schema("kidnapped20d", "KidnappedRobot20DModelConfig")
@@ -174,6 +175,8 @@ def env_schema(name: str, model: type, schema_name: str) -> type:
 
 
 LightDark10DEnvConfig = env_schema("lightdark10d", LightDark10DModelConfig, "LightDark10DEnvConfig")
+LightDark10DContinuousEnvConfig = env_schema("lightdark10d_continuous", LightDark10DContinuousModelConfig,
+                                             "LightDark10DContinuousEnvConfig")
 KidnappedRobot20DEnvConfig = env_schema("kidnapped20d", KidnappedRobot20DModelConfig, "KidnappedRobot20DEnvConfig")
 MultiTargetTracking20DEnvConfig = env_schema("mtt20d", MultiTargetTracking20DModelConfig,
                                              "MultiTargetTracking20DEnvConfig")
@@ -182,7 +185,8 @@ CustomEnvConfig = env_schema("custom", Dict[str, Any], "CustomEnvConfig")
 """``env=custom``: a user's own model. ``env.model`` is open: its ``_target_`` (the class, or any
 callable returning a model) and the keyword arguments that go with it, each added with
 ``+env.model.KEY=VALUE``; :func:`escort_rl.trainers.builders.build_model` instantiates it."""
-ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "kidnapped20d": KidnappedRobot20DEnvConfig,
+ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "lightdark10d_continuous": LightDark10DContinuousEnvConfig,
+               "kidnapped20d": KidnappedRobot20DEnvConfig,
                "mtt20d": MultiTargetTracking20DEnvConfig, "linear_gaussian": LinearGaussianEnvConfig,
                "custom": CustomEnvConfig}
 
@@ -234,7 +238,7 @@ class DVRLConfig:
 
     name: str = _f(MISSING, choices=list(ENV_SCHEMAS))
     obs_dim: int = _f(MISSING, ge=1)
-    n_actions: int = _f(MISSING, ge=1)
+    n_actions: Optional[int] = _f(MISSING, ge=1)  # None: continuous actions, which DVRL does not take
     module: DVRLModuleConfig = _sub(DVRLModuleConfig)
     loss: DVRLLossConfig = _sub(DVRLLossConfig)
 

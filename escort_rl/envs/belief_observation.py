@@ -29,7 +29,8 @@ import numpy as np
 import torch
 
 from escort_rl.belief.particle_belief import ParticleBelief
-from escort_rl.models.protocol import check_model
+from escort_rl.envs.gym_adapter import action_space, model_action
+from escort_rl.models.protocol import check_model, is_continuous
 
 # mixed into the reset seed so that the belief's random stream differs from the inner env's
 _BELIEF_STREAM = 0xBE11EF
@@ -39,7 +40,8 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Replace a POMDP env's observation by the particle belief that ``filter`` maintains.
 
     Args:
-        env: a gymnasium env with a ``Discrete(n_actions)`` action space and ``[obs_dim]``
+        env: a gymnasium env with a ``Discrete(n_actions)`` action space (for a model with continuous
+            actions, ``Box(action_low, action_high, (action_dim,))``) and ``[obs_dim]``
             observations, e.g. ``gym.make("escort_rl/LightDark10D-v0")``.
         filter: a belief filter (``init`` / ``update``), e.g. ``SIRFilter()`` or
             ``ESCORTFilter(num_steps=5)``.
@@ -74,15 +76,14 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             check_model(model)
         except TypeError as err:
             raise ValueError(f"model: not a POMDP model ({err})") from None
-        space = env.action_space
-        if not isinstance(space, gym.spaces.Discrete):
-            raise ValueError(
-                f"env: expected a Discrete action space (the filters take integer actions), got {space}"
-            )
-        if int(space.n) != model.n_actions or int(space.start) != 0:
-            raise ValueError(
-                f"model: n_actions is {model.n_actions} but env.action_space is {space}; pass the env's model"
-            )
+        space, expected = env.action_space, action_space(model)
+        if type(space) is not type(expected):
+            kind = "real vectors" if is_continuous(model) else "integers"
+            raise ValueError(f"env: expected a {type(expected).__name__} action space (the model's actions are {kind}, "
+                             f"as the filters take them), got {space}")
+        if space != expected:
+            what = f"its action box is {expected}" if is_continuous(model) else f"n_actions is {model.n_actions}"
+            raise ValueError(f"model: {what} but env.action_space is {space}; pass the env's model")
         obs_shape = getattr(env.observation_space, "shape", None)
         if obs_shape is not None and tuple(obs_shape) != (model.obs_dim,):
             raise ValueError(
@@ -149,7 +150,7 @@ class BeliefObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             raise RuntimeError("step() called before reset()")
         obs, reward, terminated, truncated, info = self.env.step(action)
         particles = self._belief.particles
-        a = torch.as_tensor(np.asarray(action).reshape(1), dtype=torch.long, device=particles.device)
+        a = model_action(self.model, action, (1,), particles.device)
         o = torch.as_tensor(np.asarray(obs), dtype=particles.dtype, device=particles.device).reshape(1, -1)
         self._belief = self.filter.update(self.model, self._belief, a, o, self._generator)
         return self._observation(), reward, terminated, truncated, info

@@ -7,7 +7,14 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from escort_rl.models.protocol import check_model
+from escort_rl.models.protocol import (
+    action_in_range,
+    action_shape,
+    check_model,
+    describe_action_range,
+    is_continuous,
+    null_action,
+)
 
 
 class POMDPEnv(EnvBase):
@@ -21,7 +28,8 @@ class POMDPEnv(EnvBase):
           (``model.observe(s_0, a=0)``); after a step, of the next state.
         - ``"true_state"``: ``[*B, d]``, the hidden state (for evaluation; not for policies).
         - ``"step_count"``: ``[*B, 1]`` int64, steps since the last reset.
-        - ``"action"``: ``[*B]`` int64 in ``[0, n_actions)``.
+        - ``"action"``: ``[*B]`` int64 in ``[0, n_actions)`` (a ``Categorical`` spec); for a model with
+          continuous actions, ``[*B, action_dim]`` float32 in ``[action_low, action_high]`` (``Bounded``).
         - ``"reward"``: ``[*B, 1]``; ``"done"``, ``"terminated"``, ``"truncated"``: ``[*B, 1]`` bool.
 
     ``terminated`` is ``model.is_terminal(s')``; ``truncated`` is set after ``max_steps`` steps.
@@ -68,7 +76,12 @@ class POMDPEnv(EnvBase):
             shape=batch_size,
             device=self.device,
         )
-        self.action_spec = Categorical(model.n_actions, shape=b, dtype=torch.int64, device=self.device)
+        if is_continuous(model):
+            self.action_spec = Bounded(low=model.action_low.to(self.device).expand(*b, model.action_dim),
+                                       high=model.action_high.to(self.device).expand(*b, model.action_dim),
+                                       shape=(*b, model.action_dim), dtype=torch.float32, device=self.device)
+        else:
+            self.action_spec = Categorical(model.n_actions, shape=b, dtype=torch.int64, device=self.device)
         self.reward_spec = Unbounded(shape=(*b, 1), dtype=torch.float32, device=self.device)
         flag = Categorical(2, shape=(*b, 1), dtype=torch.bool, device=self.device)
         self.done_spec = Composite(done=flag, terminated=flag.clone(), truncated=flag.clone(),
@@ -97,7 +110,7 @@ class POMDPEnv(EnvBase):
         n = int(rows.sum())
         if n:
             s0 = self.model.initial_state((n,), self.generator).to(self.device)
-            a0 = torch.zeros(n, dtype=torch.int64, device=self.device)
+            a0 = null_action(self.model, (n,), self.device)
             self._state[rows] = s0
             self._obs[rows] = self.model.observe(s0, a0, self.generator).to(self.device)
             self._steps[rows] = 0
@@ -116,7 +129,7 @@ class POMDPEnv(EnvBase):
         )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = check_action(tensordict.get("action"), self.batch_size, self.model.n_actions)
+        action = check_action(tensordict.get("action"), self.batch_size, self.model)
         s = self._state
         s_next = self.model.transition(s, action, self.generator)
         obs = self.model.observe(s_next, action, self.generator)
@@ -158,25 +171,30 @@ def check_device(device) -> torch.device:
     return dev
 
 
-def check_action(action, batch_size: torch.Size, n_actions: int) -> torch.Tensor:
-    """Validate an action batch: integer dtype, shape ``batch_size``, values in ``[0, n_actions)``.
+def check_action(action, batch_size: torch.Size, model) -> torch.Tensor:
+    """Validate an action batch for ``model``: integer indices of shape ``batch_size`` in
+    ``[0, n_actions)``, or, for a model with continuous actions, finite floats of shape
+    ``[*batch_size, action_dim]`` in ``[action_low, action_high]``.
 
-    Raises ``ValueError`` naming the ``action`` field. Returns the action as int64.
+    Raises ``ValueError`` naming the ``action`` field. Returns the action as int64 (as float32, real).
     """
+    continuous = is_continuous(model)
+    shape = torch.Size((*batch_size, *action_shape(model)))
     if not isinstance(action, torch.Tensor):
-        raise ValueError(f"action: expected a tensor of shape {tuple(batch_size)}, got {type(action).__name__}")
-    if action.dtype.is_floating_point or action.dtype == torch.bool or action.is_complex():
+        raise ValueError(f"action: expected a tensor of shape {tuple(shape)}, got {type(action).__name__}")
+    floating = action.dtype.is_floating_point
+    if continuous and not floating:
+        raise ValueError(f"action: expected real actions (float32) of shape {tuple(shape)} for a model with "
+                         f"continuous actions, got dtype {action.dtype}")
+    if not continuous and (floating or action.dtype == torch.bool or action.is_complex()):
         raise ValueError(
-            f"action: expected integer action indices (int64) of shape {tuple(batch_size)}, "
+            f"action: expected integer action indices (int64) of shape {tuple(shape)}, "
             f"got dtype {action.dtype}"
         )
-    if action.shape != batch_size:
-        raise ValueError(
-            f"action: expected shape {tuple(batch_size)} (one index per env), got {tuple(action.shape)}; "
-            "one-hot actions are not accepted"
-        )
-    if action.numel() and (int(action.min()) < 0 or int(action.max()) >= n_actions):
-        raise ValueError(
-            f"action: values must lie in [0, {n_actions}), got min {int(action.min())}, max {int(action.max())}"
-        )
-    return action.long()
+    if action.shape != shape:
+        what = (f"one vector of model.action_dim = {model.action_dim} per env" if continuous
+                else "one index per env; one-hot actions are not accepted")
+        raise ValueError(f"action: expected shape {tuple(shape)} ({what}), got {tuple(action.shape)}")
+    if action.numel() and not bool(action_in_range(model, action).all()):
+        raise ValueError(f"action: {describe_action_range(model, action)}")
+    return action.to(torch.float32) if continuous else action.long()

@@ -15,6 +15,7 @@ from escort_rl.config.files import config_dir
 
 GYM_IDS = {
     "escort_rl/LightDark10D-v0": "lightdark10d",
+    "escort_rl/LightDark10DContinuous-v0": "lightdark10d_continuous",
     "escort_rl/KidnappedRobot20D-v0": "kidnapped20d",
     "escort_rl/MultiTargetTracking20D-v0": "mtt20d",
 }

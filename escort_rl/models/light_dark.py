@@ -176,10 +176,7 @@ class LightDark10D(HasParams, AdditiveGaussianTransition):
         share = confusion_prob / n_pairs
         # log-probabilities of {no swap, swap(1,2), swap(3,4), ...} in the dark
         self._log_event_probs = torch.log(torch.tensor([1 - confusion_prob] + [share] * n_pairs, device=self.device))
-        forces = torch.zeros(self.n_actions, self.state_dim, device=self.device)
-        for a in range(self.n_actions):
-            forces[a, self.n_pos + a // 2] = force if a % 2 == 0 else -force
-        self._velocity_force = forces  # [n_actions, d]: the force added to v' per action
+        self._set_actions(force)
         self._swap_i = torch.arange(0, 2 * n_pairs, 2, device=self.device)  # [n_pairs]: pair k swaps
         self._swap_j = self._swap_i + 1  # coordinates 2k and 2k + 1
         perms = torch.arange(n).repeat(n_pairs + 1, 1)
@@ -188,6 +185,13 @@ class LightDark10D(HasParams, AdditiveGaussianTransition):
         self._swap_perms = perms.to(self.device)  # [1 + n_pairs, n_pos]: identity, then each swap
         self._no_swap = torch.zeros(n_pairs + 1, device=self.device)  # event weights in the light
         self._no_swap[0] = 1.0
+
+    def _set_actions(self, force: float) -> None:
+        """The action set: ``a = 2i`` pushes velocity ``i`` by ``+force``, ``a = 2i + 1`` by ``−force``."""
+        forces = torch.zeros(self.n_actions, self.state_dim, device=self.device)
+        for a in range(self.n_actions):
+            forces[a, self.n_pos + a // 2] = force if a % 2 == 0 else -force
+        self._velocity_force = forces  # [n_actions, d]: the force added to v' per action
 
     # ------------------------------------------------------------------ light and noise
     def _light_levels(self, pos: Tensor) -> tuple[Tensor, Tensor]:

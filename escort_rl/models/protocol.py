@@ -2,8 +2,9 @@
 
 Every function is batched over leading dimensions and written in torch. States end in
 ``state_dim``, observations in ``obs_dim``, and integer actions have the leading shape of the
-state they act on. Log densities are differentiable in the state (filters take scores with
-autograd, or from a model's optional closed-form ``observation_score``).
+state they act on (real actions, of a model with continuous actions, are ``[*S, action_dim]``).
+Log densities are differentiable in the state (filters take scores with autograd, or from a model's
+optional closed-form ``observation_score``).
 
 The protocol is structural: any object with these attributes and methods is a model, including a
 user's class that imports nothing from ``escort_rl``.
@@ -20,6 +21,11 @@ from torch import Tensor
 @runtime_checkable
 class POMDPModel(Protocol):
     """A POMDP with continuous states, continuous observations and discrete actions.
+
+    Actions are integers ``a [*S]`` in ``[0, n_actions)``. A model with continuous actions declares,
+    instead of ``n_actions``, ``action_dim: int`` and the box ``action_low``, ``action_high`` (float
+    tensors ``[action_dim]``), and receives actions as float tensors ``a [*S, action_dim]`` in that box
+    (:func:`is_continuous`, :func:`action_shape`). Below, ``a [*S]`` reads ``a [*S, action_dim]`` for it.
 
     Shapes (``*S`` is any batch shape; arguments broadcast over it):
 
@@ -76,13 +82,22 @@ class POMDPModel(Protocol):
 
 
 def check_model(model: object) -> None:
-    """Raise ``TypeError`` naming the first missing attribute if ``model`` is not a POMDPModel."""
-    for name in ("state_dim", "obs_dim", "n_actions"):
+    """Raise ``TypeError`` naming the first missing attribute if ``model`` is not a POMDPModel: it needs
+    ``state_dim`` and ``obs_dim``, the methods, and either ``n_actions`` (discrete actions) or
+    ``action_dim`` with ``action_low`` and ``action_high`` of shape ``[action_dim]`` (continuous)."""
+    for name in ("state_dim", "obs_dim"):
         if not isinstance(getattr(model, name, None), int):
             raise TypeError(
                 f"model.{name}: expected an int attribute on {type(model).__name__}; "
                 "a model must follow escort_rl.models.POMDPModel"
             )
+    if is_continuous(model):
+        check_action_box(model)
+    elif not isinstance(getattr(model, "n_actions", None), int):
+        raise TypeError(
+            f"model.n_actions: expected an int attribute on {type(model).__name__} (or, for continuous actions, "
+            "action_dim with action_low and action_high); a model must follow escort_rl.models.POMDPModel"
+        )
     for name in (
         "initial_state",
         "initial_belief",
@@ -100,6 +115,51 @@ def check_model(model: object) -> None:
                 f"model.{name}: {type(model).__name__} has no method {name}(); "
                 "a model must follow escort_rl.models.POMDPModel"
             )
+
+
+def is_continuous(model) -> bool:
+    """Whether ``model``'s actions are real vectors: it declares ``action_dim`` and no ``n_actions``."""
+    return getattr(model, "n_actions", None) is None and getattr(model, "action_dim", None) is not None
+
+
+def action_shape(model) -> tuple[int, ...]:
+    """The shape of one action: ``()`` for an integer action, ``(action_dim,)`` for a real one."""
+    return (int(model.action_dim),) if is_continuous(model) else ()
+
+
+def check_action_box(model) -> tuple[Tensor, Tensor]:
+    """``(action_low, action_high)`` of a continuous-action model as float tensors ``[action_dim]``;
+    ``TypeError`` naming the field when ``action_dim`` is not a positive int or the box does not fit it."""
+    name = type(model).__name__
+    dim = getattr(model, "action_dim", None)
+    if not isinstance(dim, int) or isinstance(dim, bool) or dim < 1:
+        raise TypeError(f"model.action_dim: expected a positive int on {name}, got {dim!r}")
+    bounds = []
+    for field in ("action_low", "action_high"):
+        value = getattr(model, field, None)
+        if not isinstance(value, Tensor) or tuple(value.shape) != (dim,) or not value.dtype.is_floating_point:
+            got = f"shape {tuple(value.shape)}, dtype {value.dtype}" if isinstance(value, Tensor) else repr(value)
+            raise TypeError(f"model.{field}: expected a float tensor of shape ({dim},) (one bound per action "
+                            f"dimension) on {name}, got {got}")
+        bounds.append(value)
+    low, high = bounds
+    if not bool(torch.isfinite(low).all() & torch.isfinite(high).all() & (low < high).all()):
+        raise TypeError(f"model.action_low, model.action_high: expected finite bounds with low < high on {name}, "
+                        f"got {low.tolist()} and {high.tolist()}")
+    return low, high
+
+
+def per_particle(model, action: Tensor, lead: tuple[int, ...]) -> Tensor:
+    """An action batch ``[*B]`` (``[*B, action_dim]``) broadcast to the particles, ``lead = (*B, N)``:
+    ``[*B, N]`` (``[*B, N, action_dim]``). A view, no copy.
+
+    Example:
+        >>> from escort_rl.models import LightDark10D
+        >>> per_particle(LightDark10D(), torch.tensor([1, 2]), (2, 5)).shape
+        torch.Size([2, 5])
+    """
+    event = action_shape(model)
+    return action.unsqueeze(-1 - len(event)).expand(*lead, *event)
 
 
 def has_goal(model) -> bool:
@@ -131,3 +191,35 @@ def position_error(model, estimate: Tensor, truth: Tensor) -> Tensor:
         return own(estimate, truth)
     idx = list(position_dims(model))
     return torch.linalg.vector_norm(estimate[..., idx] - truth[..., idx], dim=-1)
+
+
+def action_in_range(model, action: Tensor) -> Tensor:
+    """Which actions ``model`` accepts, ``[*B]`` bool (no host sync): integers in ``[0, n_actions)``, or
+    finite real vectors ``[*B, action_dim]`` inside ``[action_low, action_high]``."""
+    if not is_continuous(model):
+        return (action >= 0) & (action < model.n_actions)
+    low, high = (b.to(action.device, action.dtype) for b in (model.action_low, model.action_high))
+    return (torch.isfinite(action) & (action >= low) & (action <= high)).all(-1)
+
+
+def describe_action_range(model, action: Tensor) -> str:
+    """The message for actions outside :func:`action_in_range` (one host sync; for error paths)."""
+    if not is_continuous(model):
+        return (f"values must lie in [0, {model.n_actions}), got min {int(action.min())}, "
+                f"max {int(action.max())}")
+    finite = action[torch.isfinite(action)]
+    span = f"min {float(finite.min()):.4g}, max {float(finite.max()):.4g}" if finite.numel() else "no finite value"
+    nan = "" if bool(torch.isfinite(action).all()) else " and NaN or Inf"
+    return (f"real actions must lie in the box [model.action_low, model.action_high] = "
+            f"[{model.action_low.tolist()}, {model.action_high.tolist()}], got {span}{nan}; squash the policy's "
+            "output into the box (e.g. a TanhNormal) or clip it")
+
+
+def null_action(model, shape: tuple[int, ...] = (), device=None) -> Tensor:
+    """The action a reset's first observation is drawn with (``observe(s_0, a)``): the index 0, or for
+    continuous actions the zero vector clamped into the box. ``[*shape]`` int64 or
+    ``[*shape, action_dim]`` float32."""
+    if not is_continuous(model):
+        return torch.zeros(shape, dtype=torch.int64, device=device)
+    low, high = (b.to(device=device, dtype=torch.float32) for b in (model.action_low, model.action_high))
+    return torch.zeros(*shape, model.action_dim, device=device).clamp(low, high)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import torch
-from tensordict.nn import TensorDictModule
+from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import Tensor, nn
 from torch.distributions import Categorical
-from torchrl.modules import ProbabilisticActor
+from torchrl.modules import ProbabilisticActor, TanhNormal
+
+from escort_rl.models.protocol import is_continuous
 
 
 def _mlp(sizes: list[int], activation: type[nn.Module] = nn.Tanh, last_activation: bool = True) -> nn.Sequential:
@@ -28,7 +30,8 @@ class DeepSetsActor(nn.Module):
 
     Args:
         state_dim: ``d``.
-        n_actions: number of discrete actions.
+        n_actions: number of outputs: the discrete actions' logits, or ``2·action_dim`` (a TanhNormal's
+            loc and scale, see :func:`make_deepsets_policy`).
         hidden: width of φ and ρ.
         input_loc, input_scale: particles are standardised as ``(x - loc) / scale`` before φ
             (scalars or ``[d]``).
@@ -73,19 +76,49 @@ class DeepSetsActor(nn.Module):
 
 def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
                          log_weights_key: str | None = "particle_log_weights",
-                         action_key: str = "action") -> ProbabilisticActor:
-    """Wrap a :class:`DeepSetsActor` as a TorchRL ``ProbabilisticActor`` with a categorical head.
+                         action_key: str = "action",
+                         action_box: tuple[Tensor, Tensor] | None = None) -> ProbabilisticActor:
+    """Wrap a :class:`DeepSetsActor` as a TorchRL ``ProbabilisticActor``.
 
-    Reads ``particles_key`` (and ``log_weights_key`` unless ``None``), writes ``"logits"``,
-    ``action_key`` (int64 index ``[*B]``) and ``"action_log_prob"``.
+    Discrete actions (``action_box=None``): a categorical head. Reads ``particles_key`` (and
+    ``log_weights_key`` unless ``None``), writes ``"logits"``, ``action_key`` (int64 index ``[*B]``) and
+    ``"action_log_prob"``.
+
+    Continuous actions (``action_box = (low, high)``, tensors ``[A]``; the actor's ``n_actions`` is
+    ``2A``): a TanhNormal head. The actor's ``2A`` outputs split into ``"loc"`` and ``"scale"``
+    (``NormalParamExtractor``: ``scale = biased_softplus(·)``), and the action is
+    ``low + (high − low)·(tanh(u) + 1)/2`` with ``u ~ N(loc, scale)``, float ``[*B, A]`` inside the box,
+    with ``"action_log_prob"`` ``[*B]`` (the change of variables summed over the ``A`` dimensions).
+    TanhNormal has no closed-form entropy; ``ClipPPOLoss`` estimates it by sampling.
+
+    Example:
+        >>> actor = DeepSetsActor(state_dim=10, n_actions=2 * 5, hidden=16)
+        >>> box = (-0.1 * torch.ones(5), 0.1 * torch.ones(5))
+        >>> policy = make_deepsets_policy(actor, action_box=box)
+        >>> td = TensorDict({"particles": torch.randn(3, 8, 10), "particle_log_weights": torch.zeros(3, 8)}, [3])
+        >>> policy(td)["action"].shape
+        torch.Size([3, 5])
     """
     in_keys = [particles_key] if log_weights_key is None else [particles_key, log_weights_key]
-    module = TensorDictModule(actor, in_keys=in_keys, out_keys=["logits"])
-    return ProbabilisticActor(
-        module,
-        in_keys=["logits"],
-        out_keys=[action_key],
-        distribution_class=Categorical,
-        return_log_prob=True,
-        log_prob_key="action_log_prob",
-    )
+    if action_box is None:
+        module = TensorDictModule(actor, in_keys=in_keys, out_keys=["logits"])
+        return ProbabilisticActor(module, in_keys=["logits"], out_keys=[action_key], distribution_class=Categorical,
+                                  return_log_prob=True, log_prob_key="action_log_prob")
+    low, high = (torch.as_tensor(b, dtype=torch.float32) for b in action_box)
+    if low.ndim != 1 or low.shape != high.shape or actor.n_actions != 2 * low.shape[0]:
+        raise ValueError(f"action_box: expected (low, high) of shape [A] for an actor with n_actions = 2A, got shapes "
+                         f"{tuple(low.shape)}, {tuple(high.shape)} and n_actions {actor.n_actions}")
+    module = TensorDictSequential(
+        TensorDictModule(actor, in_keys=in_keys, out_keys=["normal_params"]),
+        TensorDictModule(NormalParamExtractor(), in_keys=["normal_params"], out_keys=["loc", "scale"]))
+    return ProbabilisticActor(module, in_keys=["loc", "scale"], out_keys=[action_key], distribution_class=TanhNormal,
+                              distribution_kwargs={"low": low, "high": high}, return_log_prob=True,
+                              log_prob_key="action_log_prob")
+
+
+def policy_outputs(model) -> tuple[int, tuple[Tensor, Tensor] | None]:
+    """What a belief policy of ``model`` outputs: ``(n_actions, None)`` for discrete actions (logits),
+    ``(2·action_dim, (action_low, action_high))`` for continuous ones (a TanhNormal's loc and scale)."""
+    if is_continuous(model):
+        return 2 * int(model.action_dim), (model.action_low.cpu(), model.action_high.cpu())
+    return int(model.n_actions), None

@@ -174,6 +174,9 @@ class DVRL(nn.Module):
         section holds the constructor's keyword arguments; ``obs_dim`` and ``n_actions``, when listed,
         must match the env's. Raises :class:`escort_rl.config.ConfigError` naming the bad key."""
         cfg = dict(cfg)
+        if n_actions is None:
+            raise ConfigError("dvrl.n_actions: DVRL takes discrete actions and this env's are continuous; train a "
+                              "belief policy on it instead (trainer=ppo)")
         for key, actual in (("obs_dim", _check_obs_shape(obs_shape)[0]), ("n_actions", n_actions)):
             if cfg.get(key) is not None and int(cfg[key]) != actual:
                 raise ConfigError(f"dvrl.{key}: the config says {cfg[key]} but the env has {actual}")

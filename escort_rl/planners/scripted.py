@@ -57,12 +57,15 @@ from torch import Tensor
 
 from escort_rl.models.kidnapped_robot import KidnappedRobot20D
 from escort_rl.models.light_dark import LightDark10D
+from escort_rl.models.light_dark_continuous import LightDark10DContinuous
 from escort_rl.models.multi_target import MultiTargetTracking20D
+from escort_rl.models.protocol import action_shape, is_continuous
 
 DEFAULT_GAIN_V = 3.0
 
 __all__ = [
     "DEFAULT_GAIN_V",
+    "LightDarkContinuousPD",
     "LightDarkPD",
     "MultiTargetPD",
     "ScriptedBeliefController",
@@ -173,6 +176,23 @@ class LightDarkPD:
         return pd_action(state[..., list(pos)], state[..., list(vel)], self.model.goal, self.gain_v)
 
 
+class LightDarkContinuousPD:
+    """Continuous Light-Dark 10D (:class:`~escort_rl.models.LightDark10DContinuous`): the PD law applied
+    directly, ``a = clip(u, −force, force)`` with ``u = (g − x̂) − gain_v·v̂`` on every coordinate at
+    once (the discrete rule can push only the largest). Far from the goal it pushes every coordinate at
+    full force, and it brakes on the same switching surface ``g − x = gain_v·v``.
+    ``[*B, 2·n_pos]`` -> float ``[*B, n_pos]``."""
+
+    def __init__(self, model: LightDark10DContinuous, gain_v: float = DEFAULT_GAIN_V) -> None:
+        self.model, self.gain_v = model, _check_gain(gain_v)
+
+    def __call__(self, state: Tensor) -> Tensor:
+        pos, vel = controlled_dims(self.model)
+        u = pd_signal(state[..., list(pos)], state[..., list(vel)], self.model.goal, self.gain_v)
+        low, high = (b.to(u.device, u.dtype) for b in (self.model.action_low, self.model.action_high))
+        return u.clamp(low, high)
+
+
 class MultiTargetPD:
     """Multi-Target Tracking 20D: the PD signal on the *agent* (position ``s[..., 0:2]``, velocity
     ``s[..., 2:4]``) toward ``model.goal``, and the action ``argmax_a ⟨model.action_directions_a, u⟩``
@@ -190,15 +210,18 @@ class MultiTargetPD:
 
 def scripted_controller_for(model, gain_v: float = DEFAULT_GAIN_V) -> Callable[[Tensor], Tensor]:
     """The scripted controller of ``model``'s domain: a callable from a state estimate ``[*B, d]`` to
-    actions int64 ``[*B]``.
+    actions int64 ``[*B]`` (float ``[*B, action_dim]`` for continuous actions).
 
     - :class:`~escort_rl.models.LightDark10D` -> :class:`LightDarkPD`;
+    - :class:`~escort_rl.models.LightDark10DContinuous` -> :class:`LightDarkContinuousPD` (real actions);
     - :class:`~escort_rl.models.MultiTargetTracking20D` -> :class:`MultiTargetPD`;
     - :class:`~escort_rl.models.KidnappedRobot20D` -> ``ValueError``: the domain has no goal, a
       constant reward and no terminal state, so there is nothing for a goal-seeking rule to do;
     - anything else -> ``ValueError``.
     """
     gain_v = _check_gain(gain_v)
+    if isinstance(model, LightDark10DContinuous):
+        return LightDarkContinuousPD(model, gain_v)
     if isinstance(model, LightDark10D):
         return LightDarkPD(model, gain_v)
     if isinstance(model, MultiTargetTracking20D):
@@ -229,8 +252,9 @@ class _ScriptedPolicy(TensorDictModuleBase):
         self.controller = controller if controller is not None else scripted_controller_for(model, gain_v)
 
     def _act(self, tensordict: TensorDictBase, estimate: Tensor) -> TensorDictBase:
-        action = self.controller(estimate).to(torch.int64)
-        tensordict.set(self.action_key, action.reshape(estimate.shape[:-1]))
+        action = self.controller(estimate)
+        action = action.to(torch.float32) if is_continuous(self.model) else action.to(torch.int64)
+        tensordict.set(self.action_key, action.reshape(*estimate.shape[:-1], *action_shape(self.model)))
         return tensordict
 
 

@@ -45,6 +45,13 @@ def check_agent(agent: str) -> str:
     return agent
 
 
+def agent_lr(cfg: DictConfig) -> float:
+    """RMSprop's rate for ``cfg.agent``: ``trainer.belief_lr`` for the belief agents (DVRL, ESCORT-latent)
+    when set, else ``trainer.lr``."""
+    belief_lr = cfg.trainer.get("belief_lr", None)
+    return float(belief_lr) if belief_lr is not None and cfg.agent != "gru" else float(cfg.trainer.lr)
+
+
 def build_atari_policy(cfg: DictConfig, obs_shape: tuple[int, ...], n_actions: int) -> DVRLPolicy | FrameGRUPolicy:
     """The policy of ``cfg.agent`` for a game with frames of ``obs_shape`` (``(C, S, S)``) and
     ``n_actions`` actions."""
@@ -107,7 +114,7 @@ class AtariA2C(Algorithm):
         t = cfg.trainer
         self.agent = check_agent(cfg.agent)
         self.policy = build_atari_policy(cfg, *game_spaces(cfg.game)).to(cfg.device)
-        self.optimizer = torch.optim.RMSprop(self.policy.parameters(), lr=float(t.lr), alpha=float(t.rmsprop_alpha),
+        self.optimizer = torch.optim.RMSprop(self.policy.parameters(), lr=agent_lr(cfg), alpha=float(t.rmsprop_alpha),
                                              eps=float(t.rmsprop_eps))
         self.games = GameLog()
         vectorized = bool(t.get("vectorized_envs", False))

@@ -8,10 +8,11 @@ from functools import partial
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import Compose, TransformedEnv
+from torchrl.modules import ProbabilisticActor
 
 from escort_rl.config import ConfigError, registry
 from escort_rl.envs import POMDPEnv
-from escort_rl.modules import DeepSetsActor
+from escort_rl.modules import DeepSetsActor, make_deepsets_policy, policy_outputs
 from escort_rl.transforms import ActionRepeat, BeliefTransform
 
 
@@ -157,6 +158,15 @@ def build_critic(cfg: DictConfig, model) -> tuple:
         loc, scale = input_scaling(cfg)
         return StateValueNet(model.state_dim, int(cfg.actor.hidden), loc, scale), ["true_state"]
     return build_actor(cfg, model.state_dim, 1), list(belief_keys(cfg))
+
+
+def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticActor]:
+    """The belief policy of ``model``: a :class:`DeepSetsActor` (:func:`build_actor`) and the TorchRL
+    ``ProbabilisticActor`` around it reading ``cfg``'s belief keys: a categorical head for discrete
+    actions, a TanhNormal inside the action box for continuous ones (:func:`make_deepsets_policy`)."""
+    n_outputs, box = policy_outputs(model)
+    actor = build_actor(cfg, model.state_dim, n_outputs)
+    return actor, make_deepsets_policy(actor, *belief_keys(cfg), action_box=box)
 
 
 def build_actor(cfg: DictConfig, state_dim: int, n_actions: int) -> DeepSetsActor:

@@ -14,12 +14,11 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from escort_rl.models import has_goal, position_dims, position_error
-from escort_rl.modules import make_deepsets_policy
 from escort_rl.planners import ScriptedBeliefController
 from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
 from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
-from escort_rl.trainers.builders import belief_keys, build_actor, build_model, make_env, trained_action_repeat
+from escort_rl.trainers.builders import belief_keys, build_model, build_policy, make_env, trained_action_repeat
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 from escort_rl.trainers.training import algorithm
 from escort_rl.transforms import action_repeat_of
@@ -152,10 +151,10 @@ def trained_policy(cfg, checkpoint):
         _, policy = load_dvrl_policy(checkpoint)
         return policy, make_dvrl_env, lambda rollout: next_state_estimates(policy, rollout)
     model = build_model(cfg.env, cfg.device)
-    actor = build_actor(cfg, model.state_dim, model.n_actions)
+    actor, policy = build_policy(cfg, model)
     load_checkpoint(checkpoint, actor=actor)
     actor.eval()
-    return (make_deepsets_policy(actor, *belief_keys(cfg)), partial(make_env, action_repeat=trained_action_repeat(cfg)),
+    return (policy, partial(make_env, action_repeat=trained_action_repeat(cfg)),
             lambda rollout: None)
 
 

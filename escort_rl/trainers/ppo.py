@@ -40,20 +40,18 @@ from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.modules import ValueOperator
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from escort_rl.modules import make_deepsets_policy
-from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory, trained_action_repeat
+from escort_rl.trainers.builders import belief_keys, build_critic, build_policy, env_factory, trained_action_repeat
 from escort_rl.trainers.params import PPOParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, in_warm_start, make_collector
 
 
-def make_ppo_loss(actor, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:
-    """``ClipPPOLoss`` over a DeepSets actor reading ``cfg``'s belief keys and a critic reading
-    ``critic_keys`` (default: the belief keys), with GAE as its value estimator. The loss reads the
-    log-probability the policy wrote (``action_log_prob``)."""
+def make_ppo_loss(policy, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:
+    """``ClipPPOLoss`` over ``policy`` (a ``ProbabilisticActor`` on ``cfg``'s belief keys, e.g. from
+    :func:`~escort_rl.trainers.builders.build_policy`) and a critic reading ``critic_keys`` (default:
+    the belief keys), with GAE as its value estimator. The loss reads the log-probability the policy
+    wrote (``action_log_prob``); a TanhNormal policy's entropy is estimated by sampling."""
     t = cfg.trainer
-    particles_key, log_weights_key = belief_keys(cfg)
-    policy = make_deepsets_policy(actor, particles_key=particles_key, log_weights_key=log_weights_key)
-    value = ValueOperator(critic, in_keys=critic_keys or [particles_key, log_weights_key])
+    value = ValueOperator(critic, in_keys=critic_keys or list(belief_keys(cfg)))
     loss = ClipPPOLoss(policy, value, clip_epsilon=float(t.clip_epsilon), entropy_coeff=float(t.entropy_coef),
                        critic_coeff=float(t.critic_coef), loss_critic_type="smooth_l1",
                        normalize_advantage=True)
@@ -190,10 +188,9 @@ class PPO(PPOBase):
     Params = PPOParams
 
     def __init__(self, cfg: DictConfig, model) -> None:
-        self.actor = build_actor(cfg, model.state_dim, model.n_actions)
+        self.actor, policy = build_policy(cfg, model)  # the policy is what the collector runs
         self.critic, critic_keys = build_critic(cfg, model)
-        loss = make_ppo_loss(self.actor, self.critic, cfg, critic_keys)
-        policy = make_deepsets_policy(self.actor, *belief_keys(cfg))  # what the collector runs
+        loss = make_ppo_loss(policy, self.critic, cfg, critic_keys)
         super().__init__(cfg, model, policy, loss, repeat=trained_action_repeat(cfg))
         self.minibatch = max(1, self.frames_per_batch // int(cfg.trainer.minibatches))
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(self.frames_per_batch),

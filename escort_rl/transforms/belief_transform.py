@@ -11,7 +11,7 @@ from torchrl.envs.transforms import Compose, Transform, TransformedEnv
 
 from escort_rl.belief.base import BeliefFilter
 from escort_rl.belief.particle_belief import ParticleBelief
-from escort_rl.models.protocol import check_model
+from escort_rl.models.protocol import check_model, is_continuous
 
 
 class BeliefTransform(Transform):
@@ -152,7 +152,7 @@ class BeliefTransform(Transform):
         return observation_spec
 
     def _check_env(self, observation_spec: Composite) -> None:
-        """Refuse a model whose ``obs_dim``, ``state_dim`` or ``n_actions`` differ from the env's."""
+        """Refuse a model whose ``obs_dim``, ``state_dim`` or actions differ from the env's."""
         obs_spec = observation_spec.get(self.observation_key, None)
         if obs_spec is None:
             raise KeyError(
@@ -173,14 +173,25 @@ class BeliefTransform(Transform):
         self._check_actions()
 
     def _check_actions(self) -> None:
-        """Refuse a model whose ``n_actions`` differs from the env's action spec."""
+        """Refuse a model whose actions differ from the env's action spec: ``n_actions`` against a
+        ``Categorical``'s ``n``, ``action_dim`` against a ``Bounded``'s last dimension."""
         parent = getattr(self, "parent", None)
         action_spec = parent.full_action_spec.get(self.action_key, None) if parent is not None else None
+        if action_spec is None:
+            return
         n = getattr(action_spec, "n", None)
-        if n is not None and int(n) != int(self.model.n_actions):
+        if is_continuous(self.model):
+            if n is not None or action_spec.shape[-1:] != (self.model.action_dim,):
+                raise ValueError(
+                    f"BeliefTransform.model: the model takes real actions of action_dim {self.model.action_dim} but "
+                    f"the env's '{self.action_key}' spec is {type(action_spec).__name__} of shape "
+                    f"{tuple(action_spec.shape)}; pass the env's model"
+                )
+        elif n is None or int(n) != int(self.model.n_actions):
+            what = f"{n} actions" if n is not None else f"a {type(action_spec).__name__} spec (real actions)"
             raise ValueError(
                 f"BeliefTransform.model: model.n_actions is {self.model.n_actions} but the env's "
-                f"'{self.action_key}' has {n} actions; pass the env's model"
+                f"'{self.action_key}' has {what}; pass the env's model"
             )
 
     def set_container(self, container) -> None:

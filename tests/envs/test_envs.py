@@ -212,11 +212,11 @@ def test_bad_actions_raise(action):
 
 
 def test_check_action_directly():
-    size = torch.Size([2])
-    assert check_action(torch.tensor([1, 2], dtype=torch.int32), size, 5).dtype == torch.int64
+    size, model = torch.Size([2]), LinearGaussian(n_actions=5)
+    assert check_action(torch.tensor([1, 2], dtype=torch.int32), size, model).dtype == torch.int64
     for bad in ([1, 2], torch.tensor([0.0, 1.0]), torch.tensor([[1, 2]]), torch.tensor([5, 0])):
         with pytest.raises(ValueError) as info:
-            check_action(bad, size, 5)
+            check_action(bad, size, model)
         assert str(info.value).startswith("action:")
 
 

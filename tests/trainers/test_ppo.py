@@ -8,7 +8,8 @@ import torch
 from tensordict import TensorDict
 
 from escort_rl.config import compose
-from escort_rl.modules import DeepSetsActor
+from escort_rl.modules import DeepSetsActor, make_deepsets_policy
+from escort_rl.trainers.builders import belief_keys
 from escort_rl.trainers.checkpointing import load_checkpoint
 from escort_rl.trainers.ppo import make_ppo_loss
 from escort_rl.trainers.training import train
@@ -36,7 +37,7 @@ def test_ppo_loss_matches_the_clipped_objective_by_hand(keys):
                    "trainer.clip_epsilon=0.2", "trainer.entropy_coef=0.01", "trainer.critic_coef=0.5"])
     torch.manual_seed(0)
     actor, critic = DeepSetsActor(10, 10, hidden=8), DeepSetsActor(10, 1, hidden=8)
-    loss = make_ppo_loss(actor, critic, cfg)
+    loss = make_ppo_loss(make_deepsets_policy(actor, *belief_keys(cfg)), critic, cfg)
     batch = _tiny_batch(keys=keys)
     out = loss(batch.clone())
 
@@ -59,7 +60,7 @@ def test_gae_with_a_zero_critic_is_the_discounted_return():
     actor, critic = DeepSetsActor(10, 10, hidden=4), DeepSetsActor(10, 1, hidden=4)
     for p in critic.parameters():
         torch.nn.init.zeros_(p)
-    loss = make_ppo_loss(actor, critic, cfg)
+    loss = make_ppo_loss(make_deepsets_policy(actor, *belief_keys(cfg)), critic, cfg)
     t = 4
     reward = torch.tensor([1.0, 2.0, 3.0, 4.0]).view(1, t, 1)
     done = torch.tensor([False, True, False, True]).view(1, t, 1)

@@ -1,0 +1,218 @@
+"""POPGym's Stateless CartPole (``PositionOnlyCartPole``) and its noisy variant, as a known torch model.
+
+POPGym (Morad et al., ICLR 2023, the ``popgym`` package) hides the velocities of gymnasium's
+CartPole: the agent sees the cart position and the pole angle only. This model reproduces it step
+for step (``tests/models/test_popgym_models.py`` checks it against ``popgym``):
+
+- State ``s = [x, ẋ, θ, θ̇]`` (``state_dim = 4``); actions ``{0, 1}`` push the cart with force
+  ``∓10`` (``n_actions = 2``, int64 ``[*S]``).
+- Dynamics: gymnasium's CartPole, explicit Euler with its constants (g = 9.8, cart mass 1.0, pole
+  mass 0.1, half-length 0.5, force 10, τ = 0.02):
+
+      temp = (F + m_p l θ̇² sin θ) / M,   θ̈ = (g sin θ − cos θ · temp) / (l (4/3 − m_p cos² θ / M)),
+      ẍ = temp − m_p l θ̈ cos θ / M,       s' = s + τ·[ẋ, ẍ, θ̇, θ̈]
+
+- Termination: ``|x| > 2.4`` or ``|θ| > 12°`` (strict, on the new state).
+- Start: ``s₀ ~ U(−0.05, 0.05)⁴``.
+- Observation ``o = [x', θ']``; the noisy tasks add ``N(0, σ²)`` per coordinate and clip to
+  POPGym's box ``±[4.8, 0.4189]`` (twice the termination bounds); the stateless tasks add nothing.
+- Reward: POPGym's ``reward_transform`` of gymnasium's: gymnasium pays 1 on every step, the one that
+  terminates included, and 0 on a step taken after termination; POPGym maps 0 to −1 and anything
+  else to ``1/max_episode_length``, so a full episode returns 1. In the model, a step from a terminal
+  state into a terminal state pays −1 and every other ``1/L`` (exact whenever the episode reached
+  ``s`` by stepping; gymnasium alone would also pay 0 on leaving the box again after re-entering it).
+- The time limit is not part of the state: ``max_episode_length`` (POPGym's: 200, 400, 600 for Easy,
+  Medium, Hard; 200 for every noisy task) is for the env's truncation (``POMDPEnv(max_steps=...)``).
+
+**The densities a filter needs, which POPGym does not have.** POPGym's dynamics are deterministic
+and its stateless observations are noiseless; a particle filter needs densities for both:
+
+- ``process_noise``: a filter-side Gaussian process noise, independent per coordinate, with std
+  ``process_noise × TYPICAL_STEP``. ``TYPICAL_STEP = (0.01, 0.2, 0.015, 0.3)`` is the RMS one-step
+  change of each coordinate under a random policy (measured on 4 500 POPGym steps: 0.0104, 0.195,
+  0.0155, 0.293), so the default 0.05 is 5% of a typical step: enough spread to keep resampled
+  particles apart and to absorb float rounding, small enough that a prediction stays within a few
+  percent of the true deterministic one. :meth:`transition` adds it; with ``process_noise = 0`` it
+  is exactly POPGym's step (``transition == transition_mean``), and :meth:`transition_log_prob`
+  raises, since a filter then has no density.
+- ``obs_noise_floor``: the smallest observation std the density uses, ``σ = max(obs_noise,
+  obs_noise_floor)``. The default 0.01 is a tenth of the smallest noise POPGym adds (0.1) and about
+  one typical step of ``x`` and ``θ``: sharp enough that ten steps of noiseless positions pin the
+  velocities down (to ~0.05, against an RMS of 0.5 and 0.8), wide enough that a start prior of width
+  0.1 keeps a fair share of particles in play. :meth:`observe` draws with ``obs_noise`` itself (none
+  on the stateless tasks), so the env's observations stay POPGym's.
+- The observation density is the censored Gaussian of :mod:`escort_rl.models.clipped_gaussian`: the
+  Gaussian density inside the box and the log tail mass at a bound, finite and differentiable.
+
+Example:
+    >>> import torch
+    >>> m = POPGymCartPole.from_name("NoisyPositionOnlyCartPoleHard")
+    >>> m.max_episode_length, m.obs_noise
+    (200, 0.3)
+    >>> m.transition_mean(torch.zeros(4), torch.tensor(1))  # push right from rest
+    tensor([ 0.0000,  0.1951,  0.0000, -0.2927])
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from escort_rl.config.params import HasParams, build_params, param
+from escort_rl.models.clipped_gaussian import clipped_gaussian_log_prob, clipped_gaussian_sample
+
+GRAVITY, MASS_CART, MASS_POLE, HALF_LENGTH, FORCE_MAG, TAU = 9.8, 1.0, 0.1, 0.5, 10.0, 0.02
+"""gymnasium CartPole's constants (``length`` is half the pole's length, as gymnasium names it)."""
+TOTAL_MASS = MASS_POLE + MASS_CART
+POLEMASS_LENGTH = MASS_POLE * HALF_LENGTH
+X_THRESHOLD = 2.4
+THETA_THRESHOLD = 12 * 2 * math.pi / 360
+"""The termination bounds: ``|x| > 2.4`` or ``|θ| > 12°``."""
+OBS_HIGH = (2 * X_THRESHOLD, 2 * THETA_THRESHOLD)
+"""POPGym's observation box ``±OBS_HIGH`` (float32 there), the clip of the noisy task."""
+START_HIGH = 0.05
+TYPICAL_STEP = (0.01, 0.2, 0.015, 0.3)
+"""The RMS one-step change of ``[x, ẋ, θ, θ̇]`` under a random policy; the unit of ``process_noise``."""
+
+CARTPOLE_TASKS = {
+    "PositionOnlyCartPoleEasy": {"max_episode_length": 200, "obs_noise": 0.0},
+    "PositionOnlyCartPoleMedium": {"max_episode_length": 400, "obs_noise": 0.0},
+    "PositionOnlyCartPoleHard": {"max_episode_length": 600, "obs_noise": 0.0},
+    "NoisyPositionOnlyCartPoleEasy": {"max_episode_length": 200, "obs_noise": 0.1},
+    "NoisyPositionOnlyCartPoleMedium": {"max_episode_length": 200, "obs_noise": 0.2},
+    "NoisyPositionOnlyCartPoleHard": {"max_episode_length": 200, "obs_noise": 0.3},
+}
+"""POPGym's CartPole tasks -> their parameters (popgym 1.0: the noisy tasks keep the default length)."""
+
+
+@dataclass(frozen=True)
+class POPGymCartPoleParams:
+    """:class:`POPGymCartPole`'s parameters (see the module docstring for the choices).
+
+    Attributes:
+        max_episode_length: POPGym's episode length ``L``: the reward is ``1/L`` a step, and the env
+            truncates after ``L`` steps (200, 400, 600 for Easy, Medium, Hard).
+        obs_noise: POPGym's ``noise_sigma``, the std of the clipped observation noise (0 on the
+            stateless tasks; 0.1, 0.2, 0.3 on the noisy ones).
+        obs_noise_floor: the smallest observation std the density uses (filter side).
+        process_noise: the filter-side process noise, in units of :data:`TYPICAL_STEP` per coordinate
+            (0: POPGym's deterministic step, and no transition density).
+    """
+
+    max_episode_length: int = param(200, ge=1)
+    obs_noise: float = param(0.0, ge=0)
+    obs_noise_floor: float = param(0.01, ge=0)
+    process_noise: float = param(0.05, ge=0)
+
+
+class POPGymCartPole(HasParams):
+    """POPGym's (Noisy) PositionOnlyCartPole as a model; float32 tensors on ``device``.
+
+    Takes :class:`POPGymCartPoleParams` (or its fields as keyword arguments) and ``device``;
+    :meth:`from_name` builds one of POPGym's six tasks by name.
+    """
+
+    Params = POPGymCartPoleParams
+    state_dim = 4
+    obs_dim = 2
+    n_actions = 2
+    position_dims = (0, 2)
+    velocity_dims = (1, 3)
+
+    def __init__(self, params: POPGymCartPoleParams | None = None, *, device: torch.device | str | None = None,
+                 **kwargs) -> None:
+        self.params = p = build_params(POPGymCartPoleParams, params, kwargs, owner=type(self).__name__)
+        self.device = torch.device(device) if device is not None else torch.device("cpu")
+        f32 = dict(dtype=torch.float32, device=self.device)
+        self.obs_high = torch.tensor(OBS_HIGH, **f32)
+        self.obs_low = -self.obs_high
+        self.process_std = p.process_noise * torch.tensor(TYPICAL_STEP, **f32)
+        self.observation_std = max(p.obs_noise, p.obs_noise_floor)
+
+    @classmethod
+    def from_name(cls, name: str, **kwargs) -> "POPGymCartPole":
+        """The model of POPGym's task ``name`` (a key of :data:`CARTPOLE_TASKS`, or its gymnasium id
+        ``popgym-<name>-v0``); ``kwargs`` (``process_noise``, ``obs_noise_floor``, ``device``) on top."""
+        key = str(name).removeprefix("popgym-").removesuffix("-v0")
+        if key not in CARTPOLE_TASKS:
+            raise ValueError(f"name: unknown POPGym CartPole task '{name}'; choose one of {sorted(CARTPOLE_TASKS)}")
+        return cls(**{**CARTPOLE_TASKS[key], **kwargs})
+
+    # ------------------------------------------------------------------ dynamics
+    def initial_state(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor:
+        """``U(−0.05, 0.05)⁴``, as gymnasium's reset. Returns ``[*shape, 4]``."""
+        u = torch.rand(*shape, 4, generator=generator, device=self.device)
+        return START_HIGH * (2 * u - 1)
+
+    def initial_belief(self, shape: tuple[int, ...], n: int, generator: torch.Generator | None = None) -> Tensor:
+        """``n`` draws of the start distribution per batch element: ``[*shape, n, 4]``."""
+        return self.initial_state((*shape, n), generator)
+
+    def transition_mean(self, s: Tensor, a: Tensor) -> Tensor:
+        """gymnasium's Euler step (the module docstring). ``s`` ``[*S, 4]``, ``a`` ``[*S]`` int (1 pushes
+        right, anything else left, as gymnasium reads it) -> ``[*S, 4]``."""
+        x, x_dot, theta, theta_dot = s.unbind(-1)
+        force = torch.where(a == 1, FORCE_MAG, -FORCE_MAG).to(s.dtype)
+        cos, sin = torch.cos(theta), torch.sin(theta)
+        temp = (force + POLEMASS_LENGTH * theta_dot**2 * sin) / TOTAL_MASS
+        theta_acc = (GRAVITY * sin - cos * temp) / (HALF_LENGTH * (4.0 / 3.0 - MASS_POLE * cos**2 / TOTAL_MASS))
+        x_acc = temp - POLEMASS_LENGTH * theta_acc * cos / TOTAL_MASS
+        return torch.stack([x + TAU * x_dot, x_dot + TAU * x_acc, theta + TAU * theta_dot,
+                            theta_dot + TAU * theta_acc], dim=-1)
+
+    def transition_scale_tril(self) -> Tensor:
+        """``diag(process_noise × TYPICAL_STEP)`` ``[4, 4]`` (all zeros at ``process_noise = 0``)."""
+        return torch.diag(self.process_std)
+
+    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """``transition_mean(s, a)`` plus the filter-side process noise; POPGym's step exactly at
+        ``process_noise = 0``. ``[*S, 4]``."""
+        mean = self.transition_mean(s, a)
+        if self.process_noise == 0:
+            return mean
+        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
+        return mean + eps * self.process_std.to(mean)
+
+    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
+        """``log N(s'; transition_mean(s, a), diag(std²))`` ``[*S]``; raises at ``process_noise = 0``."""
+        if self.process_noise == 0:
+            raise ValueError(f"{type(self).__name__}.process_noise: is 0, so the dynamics are deterministic and "
+                             "have no density; a filter needs process_noise > 0 (e.g. the default 0.05)")
+        std = self.process_std.to(s_next)
+        z = (s_next - self.transition_mean(s, a)) / std
+        return -0.5 * (z * z).sum(-1) - torch.log(std).sum() - 2 * math.log(2 * math.pi)
+
+    def is_terminal(self, s: Tensor) -> Tensor:
+        """``|x| > 2.4`` or ``|θ| > 12°``. ``[*S, 4]`` -> ``[*S]`` bool."""
+        x, theta = s[..., 0], s[..., 2]
+        return (x < -X_THRESHOLD) | (x > X_THRESHOLD) | (theta < -THETA_THRESHOLD) | (theta > THETA_THRESHOLD)
+
+    def reward(self, s: Tensor, a: Tensor, s_next: Tensor) -> Tensor:
+        """POPGym's reward: ``−1`` on a step from a terminal state into a terminal one (gymnasium's 0
+        after termination), ``1/max_episode_length`` on every other. ``[*S]``."""
+        after_end = self.is_terminal(s) & self.is_terminal(s_next)
+        return torch.where(after_end, -1.0, 1.0 / self.max_episode_length).to(s_next.dtype)
+
+    # ------------------------------------------------------------------ observations
+    def observation_mean(self, s_next: Tensor) -> Tensor:
+        """``[x', θ']``: POPGym's noiseless observation. ``[*S, 4]`` -> ``[*S, 2]``."""
+        return s_next[..., 0::2]
+
+    def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """``clip([x', θ'] + obs_noise·ε, ±[4.8, 0.4189])``, and ``[x', θ']`` unclipped when
+        ``obs_noise = 0``, as POPGym. ``[*S, 4]`` -> ``[*S, 2]``."""
+        return clipped_gaussian_sample(self.observation_mean(s_next), self.obs_noise, self.obs_low, self.obs_high,
+                                       generator)
+
+    def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
+        """The censored Gaussian log-density of ``o`` with std ``max(obs_noise, obs_noise_floor)``
+        (:func:`~escort_rl.models.clipped_gaussian.clipped_gaussian_log_prob`). ``o`` ``[*S, 2]``,
+        ``s_next`` ``[*S, 4]`` (broadcast) -> ``[*S]``, differentiable in ``s_next``."""
+        if self.observation_std == 0:
+            raise ValueError(f"{type(self).__name__}.obs_noise_floor: is 0 on a noiseless task, so the observation "
+                             "has no density; a filter needs obs_noise_floor > 0 (e.g. the default 0.01)")
+        return clipped_gaussian_log_prob(o, self.observation_mean(s_next), self.observation_std, self.obs_low,
+                                         self.obs_high)
