@@ -13,6 +13,7 @@ import torch
 from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
 from escort_rl.bench.core import options
 from escort_rl.models import LightDark10D, LinearGaussian
+from escort_rl.models.protocol import random_action
 
 
 def matmul_gflops(size: int = 1024, repeats: int = 10, device: str = "cpu") -> float:
@@ -59,7 +60,7 @@ def time_update(filt, model, batch: int, n: int, repeats: int = 5, warmup: int =
     g = torch.Generator(device=device).manual_seed(seed)
     belief = filt.init(model, (batch,), n, g)
     s = model.initial_state((batch,), g)
-    a = torch.randint(0, model.n_actions, (batch,), generator=g, device=device)
+    a = random_action(model, (batch,), g, device)
     o = model.observe(model.transition(s, a, g), a, g)
     runs, first = [], None
     for i in range(warmup + repeats):

@@ -66,13 +66,14 @@ def first_compiled_update_seconds(num_envs: int = 64, num_particles: int = 100) 
 
     from escort_rl.config import compose
     from escort_rl.models import LightDark10D
+    from escort_rl.models.protocol import random_action
     from escort_rl.trainers.builders import build_filter
 
     filt, model = build_filter(compose(["filter=escort_train"]).filter), LightDark10D()
     g = torch.Generator().manual_seed(0)
     belief = filt.init(model, (num_envs,), num_particles, g)
     s = model.initial_state((num_envs,), g)
-    a = torch.randint(0, model.n_actions, (num_envs,), generator=g)
+    a = random_action(model, (num_envs,), g)
     o = model.observe(model.transition(s, a, g), a, g)
     t0 = time.perf_counter()
     filt.update(model, belief, a, o, g)

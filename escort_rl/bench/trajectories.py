@@ -26,6 +26,7 @@ import torch
 from escort_rl.belief.seeding import derived_seed, initial_beliefs, tensor_hash
 from escort_rl.bench.methods import build_domain, build_method
 from escort_rl.models import position_dims, position_error
+from escort_rl.models.protocol import random_action
 from escort_rl.reporting.paths import display_path
 
 BEHAVIOUR_POLICY = ("uniform random actions: a_t ~ U{0, ..., n_actions - 1}, drawn from the seed's "
@@ -62,7 +63,7 @@ def generate_trajectory(model, steps: int, seed: int, base_seed: int = 0) -> dic
     s = model.initial_state((), g)
     states, actions, observations = [s], [], []
     for _ in range(steps):
-        a = torch.randint(model.n_actions, (), generator=g)
+        a = random_action(model, (), g)
         s = model.transition(s, a, g)
         o = model.observe(s, a, g)
         states.append(s)

@@ -29,6 +29,8 @@ REGISTRY: dict[str, dict[str, str]] = {
         "mtt20d": "escort_rl.models.MultiTargetTracking20D",
         "linear_gaussian": "escort_rl.models.LinearGaussian",
         "lightdark1d": "escort_rl.models.LightDark1D",
+        "popgym_cartpole": "escort_rl.models.POPGymCartPole",
+        "popgym_pendulum": "escort_rl.models.POPGymPendulum",
     },
     "filter": {
         "sir": "escort_rl.belief.SIRFilter",

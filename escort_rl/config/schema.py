@@ -149,6 +149,8 @@ LightDark10DContinuousModelConfig = model_schema("lightdark10d_continuous", "Lig
 KidnappedRobot20DModelConfig = model_schema("kidnapped20d", "KidnappedRobot20DModelConfig")
 MultiTargetTracking20DModelConfig = model_schema("mtt20d", "MultiTargetTracking20DModelConfig")
 LinearGaussianModelConfig = model_schema("linear_gaussian", "LinearGaussianModelConfig")
+POPGymCartPoleModelConfig = model_schema("popgym_cartpole", "POPGymCartPoleModelConfig")
+POPGymPendulumModelConfig = model_schema("popgym_pendulum", "POPGymPendulumModelConfig")
 
 
 @dataclass
@@ -162,6 +164,11 @@ class EnvConfig:
     input_scale: Any = _f(MISSING, check=check_number_or_list, gt=0)
     # model keys of the training envs' start distribution with trainer.exploring_starts=true
     exploring_starts: Optional[Dict[str, Any]] = _f(None)
+    # model keys of the simulator the agents act in, where it differs from the filter's model
+    # (e.g. POPGym's deterministic dynamics: {process_noise: 0.0})
+    simulator: Optional[Dict[str, Any]] = _f(None)
+    # state indices that are angles: the belief policy reads (cos, sin) of each
+    periodic_dims: Optional[List[int]] = _f(None)
 
 
 def env_schema(name: str, model: type, schema_name: str) -> type:
@@ -181,6 +188,8 @@ KidnappedRobot20DEnvConfig = env_schema("kidnapped20d", KidnappedRobot20DModelCo
 MultiTargetTracking20DEnvConfig = env_schema("mtt20d", MultiTargetTracking20DModelConfig,
                                              "MultiTargetTracking20DEnvConfig")
 LinearGaussianEnvConfig = env_schema("linear_gaussian", LinearGaussianModelConfig, "LinearGaussianEnvConfig")
+POPGymCartPoleEnvConfig = env_schema("popgym_cartpole", POPGymCartPoleModelConfig, "POPGymCartPoleEnvConfig")
+POPGymPendulumEnvConfig = env_schema("popgym_pendulum", POPGymPendulumModelConfig, "POPGymPendulumEnvConfig")
 CustomEnvConfig = env_schema("custom", Dict[str, Any], "CustomEnvConfig")
 """``env=custom``: a user's own model. ``env.model`` is open: its ``_target_`` (the class, or any
 callable returning a model) and the keyword arguments that go with it, each added with
@@ -188,6 +197,7 @@ callable returning a model) and the keyword arguments that go with it, each adde
 ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "lightdark10d_continuous": LightDark10DContinuousEnvConfig,
                "kidnapped20d": KidnappedRobot20DEnvConfig,
                "mtt20d": MultiTargetTracking20DEnvConfig, "linear_gaussian": LinearGaussianEnvConfig,
+               "popgym_cartpole": POPGymCartPoleEnvConfig, "popgym_pendulum": POPGymPendulumEnvConfig,
                "custom": CustomEnvConfig}
 
 

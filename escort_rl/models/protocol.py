@@ -223,3 +223,14 @@ def null_action(model, shape: tuple[int, ...] = (), device=None) -> Tensor:
         return torch.zeros(shape, dtype=torch.int64, device=device)
     low, high = (b.to(device=device, dtype=torch.float32) for b in (model.action_low, model.action_high))
     return torch.zeros(*shape, model.action_dim, device=device).clamp(low, high)
+
+
+def random_action(model, shape: tuple[int, ...] = (), generator: torch.Generator | None = None,
+                  device=None) -> Tensor:
+    """Actions drawn uniformly: indices in ``[0, n_actions)`` (int64 ``[*shape]``), or for continuous
+    actions points of the box (float32 ``[*shape, action_dim]``)."""
+    if not is_continuous(model):
+        return torch.randint(0, model.n_actions, tuple(shape), generator=generator, device=device)
+    low, high = (b.to(device=device, dtype=torch.float32) for b in (model.action_low, model.action_high))
+    u = torch.rand(*shape, model.action_dim, generator=generator, device=device)
+    return low + (high - low) * u

@@ -38,22 +38,39 @@ class DeepSetsActor(nn.Module):
         encoder_layers: the depth of φ (1: one tanh layer per particle, whose pooled mean is a
             kernel-mean embedding of the belief; the cost of a forward pass is mostly φ over N
             particles, so depth 1 is about four times cheaper than 2 at width 32–64).
+        periodic_dims: state indices that are angles (e.g. a pendulum's ``θ``, which its dynamics do
+            not wrap): φ reads ``(cos x_i, sin x_i)`` for each instead of the standardised ``x_i``, so
+            that ``x_i`` and ``x_i + 2π`` are one input.
 
     Shapes: ``particles`` ``[*B, N, d]``, ``log_weights`` ``[*B, N]`` or ``None`` -> ``[*B, n_actions]``.
     """
 
     def __init__(self, state_dim: int, n_actions: int, hidden: int = 64,
                  input_loc: float | list[float] = 0.0, input_scale: float | list[float] = 1.0,
-                 encoder_layers: int = 2) -> None:
+                 encoder_layers: int = 2, periodic_dims: tuple[int, ...] | list[int] = ()) -> None:
         super().__init__()
         self.state_dim, self.n_actions = state_dim, n_actions
+        periodic = sorted({int(i) for i in periodic_dims})
+        if any(not 0 <= i < state_dim for i in periodic):
+            raise ValueError(f"periodic_dims: state indices in [0, {state_dim}), got {list(periodic_dims)}")
+        self.periodic = periodic
+        self.linear = [i for i in range(state_dim) if i not in periodic]
         self.register_buffer("input_loc", torch.as_tensor(input_loc, dtype=torch.float32).expand(state_dim).clone())
         self.register_buffer("input_scale", torch.as_tensor(input_scale, dtype=torch.float32).expand(state_dim).clone())
         if encoder_layers < 1:
             raise ValueError(f"encoder_layers: must be >= 1, got {encoder_layers}")
-        self.phi = _mlp([state_dim] + [hidden] * encoder_layers)
+        self.phi = _mlp([state_dim + len(periodic)] + [hidden] * encoder_layers)
         self.rho = _mlp([hidden, hidden])
         self.head = nn.Linear(hidden, n_actions)
+
+    def features(self, particles: Tensor) -> Tensor:
+        """φ's input: ``(x − loc) / scale``, with each periodic coordinate as ``(cos x_i, sin x_i)``
+        instead. ``[*B, N, d]`` -> ``[*B, N, d + len(periodic_dims)]``."""
+        x = (particles - self.input_loc) / self.input_scale
+        if not self.periodic:
+            return x
+        angle = particles[..., self.periodic]
+        return torch.cat([x[..., self.linear], torch.cos(angle), torch.sin(angle)], dim=-1)
 
     def pool(self, particles: Tensor, log_weights: Tensor | None = None) -> Tensor:
         """The pooled belief embedding ``ρ(Σ_i w_i φ(x_i))``: ``[*B, hidden]``."""
@@ -62,7 +79,7 @@ class DeepSetsActor(nn.Module):
                 f"particles: last dimension {particles.shape[-1]} does not match the actor's "
                 f"state_dim {self.state_dim}"
             )
-        h = self.phi((particles - self.input_loc) / self.input_scale)  # [*B, N, H]
+        h = self.phi(self.features(particles))  # [*B, N, H]
         if log_weights is None:
             pooled = h.mean(-2)
         else:

@@ -114,11 +114,26 @@ def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None, action_rep
     can build it. The belief transform shares the env's generator, so ``env.set_seed`` seeds both.
     """
     model = build_model(cfg.env, cfg.device)
-    base = POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
+    base = build_pomdp_env(cfg, num_envs, seed, model)
     particles_key, log_weights_key = belief_keys(cfg)
     belief = BeliefTransform(model, build_filter(cfg.filter), int(cfg.num_particles),
                              particles_key=particles_key, log_weights_key=log_weights_key)
     return TransformedEnv(base, Compose(belief, ActionRepeat(action_repeat)) if action_repeat > 1 else belief)
+
+
+def build_pomdp_env(cfg: DictConfig, num_envs: int, seed: int | None = None, model=None) -> POMDPEnv:
+    """The envs the agents act in: ``POMDPEnv`` of ``num_envs`` on the env group's simulator, truncated at
+    ``env.max_steps``. The simulator is the filter's model (``model``, built from ``env.model`` when not
+    given) unless ``env.simulator`` names model keys where the two differ: e.g. POPGym's deterministic
+    dynamics (``{process_noise: 0.0}``) under a filter that needs process noise."""
+    overrides = cfg.env.get("simulator", None)
+    if overrides:
+        env_cfg = OmegaConf.create(OmegaConf.to_container(cfg.env, resolve=True))
+        env_cfg.model = OmegaConf.merge(env_cfg.model, overrides)
+        model = build_model(env_cfg, cfg.device)
+    elif model is None:
+        model = build_model(cfg.env, cfg.device)
+    return POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
 
 
 def trained_action_repeat(cfg: DictConfig) -> int:
@@ -170,7 +185,9 @@ def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticAc
 
 
 def build_actor(cfg: DictConfig, state_dim: int, n_actions: int) -> DeepSetsActor:
-    """A :class:`DeepSetsActor` of width ``actor.hidden`` with the env group's input scaling."""
+    """A :class:`DeepSetsActor` of width ``actor.hidden`` with the env group's input scaling and angles
+    (``env.periodic_dims``)."""
     loc, scale = input_scaling(cfg)
+    periodic = cfg.env.get("periodic_dims", None) or ()
     return DeepSetsActor(state_dim, n_actions, hidden=int(cfg.actor.hidden), input_loc=loc, input_scale=scale,
-                         encoder_layers=int(cfg.actor.get("encoder_layers", 2)))
+                         encoder_layers=int(cfg.actor.get("encoder_layers", 2)), periodic_dims=list(periodic))

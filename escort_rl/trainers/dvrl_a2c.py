@@ -39,11 +39,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 
 from escort_rl.config import ConfigError
-from escort_rl.envs import POMDPEnv
 from escort_rl.modules import DVRL, DVRLPolicy
 from escort_rl.modules.dvrl_networks import StateReadout
 from escort_rl.trainers.algorithm import Algorithm
-from escort_rl.trainers.builders import build_model, input_scaling
+from escort_rl.trainers.builders import build_model, build_pomdp_env, input_scaling
 from escort_rl.trainers.checkpointing import load_checkpoint
 from escort_rl.trainers.params import DVRLA2CParams
 from escort_rl.trainers.scaffold import episode_stats
@@ -56,7 +55,8 @@ EPISODE_KEYS = (("next", "reward"), ("next", "done"), ("next", "terminated"), ("
 def build_dvrl_policy(cfg: DictConfig, model) -> DVRLPolicy:
     """The :class:`DVRLPolicy` of ``cfg.dvrl`` (``configs/dvrl/<domain>.yaml``) for ``model``, with a
     :class:`StateReadout` to ``model.state_dim`` standardised by ``cfg.actor``'s input scaling."""
-    dvrl = DVRL.from_config(OmegaConf.to_container(cfg.dvrl, resolve=True), model.obs_dim, model.n_actions)
+    dvrl = DVRL.from_config(OmegaConf.to_container(cfg.dvrl, resolve=True), model.obs_dim,
+                            getattr(model, "n_actions", None))
     loc, scale = input_scaling(cfg)
     readout = StateReadout(dvrl.summary_dim, model.state_dim, hidden=int(cfg.actor.hidden), loc=loc, scale=scale)
     return DVRLPolicy(dvrl, readout=readout).to(cfg.device)
@@ -66,7 +66,7 @@ def make_dvrl_env(cfg: DictConfig, num_envs: int, seed: int | None = None) -> Tr
     """``POMDPEnv`` with ``InitTracker`` and the DVRL state primer (module level, picklable by
     ``functools.partial``, like :func:`escort_rl.trainers.builders.make_env`)."""
     model = build_model(cfg.env, cfg.device)
-    base = POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
+    base = build_pomdp_env(cfg, num_envs, seed, model)
     primer = build_dvrl_policy(cfg, model).make_tensordict_primer()
     return TransformedEnv(base, Compose(InitTracker(), primer))
 

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from escort_rl.models import has_goal, position_dims, position_error
+from escort_rl.models import has_goal, position_dims, position_error, velocity_dims
 from escort_rl.planners import ScriptedBeliefController
 from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
@@ -215,8 +215,8 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     history = meta["trainer_state"].get("history", [])
     if history:
         plot_learning_curve(history, out / "learning_curve.png")
-    pos = list(position_dims(model))
-    if "particles" in trained["next"].keys():
+    pos = (list(position_dims(model)) + list(velocity_dims(model)) + list(range(model.state_dim)))[:2]
+    if "particles" in trained["next"].keys() and len(set(pos)) == 2:  # the first two of position, velocity
         plot_belief_projection(trained["next", "particles"][0][..., pos], trained["next", "true_state"][0, :, pos],
                                out / "belief_projection.png",
                                position_error=trained_error)

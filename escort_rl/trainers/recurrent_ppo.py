@@ -34,9 +34,9 @@ from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from escort_rl.config import ConfigError
-from escort_rl.envs import POMDPEnv
+from escort_rl.modules import policy_outputs
 from escort_rl.modules.recurrent import make_recurrent_actor_critic, make_recurrent_primer
-from escort_rl.trainers.builders import build_model, input_scaling
+from escort_rl.trainers.builders import build_model, build_pomdp_env, input_scaling
 from escort_rl.trainers.params import RecurrentPPOParams
 from escort_rl.trainers.ppo import PPOBase
 
@@ -79,8 +79,9 @@ def build_recurrent_actor_critic(cfg: DictConfig, model):
     """``(policy, value, primer)`` of :func:`escort_rl.modules.recurrent.make_recurrent_actor_critic`
     for ``model`` with ``trainer.hidden`` and :func:`observation_scaling`."""
     loc, scale = observation_scaling(cfg, model)
-    policy, value, primer = make_recurrent_actor_critic(model.obs_dim, model.n_actions, hidden=recurrent_hidden(cfg),
-                                                        obs_loc=loc, obs_scale=scale)
+    n_outputs, box = policy_outputs(model)
+    policy, value, primer = make_recurrent_actor_critic(model.obs_dim, n_outputs, hidden=recurrent_hidden(cfg),
+                                                        obs_loc=loc, obs_scale=scale, action_box=box)
     return policy.to(cfg.device), value.to(cfg.device), primer
 
 
@@ -93,7 +94,7 @@ def make_recurrent_env(cfg: DictConfig, num_envs: int, seed: int | None = None) 
     Module-level, so ``functools.partial(make_recurrent_env, cfg, n, seed)`` is picklable (spawned
     collector and ``ParallelEnv`` workers build it), like :func:`escort_rl.trainers.builders.make_env`."""
     model = build_model(cfg.env, cfg.device)
-    base = POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
+    base = build_pomdp_env(cfg, num_envs, seed, model)
     return TransformedEnv(base, Compose(InitTracker(), make_recurrent_primer(recurrent_hidden(cfg))))
 
 

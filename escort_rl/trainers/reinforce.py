@@ -24,6 +24,8 @@ from torch import Tensor, nn
 from torchrl.modules import ValueOperator
 from torchrl.objectives import ReinforceLoss, ValueEstimators
 
+from escort_rl.config import ConfigError
+from escort_rl.models.protocol import is_continuous
 from escort_rl.modules import make_deepsets_policy
 from escort_rl.trainers.builders import belief_keys, build_actor, env_factory
 from escort_rl.trainers.params import ReinforceParams
@@ -70,6 +72,9 @@ class Reinforce(CollectorAlgorithm):
         super().__init__(cfg, model, lambda c: make_collector(
             c, lambda n, s: env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=True))
         t = cfg.trainer
+        if is_continuous(model):
+            raise ConfigError("trainer: trainer=reinforce takes discrete actions and this env's are continuous; use "
+                              "trainer=ppo (a TanhNormal policy)")
         particles_key, log_weights_key = belief_keys(cfg)
         self.actor = build_actor(cfg, model.state_dim, model.n_actions)
         self.policy = make_deepsets_policy(self.actor, particles_key=particles_key, log_weights_key=log_weights_key)

@@ -29,6 +29,7 @@ def validate_train_config(cfg: DictConfig) -> None:
             f"workers ({cfg.collector.workers})"
         )
     check_exploring_starts(cfg)
+    check_exploring_starts(cfg, "simulator")
     if cfg.logger.backend == "tensorboard" and importlib.util.find_spec("tensorboard") is None:
         raise ConfigError("logger.backend: 'tensorboard' needs the tensorboard package (pip install tensorboard); "
                           "or use logger.backend=csv")
@@ -37,11 +38,12 @@ def validate_train_config(cfg: DictConfig) -> None:
                           "or use logger.backend=csv")
 
 
-def check_exploring_starts(cfg: DictConfig) -> None:
+def check_exploring_starts(cfg: DictConfig, field: str = "exploring_starts") -> None:
     """``env.exploring_starts`` (model keys the training envs start from with
-    ``trainer.exploring_starts=true``): each key must be one of ``env.model``'s, with a value of its
-    type and range; ``ConfigError`` naming ``env.exploring_starts.<key>`` otherwise."""
-    starts = cfg.env.get("exploring_starts", None)
+    ``trainer.exploring_starts=true``), or another ``env.<field>`` of model keys (``simulator``: where
+    the env's simulator differs from the filter's model): each key must be one of ``env.model``'s, with
+    a value of its type and range; ``ConfigError`` naming ``env.<field>.<key>`` otherwise."""
+    starts = cfg.env.get(field, None)
     if not starts:
         return
     model = cfg.env.model
@@ -54,16 +56,16 @@ def check_exploring_starts(cfg: DictConfig) -> None:
     names = {f.name for f in dataclasses.fields(schema)}
     for key in starts:
         if key not in names or key.startswith("_"):
-            raise ConfigError(f"env.exploring_starts.{key}: not a key of env.model; use keys of the env's model "
+            raise ConfigError(f"env.{field}.{key}: not a key of env.model; use keys of the env's model "
                               "(e.g. start_low, start_high)")
     try:
         merged = OmegaConf.merge(OmegaConf.structured(schema), OmegaConf.to_container(model, resolve=True),
                                  OmegaConf.to_container(starts, resolve=True))
     except OmegaConfBaseException as err:
-        raise ConfigError(f"env.exploring_starts.{describe_error(err)}") from None
+        raise ConfigError(f"env.{field}.{describe_error(err)}") from None
     problem = find_problem(merged, schema, stage="train")
     if problem is not None:
         key = problem.split(":", 1)[0]
         if key in starts:
-            raise ConfigError(f"env.exploring_starts.{problem}")
+            raise ConfigError(f"env.{field}.{problem}")
 

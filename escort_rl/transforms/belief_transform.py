@@ -187,6 +187,16 @@ class BeliefTransform(Transform):
                     f"the env's '{self.action_key}' spec is {type(action_spec).__name__} of shape "
                     f"{tuple(action_spec.shape)}; pass the env's model"
                 )
+            space = getattr(action_spec, "space", None)
+            low, high = getattr(space, "low", None), getattr(space, "high", None)
+            if low is not None and high is not None and not (
+                    torch.equal(low.reshape(-1, low.shape[-1])[0].cpu(), self.model.action_low.float().cpu())
+                    and torch.equal(high.reshape(-1, high.shape[-1])[0].cpu(), self.model.action_high.float().cpu())):
+                raise ValueError(
+                    f"BeliefTransform.model: the model's action box [{self.model.action_low.tolist()}, "
+                    f"{self.model.action_high.tolist()}] differs from the env's '{self.action_key}' bounds; pass the "
+                    "env's model"
+                )
         elif n is None or int(n) != int(self.model.n_actions):
             what = f"{n} actions" if n is not None else f"a {type(action_spec).__name__} spec (real actions)"
             raise ValueError(

@@ -42,7 +42,7 @@ def test_default_config_is_typed():
 
 def test_the_options_are_the_yaml_files():
     assert set(ENVS) == {"lightdark10d", "lightdark10d_continuous", "kidnapped20d", "mtt20d", "linear_gaussian",
-                         "custom"}
+                         "popgym_cartpole", "popgym_pendulum", "custom"}
     assert {"sir", "enkf", "svgd", "escort", "escort_nocorr", "escort_train"} <= set(FILTERS)
     assert set(TRAINERS) == {"reinforce", "ppo", "dvrl_a2c", "recurrent_ppo"}
 
