@@ -65,6 +65,7 @@ BENCHMARKS = (
     "escort_rl.bench.atari_envs",
     "escort_rl.bench.atari_cost",
     "escort_rl.bench.headline",
+    "escort_rl.bench.popgym",
 )
 """The modules whose ``register(subparsers)`` adds a ``bench`` subcommand, in the order of the help."""
 

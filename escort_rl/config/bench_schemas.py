@@ -123,6 +123,7 @@ class AtariVRNNConfig:
     hidden: int = _f(MISSING, ge=1)
     encoding_dim: int = _f(MISSING, ge=1)
     summary: str = _f(MISSING, choices=["gru", "deepsets"])
+    emission_min_std: float = _f(0.0, ge=0)  # a floor on the emission's learned std (0: none)
 
 
 @dataclass

@@ -106,6 +106,8 @@ class DVRL(nn.Module):
         summary: ``"gru"`` (the original) or ``"deepsets"``.
         summary_dim: the size of the belief summary (default ``hidden``).
         resample: systematic resampling at every step (the original) or none.
+        emission_min_std: a floor on the frame emission's learned standard deviation (0: none; see
+            :class:`~escort_rl.modules.dvrl_networks.ImageEmission`).
         observation_encoder, prior, proposal, emission, recurrence: replacements for the default
             networks, with the call signatures of :mod:`escort_rl.modules.dvrl_networks`:
             ``observation_encoder(o [B, *obs_shape]) -> [B, encoding_dim]``;
@@ -126,6 +128,7 @@ class DVRL(nn.Module):
         summary: str = "gru",
         summary_dim: int | None = None,
         resample: bool = True,
+        emission_min_std: float = 0.0,
         *,
         observation_encoder: nn.Module | None = None,
         prior: nn.Module | None = None,
@@ -148,6 +151,7 @@ class DVRL(nn.Module):
         self.n_actions, self.latent_dim, self.hidden = n_actions, latent_dim, hidden
         self.num_particles, self.encoding_dim, self.summary_dim = num_particles, e, s
         self.resample = resample
+        self.emission_min_std = float(emission_min_std)
 
         self.latent_encoder = mlp([latent_dim, e])  # φ(z), shared by emission, recurrence, summary
         self.action_encoder = mlp([n_actions, e])  # φ(a) of a one-hot action (zeros: no action)
@@ -159,7 +163,8 @@ class DVRL(nn.Module):
         self.prior = prior if prior is not None else GaussianHead(hidden + e, latent_dim, hidden)
         self.proposal = proposal if proposal is not None else GaussianHead(hidden + 2 * e, latent_dim, hidden)
         if emission is None:
-            emission = (ImageEmission(self.latent_encoder, hidden + 2 * e, self.obs_shape[0], self.obs_shape[1])
+            emission = (ImageEmission(self.latent_encoder, hidden + 2 * e, self.obs_shape[0], self.obs_shape[1],
+                                      min_std=float(emission_min_std))
                         if is_image
                         else GaussianEmission(self.latent_encoder, hidden + 2 * e, self.obs_shape[0], hidden))
         self.emission = emission

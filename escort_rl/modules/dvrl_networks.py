@@ -177,17 +177,23 @@ class ImageEmission(nn.Module):
     :class:`MinAtarDecoder` for ``S = 10``) and one learned standard deviation.
 
     ``log_prob(o [B, K, C, S, S]) -> [B, K]``.
+
+    ``min_std`` floors the learned standard deviation (0: none). On frames the decoder can nearly
+    reproduce (MinAtar's binary grids), the ELBO's optimum has the deviation shrink without end, and
+    the ELBO and its gradient grow with ``−log σ`` until they drown the policy's gradient.
     """
 
-    def __init__(self, latent_encoder: nn.Module, in_dim: int, channels: int, frame_size: int = ATARI_SIZE) -> None:
+    def __init__(self, latent_encoder: nn.Module, in_dim: int, channels: int, frame_size: int = ATARI_SIZE,
+                 min_std: float = 0.0) -> None:
         super().__init__()
         self.latent_encoder = latent_encoder
         self.decoder = frame_networks((channels, frame_size, frame_size))[1](in_dim, channels)
         self.log_std = nn.Parameter(torch.zeros(()))
+        self.min_log_std = math.log(min_std) if min_std > 0 else -math.inf
 
     def forward(self, h: Tensor, z: Tensor, action_enc: Tensor) -> Independent:
         mean = self.decoder(torch.cat([h, self.latent_encoder(z), action_enc], dim=-1))
-        return Independent(Normal(mean, self.log_std.exp().expand_as(mean)), 3)
+        return Independent(Normal(mean, self.log_std.clamp_min(self.min_log_std).exp().expand_as(mean)), 3)
 
 
 class FeatureEmission(nn.Module):
@@ -198,18 +204,21 @@ class FeatureEmission(nn.Module):
     instead of a decoder pass. The caller gives the encoding detached (``log_prob(φ(o).detach())``), so
     that the encoder cannot shrink its features to raise the likelihood.
     ``forward(h [B, K, H], z [B, K, Z], action_enc [B, K, E]) -> Independent(Normal)`` with event shape
-    ``[encoding_dim]``: ``log_prob(φ(o) [B, K, E]) -> [B, K]``.
+    ``[encoding_dim]``: ``log_prob(φ(o) [B, K, E]) -> [B, K]``. ``min_std`` floors the learned standard
+    deviation, as :class:`ImageEmission`'s.
     """
 
-    def __init__(self, latent_encoder: nn.Module, in_dim: int, encoding_dim: int, hidden: int) -> None:
+    def __init__(self, latent_encoder: nn.Module, in_dim: int, encoding_dim: int, hidden: int,
+                 min_std: float = 0.0) -> None:
         super().__init__()
         self.latent_encoder = latent_encoder
         self.mean = nn.Sequential(mlp([in_dim, hidden]), nn.Linear(hidden, encoding_dim))
         self.log_std = nn.Parameter(torch.zeros(()))
+        self.min_log_std = math.log(min_std) if min_std > 0 else -math.inf
 
     def forward(self, h: Tensor, z: Tensor, action_enc: Tensor) -> Independent:
         mean = self.mean(torch.cat([h, self.latent_encoder(z), action_enc], dim=-1))
-        return Independent(Normal(mean, self.log_std.exp().expand_as(mean)), 1)
+        return Independent(Normal(mean, self.log_std.clamp_min(self.min_log_std).exp().expand_as(mean)), 1)
 
 
 # ---------------------------------------------------------------------------------------- recurrence

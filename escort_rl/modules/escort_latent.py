@@ -103,7 +103,8 @@ class ESCORTLatent(DVRL):
             self.proposal = None  # unused: the predicted particles are the ELBO's samples
         if likelihood == "features":
             e = self.encoding_dim
-            self.emission = FeatureEmission(self.latent_encoder, self.hidden + 2 * e, e, self.hidden)
+            self.emission = FeatureEmission(self.latent_encoder, self.hidden + 2 * e, e, self.hidden,
+                                            min_std=self.emission_min_std)
 
     def step(self, state: DVRLState | tuple[Tensor, Tensor, Tensor], action_prev: Tensor, observation: Tensor,
              reset_mask: Tensor | None = None,

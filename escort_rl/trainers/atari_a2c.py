@@ -59,6 +59,7 @@ def build_atari_policy(cfg: DictConfig, obs_shape: tuple[int, ...], n_actions: i
     if agent == "gru":
         return FrameGRUPolicy(FrameGRU(obs_shape[0], n_actions, hidden=int(cfg.gru.hidden), frame_size=obs_shape[1]))
     vrnn = {k: cfg.vrnn[k] for k in ("num_particles", "latent_dim", "hidden", "encoding_dim", "summary")}
+    vrnn["emission_min_std"] = float(cfg.vrnn.get("emission_min_std", 0.0))
     if agent == "dvrl":
         return DVRLPolicy(DVRL(obs_shape, n_actions, resample=True, **vrnn))
     latent = ("likelihood", "elbo")
