@@ -206,7 +206,8 @@ def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observ
         got = tuple(action.shape) if isinstance(action, Tensor) else type(action).__name__
         one = f"a real vector of model.action_dim = {shape[-1]}" if continuous else "one integer"
         raise ValueError(f"action: expected shape {shape} ({one} per belief), got {got}")
-    if continuous != (action.dtype.is_floating_point and action.dtype != torch.bool):
+    floating = action.dtype.is_floating_point
+    if (continuous and not floating) or (not continuous and (floating or action.dtype == torch.bool)):
         kind = "a floating-point tensor (continuous actions)" if continuous else "an integer tensor"
         raise ValueError(f"action: expected {kind}, got dtype {action.dtype}")
     if not isinstance(observation, Tensor) or observation.shape != (*batch, model.obs_dim):

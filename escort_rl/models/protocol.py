@@ -56,7 +56,8 @@ class POMDPModel(Protocol):
 
     state_dim: int
     obs_dim: int
-    n_actions: int
+    # and n_actions: int (discrete actions), or action_dim: int with action_low, action_high (real
+    # ones): not declared here, so that isinstance(model, POMDPModel) accepts either; check_model checks.
 
     def initial_state(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor: ...
 

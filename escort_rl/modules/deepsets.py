@@ -109,6 +109,7 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
     TanhNormal has no closed-form entropy; ``ClipPPOLoss`` estimates it by sampling.
 
     Example:
+        >>> from tensordict import TensorDict
         >>> actor = DeepSetsActor(state_dim=10, n_actions=2 * 5, hidden=16)
         >>> box = (-0.1 * torch.ones(5), 0.1 * torch.ones(5))
         >>> policy = make_deepsets_policy(actor, action_box=box)
