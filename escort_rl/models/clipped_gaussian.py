@@ -57,3 +57,31 @@ def clipped_gaussian_log_prob(o: Tensor, mean: Tensor, std: float, low: Tensor, 
     below = torch.special.log_ndtr((low - mean) / std)
     per_coordinate = torch.where(o >= high, above, torch.where(o <= low, below, inside))
     return per_coordinate.sum(-1)
+
+
+class ClippedGaussianObservation:
+    """The observation part of the model protocol for ``o = clip(m(s') + σ ε, low, high)``, POPGym's
+    noisy observations: a model mixes it in and defines ``observation_mean(s')`` ``[*S, obs_dim]``,
+    ``obs_noise`` (the σ it draws with; 0: the noiseless ``m(s')``, unclipped), ``observation_std`` (the
+    density's σ, floored) and the box ``obs_low``, ``obs_high`` ``[obs_dim]``."""
+
+    obs_noise: float
+    observation_std: float
+    obs_low: Tensor
+    obs_high: Tensor
+
+    def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """``clip(m(s') + obs_noise·ε, low, high)``, and ``m(s')`` when ``obs_noise = 0``, as POPGym.
+        ``[*S, d]`` -> ``[*S, obs_dim]``."""
+        return clipped_gaussian_sample(self.observation_mean(s_next), self.obs_noise, self.obs_low, self.obs_high,
+                                       generator)
+
+    def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
+        """The censored Gaussian log-density of ``o`` with std ``observation_std``
+        (:func:`clipped_gaussian_log_prob`). ``o`` ``[*S, obs_dim]``, ``s_next`` ``[*S, d]`` (broadcast)
+        -> ``[*S]``, differentiable in ``s_next``."""
+        if self.observation_std == 0:
+            raise ValueError(f"{type(self).__name__}.obs_noise_floor: is 0 on a noiseless task, so the observation "
+                             "has no density; a filter needs obs_noise_floor > 0 (e.g. the default 0.01)")
+        return clipped_gaussian_log_prob(o, self.observation_mean(s_next), self.observation_std, self.obs_low,
+                                         self.obs_high)

@@ -57,6 +57,38 @@ class AdditiveGaussianTransition:
         return self._process.log_prob(s_next - self.transition_mean(s, a))
 
 
+class FilterNoiseTransition:
+    """The transition part of the model protocol for deterministic dynamics under a filter-side
+    Gaussian process noise: ``s' = transition_mean(s, a) + diag(σ) ε`` with ``σ = self.process_std``
+    ``[d]``. At ``σ = 0`` the step is the deterministic one exactly and has no density, so
+    :meth:`transition_log_prob` raises, naming ``process_noise``. A model mixes it in, defines
+    ``transition_mean`` and sets ``self.process_std`` (and ``self.process_noise``, its scale)."""
+
+    process_std: Tensor
+    process_noise: float
+
+    def transition_scale_tril(self) -> Tensor:
+        """``diag(σ)`` ``[d, d]`` (all zeros at ``process_noise = 0``)."""
+        return torch.diag(self.process_std)
+
+    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """``transition_mean(s, a) + σ ε``, ``ε ~ N(0, I)``; the deterministic step at ``σ = 0``. ``[*S, d]``."""
+        mean = self.transition_mean(s, a)
+        if self.process_noise == 0:
+            return mean
+        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
+        return mean + eps * self.process_std.to(mean)
+
+    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
+        """``log N(s'; transition_mean(s, a), diag(σ²))`` ``[*S]``; raises at ``process_noise = 0``."""
+        if self.process_noise == 0:
+            raise ValueError(f"{type(self).__name__}.process_noise: is 0, so the dynamics are deterministic and "
+                             "have no density; a filter needs process_noise > 0 (e.g. the default 0.05)")
+        std = self.process_std.to(s_next)
+        z = (s_next - self.transition_mean(s, a)) / std
+        return -0.5 * (z * z).sum(-1) - torch.log(std).sum() - 0.5 * std.shape[-1] * math.log(2 * math.pi)
+
+
 def nearest_correlation_matrix(a: Tensor, max_iter: int = 1000, tol: float = 1e-10) -> Tensor:
     """The nearest correlation matrix in the Frobenius norm (Higham 2002, alternating projections
     with Dykstra's correction).

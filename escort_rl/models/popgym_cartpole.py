@@ -62,7 +62,8 @@ import torch
 from torch import Tensor
 
 from escort_rl.config.params import HasParams, build_params, param
-from escort_rl.models.clipped_gaussian import clipped_gaussian_log_prob, clipped_gaussian_sample
+from escort_rl.models.clipped_gaussian import ClippedGaussianObservation
+from escort_rl.models.gaussian import FilterNoiseTransition
 
 GRAVITY, MASS_CART, MASS_POLE, HALF_LENGTH, FORCE_MAG, TAU = 9.8, 1.0, 0.1, 0.5, 10.0, 0.02
 """gymnasium CartPole's constants (``length`` is half the pole's length, as gymnasium names it)."""
@@ -108,7 +109,7 @@ class POPGymCartPoleParams:
     process_noise: float = param(0.05, ge=0)
 
 
-class POPGymCartPole(HasParams):
+class POPGymCartPole(HasParams, FilterNoiseTransition, ClippedGaussianObservation):
     """POPGym's (Noisy) PositionOnlyCartPole as a model; float32 tensors on ``device``.
 
     Takes :class:`POPGymCartPoleParams` (or its fields as keyword arguments) and ``device``;
@@ -163,28 +164,6 @@ class POPGymCartPole(HasParams):
         return torch.stack([x + TAU * x_dot, x_dot + TAU * x_acc, theta + TAU * theta_dot,
                             theta_dot + TAU * theta_acc], dim=-1)
 
-    def transition_scale_tril(self) -> Tensor:
-        """``diag(process_noise × TYPICAL_STEP)`` ``[4, 4]`` (all zeros at ``process_noise = 0``)."""
-        return torch.diag(self.process_std)
-
-    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """``transition_mean(s, a)`` plus the filter-side process noise; POPGym's step exactly at
-        ``process_noise = 0``. ``[*S, 4]``."""
-        mean = self.transition_mean(s, a)
-        if self.process_noise == 0:
-            return mean
-        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
-        return mean + eps * self.process_std.to(mean)
-
-    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
-        """``log N(s'; transition_mean(s, a), diag(std²))`` ``[*S]``; raises at ``process_noise = 0``."""
-        if self.process_noise == 0:
-            raise ValueError(f"{type(self).__name__}.process_noise: is 0, so the dynamics are deterministic and "
-                             "have no density; a filter needs process_noise > 0 (e.g. the default 0.05)")
-        std = self.process_std.to(s_next)
-        z = (s_next - self.transition_mean(s, a)) / std
-        return -0.5 * (z * z).sum(-1) - torch.log(std).sum() - 2 * math.log(2 * math.pi)
-
     def is_terminal(self, s: Tensor) -> Tensor:
         """``|x| > 2.4`` or ``|θ| > 12°``. ``[*S, 4]`` -> ``[*S]`` bool."""
         x, theta = s[..., 0], s[..., 2]
@@ -200,19 +179,3 @@ class POPGymCartPole(HasParams):
     def observation_mean(self, s_next: Tensor) -> Tensor:
         """``[x', θ']``: POPGym's noiseless observation. ``[*S, 4]`` -> ``[*S, 2]``."""
         return s_next[..., 0::2]
-
-    def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """``clip([x', θ'] + obs_noise·ε, ±[4.8, 0.4189])``, and ``[x', θ']`` unclipped when
-        ``obs_noise = 0``, as POPGym. ``[*S, 4]`` -> ``[*S, 2]``."""
-        return clipped_gaussian_sample(self.observation_mean(s_next), self.obs_noise, self.obs_low, self.obs_high,
-                                       generator)
-
-    def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
-        """The censored Gaussian log-density of ``o`` with std ``max(obs_noise, obs_noise_floor)``
-        (:func:`~escort_rl.models.clipped_gaussian.clipped_gaussian_log_prob`). ``o`` ``[*S, 2]``,
-        ``s_next`` ``[*S, 4]`` (broadcast) -> ``[*S]``, differentiable in ``s_next``."""
-        if self.observation_std == 0:
-            raise ValueError(f"{type(self).__name__}.obs_noise_floor: is 0 on a noiseless task, so the observation "
-                             "has no density; a filter needs obs_noise_floor > 0 (e.g. the default 0.01)")
-        return clipped_gaussian_log_prob(o, self.observation_mean(s_next), self.observation_std, self.obs_low,
-                                         self.obs_high)

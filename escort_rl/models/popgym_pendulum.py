@@ -56,7 +56,8 @@ import torch
 from torch import Tensor
 
 from escort_rl.config.params import HasParams, build_params, param
-from escort_rl.models.clipped_gaussian import clipped_gaussian_log_prob, clipped_gaussian_sample
+from escort_rl.models.clipped_gaussian import ClippedGaussianObservation
+from escort_rl.models.gaussian import FilterNoiseTransition
 
 GRAVITY, MASS, LENGTH, DT, MAX_SPEED, MAX_TORQUE = 10.0, 1.0, 1.0, 0.05, 8.0, 2.0
 """gymnasium Pendulum's constants (``g = 10`` is its default)."""
@@ -104,7 +105,7 @@ class POPGymPendulumParams:
     process_noise: float = param(0.05, ge=0)
 
 
-class POPGymPendulum(HasParams):
+class POPGymPendulum(HasParams, FilterNoiseTransition, ClippedGaussianObservation):
     """POPGym's (Noisy) PositionOnlyPendulum as a model with a continuous action; float32 tensors on
     ``device``.
 
@@ -160,28 +161,6 @@ class POPGymPendulum(HasParams):
         new_theta_dot = (theta_dot + acc * DT).clamp(-MAX_SPEED, MAX_SPEED)
         return torch.stack([theta + new_theta_dot * DT, new_theta_dot], dim=-1)
 
-    def transition_scale_tril(self) -> Tensor:
-        """``diag(process_noise × TYPICAL_STEP)`` ``[2, 2]`` (all zeros at ``process_noise = 0``)."""
-        return torch.diag(self.process_std)
-
-    def transition(self, s: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """``transition_mean(s, a)`` plus the filter-side process noise; POPGym's step exactly at
-        ``process_noise = 0``. ``[*S, 2]``."""
-        mean = self.transition_mean(s, a)
-        if self.process_noise == 0:
-            return mean
-        eps = torch.randn(mean.shape, generator=generator, device=mean.device, dtype=mean.dtype)
-        return mean + eps * self.process_std.to(mean)
-
-    def transition_log_prob(self, s_next: Tensor, s: Tensor, a: Tensor) -> Tensor:
-        """``log N(s'; transition_mean(s, a), diag(std²))`` ``[*S]``; raises at ``process_noise = 0``."""
-        if self.process_noise == 0:
-            raise ValueError(f"{type(self).__name__}.process_noise: is 0, so the dynamics are deterministic and "
-                             "have no density; a filter needs process_noise > 0 (e.g. the default 0.05)")
-        std = self.process_std.to(s_next)
-        z = (s_next - self.transition_mean(s, a)) / std
-        return -0.5 * (z * z).sum(-1) - torch.log(std).sum() - math.log(2 * math.pi)
-
     def is_terminal(self, s: Tensor) -> Tensor:
         """Never: Pendulum only truncates. ``[*S, 2]`` -> ``[*S]`` bool (all false)."""
         return torch.zeros(s.shape[:-1], dtype=torch.bool, device=s.device)
@@ -205,19 +184,3 @@ class POPGymPendulum(HasParams):
         """``[cos θ', sin θ']``: POPGym's noiseless observation. ``[*S, 2]`` -> ``[*S, 2]``."""
         theta = s_next[..., 0]
         return torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)
-
-    def observe(self, s_next: Tensor, a: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """``clip([cos θ', sin θ'] + obs_noise·ε, −1, 1)``, and ``[cos θ', sin θ']`` when
-        ``obs_noise = 0``, as POPGym. ``[*S, 2]`` -> ``[*S, 2]``."""
-        return clipped_gaussian_sample(self.observation_mean(s_next), self.obs_noise, self.obs_low, self.obs_high,
-                                       generator)
-
-    def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
-        """The censored Gaussian log-density of ``o`` with std ``max(obs_noise, obs_noise_floor)``
-        (:func:`~escort_rl.models.clipped_gaussian.clipped_gaussian_log_prob`). ``o`` ``[*S, 2]``,
-        ``s_next`` ``[*S, 2]`` (broadcast) -> ``[*S]``, differentiable in ``s_next``."""
-        if self.observation_std == 0:
-            raise ValueError(f"{type(self).__name__}.obs_noise_floor: is 0 on a noiseless task, so the observation "
-                             "has no density; a filter needs obs_noise_floor > 0 (e.g. the default 0.01)")
-        return clipped_gaussian_log_prob(o, self.observation_mean(s_next), self.observation_std, self.obs_low,
-                                         self.obs_high)
