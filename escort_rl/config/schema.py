@@ -169,6 +169,8 @@ class EnvConfig:
     simulator: Optional[Dict[str, Any]] = _f(None)
     # state indices that are angles: the belief policy reads (cos, sin) of each
     periodic_dims: Optional[List[int]] = _f(None)
+    # a POPGym task whose own env (TorchRL's GymEnv) the agents act in, instead of the simulator
+    popgym_task: Optional[str] = _f(None)
 
 
 def env_schema(name: str, model: type, schema_name: str) -> type:

@@ -121,11 +121,27 @@ def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None, action_rep
     return TransformedEnv(base, Compose(belief, ActionRepeat(action_repeat)) if action_repeat > 1 else belief)
 
 
-def build_pomdp_env(cfg: DictConfig, num_envs: int, seed: int | None = None, model=None) -> POMDPEnv:
+def build_pomdp_env(cfg: DictConfig, num_envs: int, seed: int | None = None, model=None):
     """The envs the agents act in: ``POMDPEnv`` of ``num_envs`` on the env group's simulator, truncated at
     ``env.max_steps``. The simulator is the filter's model (``model``, built from ``env.model`` when not
     given) unless ``env.simulator`` names model keys where the two differ: e.g. POPGym's deterministic
-    dynamics (``{process_noise: 0.0}``) under a filter that needs process noise."""
+    dynamics (``{process_noise: 0.0}``) under a filter that needs process noise.
+
+    With ``env.popgym_task`` the agents act in POPGym's own env instead (TorchRL's ``GymEnv``, a
+    ``SerialEnv`` of ``num_envs``; :func:`escort_rl.envs.popgym.make_popgym_env`), which truncates its
+    episodes itself and has no ``true_state``."""
+    task = cfg.env.get("popgym_task", None)
+    if task:
+        from torchrl.envs import SerialEnv
+
+        from escort_rl.envs.popgym import import_popgym, make_single_popgym_env, popgym_task
+
+        import_popgym()
+        env = SerialEnv(int(num_envs), partial(make_single_popgym_env, popgym_task(str(task)), device=cfg.device),
+                        device=cfg.device)  # batch [num_envs], as POMDPEnv's, even for one env
+        if seed is not None:
+            env.set_seed(int(seed))
+        return env
     overrides = cfg.env.get("simulator", None)
     if overrides:
         env_cfg = OmegaConf.create(OmegaConf.to_container(cfg.env, resolve=True))

@@ -43,7 +43,9 @@ def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor 
     steps = torch.arange(t).expand(e, t)
     inside = steps <= end.unsqueeze(1)
     rewards = rollout["next", "reward"].squeeze(-1)
-    true_state = rollout["next", "true_state"]
+    true_state = rollout["next"].get("true_state", None)  # None: an env without one (POPGym's own)
+    if true_state is None:
+        true_state = torch.full((e, t, model.state_dim), float("nan"))
     final_state = true_state[torch.arange(e), end]
     if belief_mean is None:
         belief_w = torch.softmax(rollout["next", "particle_log_weights"], -1).unsqueeze(-1)
@@ -216,7 +218,7 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     if history:
         plot_learning_curve(history, out / "learning_curve.png")
     pos = (list(position_dims(model)) + list(velocity_dims(model)) + list(range(model.state_dim)))[:2]
-    if "particles" in trained["next"].keys() and len(set(pos)) == 2:  # the first two of position, velocity
+    if "particles" in trained["next"].keys() and "true_state" in trained["next"].keys() and len(set(pos)) == 2:
         plot_belief_projection(trained["next", "particles"][0][..., pos], trained["next", "true_state"][0, :, pos],
                                out / "belief_projection.png",
                                position_error=trained_error)

@@ -170,7 +170,7 @@ class PPOBase(CollectorAlgorithm):
             collect_s += time.perf_counter() - t0
             batch = self.prepare(batch)  # [E, T]
             seen.append(batch.select(("next", "reward"), ("next", "done"), ("next", "terminated"),
-                                     ("next", "true_state")).clone())
+                                     ("next", "true_state"), strict=False).clone())  # no true_state in POPGym's env
             frames += int(batch["next", "repeats"].sum()) if self.repeat > 1 else batch.numel()
             batch["next", "reward"] = batch["next", "reward"] * float(self.cfg.trainer.reward_scale)
             for key, value in self.update(batch).items():

@@ -253,8 +253,8 @@ def episode_stats(batch: TensorDictBase, model) -> dict:
     if rows.numel() == 0:
         return {"episode_return": float("nan"), "final_distance": float("nan"), "success_rate": float("nan"),
                 "episodes": 0}
-    final_state = batch["next", "true_state"][rows, steps]
     goal = has_goal(model)  # without a goal, distance and success are NaN: the return says it all
+    final_state = batch["next", "true_state"][rows, steps] if goal else None
     distance = model.distance_to_goal(final_state) if goal else torch.full((rows.numel(),), float("nan"))
     success = batch["next", "terminated"].squeeze(-1)[rows, steps].float().mean() if goal else float("nan")
     return {

@@ -30,6 +30,7 @@ def validate_train_config(cfg: DictConfig) -> None:
         )
     check_exploring_starts(cfg)
     check_exploring_starts(cfg, "simulator")
+    check_popgym_task(cfg)
     if cfg.logger.backend == "tensorboard" and importlib.util.find_spec("tensorboard") is None:
         raise ConfigError("logger.backend: 'tensorboard' needs the tensorboard package (pip install tensorboard); "
                           "or use logger.backend=csv")
@@ -69,3 +70,32 @@ def check_exploring_starts(cfg: DictConfig, field: str = "exploring_starts") -> 
         if key in starts:
             raise ConfigError(f"env.{field}.{problem}")
 
+
+
+def check_popgym_task(cfg: DictConfig) -> None:
+    """``env.popgym_task`` (the agents act in POPGym's own env): a POPGym control task of the env
+    group's system, with its episode length as ``env.max_steps``; not with a trainer that reads the
+    simulator's true state (``trainer=dvrl_a2c``'s readout, ``trainer.critic_input=state``)."""
+    task = cfg.env.get("popgym_task", None)
+    if not task:
+        return
+    from escort_rl.envs.popgym import POPGYM_CONTROL
+    from escort_rl.models.popgym_cartpole import CARTPOLE_TASKS
+    from escort_rl.models.popgym_pendulum import PENDULUM_TASKS
+
+    tables = {"popgym_cartpole": CARTPOLE_TASKS, "popgym_pendulum": PENDULUM_TASKS}
+    if task not in POPGYM_CONTROL:
+        raise ConfigError(f"env.popgym_task: unknown POPGym control task '{task}'; choose one of "
+                          f"{', '.join(sorted(POPGYM_CONTROL))}")
+    table = tables.get(str(cfg.env.name))
+    if table is None or task not in table:
+        raise ConfigError(f"env.popgym_task: '{task}' is not a task of env={cfg.env.name}; use env=popgym_cartpole "
+                          "or env=popgym_pendulum with one of its own tasks")
+    length = int(table[task]["max_episode_length"])
+    if int(cfg.env.max_steps) != length:
+        raise ConfigError(f"env.max_steps: POPGym's {task} runs {length} steps, got {cfg.env.max_steps}; set "
+                          f"env.max_steps={length}")
+    if cfg.trainer.get("algorithm") == "dvrl_a2c" or cfg.trainer.get("critic_input", "belief") == "state":
+        raise ConfigError("env.popgym_task: POPGym's own env has no true state, which trainer=dvrl_a2c's readout "
+                          "and trainer.critic_input=state read; act in the model's simulator (env.popgym_task=null) "
+                          "or set trainer.critic_input=belief")

@@ -65,6 +65,16 @@ def test_bad_options_are_named(tmp_path):
         spec_from_args(args)
 
 
+def test_frames_per_iteration_follow_each_trainer():
+    from escort_rl.bench.popgym.cells import frames_per_iteration
+
+    base = list(task_overrides("NoisyPositionOnlyCartPoleEasy"))  # 200-step episodes
+    assert frames_per_iteration(compose([*base, "trainer=ppo", "trainer.num_envs=2"])) == 2 * 125 * 2
+    assert frames_per_iteration(compose([*base, "trainer=ppo", "trainer.num_envs=2",
+                                         "trainer.rollout_steps=50"])) == 2 * 200
+    assert frames_per_iteration(compose([*base, "trainer=dvrl_a2c", "trainer.num_envs=2"])) == 2 * 200
+
+
 def test_iterations_reach_the_frames():
     cell = POPGymTrainCell(task="NoisyPositionOnlyCartPoleEasy", label="x", overrides=(*task_overrides(
         "NoisyPositionOnlyCartPoleEasy"), *TINY), seed=0, frames=45, run_dir="unused")

@@ -28,6 +28,18 @@ def task_overrides(task: str) -> tuple[str, ...]:
             f"env.max_steps={params['max_episode_length']}")
 
 
+def frames_per_iteration(cfg) -> int:
+    """Env steps in one training iteration of ``cfg``: ``num_envs × env.max_steps`` for DVRL's A2C;
+    for PPO and recurrent PPO, ``num_envs × rollout × ⌈max_steps / rollout⌉`` with ``rollout =
+    min(rollout_steps, max_steps)`` (whole batches, the last one past the episode's end)."""
+    steps, envs = int(cfg.env.max_steps), int(cfg.trainer.num_envs)
+    rollout = cfg.trainer.get("rollout_steps", None)
+    if rollout is None:
+        return envs * steps
+    rollout = min(int(rollout), steps)
+    return envs * rollout * -(-steps // rollout)
+
+
 def safe_name(label: str) -> str:
     """``label`` as a file name: letters, digits, ``-``, ``_`` and ``.``; others become ``_``."""
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)
@@ -50,12 +62,11 @@ class POPGymTrainCell(Cell):
         return f"trained/{self.task}/{safe_name(self.label)}/seed{self.seed}"
 
     def run_overrides(self) -> list[str]:
-        """The overrides with the seed, the folder and the iterations that reach ``frames``: an
-        iteration is ``num_envs × env.max_steps`` env steps for every trainer here."""
+        """The overrides with the seed, the folder and the iterations that reach ``frames``
+        (:func:`frames_per_iteration`)."""
         from escort_rl.config import compose
 
-        cfg = compose(list(self.overrides))
-        per_iteration = int(cfg.trainer.num_envs) * int(cfg.env.max_steps)
+        per_iteration = frames_per_iteration(compose(list(self.overrides)))
         iterations = max(1, -(-int(self.frames) // per_iteration))
         return [*self.overrides, f"seed={self.seed}", f"output_dir={self.run_dir}", f"trainer.iterations={iterations}"]
 

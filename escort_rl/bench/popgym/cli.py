@@ -26,6 +26,9 @@ def register(subparsers) -> None:
     p.add_argument("--rows", nargs="+", default=None,
                    help="labels of the rows to train (default: all: " + "; ".join(r[0] for r in full.rows) + ")")
     p.add_argument("--frames", type=int, default=None, help=f"env steps per run (default: {full.frames:,})")
+    p.add_argument("--popgym-env", action="store_true",
+                   help="act in POPGym's own envs (TorchRL's GymEnv) instead of the verified models' simulators; "
+                   "DVRL sits out (its readout reads the true state)")
     options.add_seeds_option(p, None, "training seeds 0..N-1 per row and task", str(full.seeds))
     options.add_quick_option(p, f"{quick.seeds} seed of {quick.frames} frames on the two Easy tasks")
     options.add_output_option(p, DEFAULT_OUTPUT, "popgym.md, popgym.json, cells/ and runs/")
@@ -46,7 +49,8 @@ def spec_from_args(args) -> POPGymSpec:
             raise ValueError(f"--rows: unknown row '{unknown[0]}'; choose from {'; '.join(known)}")
         changes["rows"] = tuple((r, known[r]) for r in args.rows)
     overrides = (*base.overrides, *getattr(args, "overrides", ()))
-    return base.replace(output=Path(args.output), overrides=overrides, **changes)
+    return base.replace(output=Path(args.output), overrides=overrides,
+                        popgym_env=bool(getattr(args, "popgym_env", False)), **changes)
 
 
 def grid(spec: POPGymSpec) -> tuple[list, list]:
@@ -56,10 +60,12 @@ def grid(spec: POPGymSpec) -> tuple[list, list]:
     trained, randoms = [], []
     for task in spec.tasks:
         base = (*task_overrides(task), *COMMON, *spec.overrides)
+        own = (f"env.popgym_task={task}",) if spec.popgym_env else ()
         for label, row in spec.rows:
-            if "trainer=dvrl_a2c" in row and "Pendulum" in task:
-                continue  # DVRL takes discrete actions; Pendulum's torque is continuous
-            trained += [POPGymTrainCell(task=task, label=label, overrides=(*base, *row), seed=seed, frames=spec.frames,
+            if "trainer=dvrl_a2c" in row and ("Pendulum" in task or spec.popgym_env):
+                continue  # DVRL takes discrete actions, and its readout reads the simulator's true state
+            trained += [POPGymTrainCell(task=task, label=label, overrides=(*base, *own, *row), seed=seed,
+                                        frames=spec.frames,
                                         run_dir=str(spec.output / "runs" / task / f"{safe_name(label)}-seed{seed}"),
                                         threads=spec.threads)
                         for seed in range(spec.seeds)]
@@ -82,8 +88,11 @@ def main(args) -> None:
                 + "\nMMER: each run's best per-iteration mean episode return (POPGym scales an episode's return "
                 "into [-1, 1]), mean ± s.e. over training seeds; random: its episodes' mean ± s.e. The belief "
                 "rows' filters run the task's torch model with a small process noise (POPGym's dynamics are "
-                "deterministic); the agents act in the model without it, which equals POPGym's env step for "
-                "step (tests/models/test_popgym_models.py). DVRL takes discrete actions: CartPole only.\n")
+                "deterministic); the agents act "
+                + ("in POPGym's own envs (TorchRL's GymEnv); DVRL sits out (its readout reads the true state).\n"
+                   if spec.popgym_env else "in the model without it, which equals POPGym's env step for step "
+                   "(tests/models/test_popgym_models.py). DVRL takes discrete actions: CartPole only.\n"))
     write_results(spec.output, "popgym", {"spec": {"tasks": list(spec.tasks), "frames": spec.frames,
-                                                   "seeds": spec.seeds, "overrides": list(spec.overrides)},
+                                                   "seeds": spec.seeds, "overrides": list(spec.overrides),
+                                                   "popgym_env": spec.popgym_env},
                                           "rows": rows, "runs": trained_results}, markdown, time.perf_counter() - t0)

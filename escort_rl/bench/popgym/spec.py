@@ -19,15 +19,17 @@ COMMON = ("trainer.num_envs=16",)
 """Under every row: 16 envs."""
 
 BELIEF_PPO = ("trainer=ppo", "trainer.exploring_starts=false", "trainer.warm_start_filter=null",
-              "trainer.warm_start_iterations=0", "trainer.critic_input=belief")
+              "trainer.warm_start_iterations=0", "trainer.critic_input=belief", "trainer.rollout_steps=50")
 """PPO on beliefs from the task's own start distribution, no warm start, and a critic that reads the
-belief (no true state), as the GRU's and DVRL's read only what they act on."""
+belief (no true state), as the GRU's and DVRL's read only what they act on. Batches of 50 steps
+divide every task's episode (100 to 600 steps), so an iteration is ``num_envs × max_steps`` frames
+for every row, as DVRL's is: equal frames."""
 
 ROWS = (
     ("PPO on SIR beliefs", (*BELIEF_PPO, "filter=sir")),
     ("PPO on EnKF beliefs", (*BELIEF_PPO, "filter=enkf")),
     ("PPO on ESCORT beliefs", (*BELIEF_PPO, "filter=escort")),
-    ("GRU (recurrent PPO)", ("trainer=recurrent_ppo",)),
+    ("GRU (recurrent PPO)", ("trainer=recurrent_ppo", "trainer.rollout_steps=50")),
     ("DVRL", ("trainer=dvrl_a2c",)),
 )
 """The trained rows: a label and its overrides. DVRL takes discrete actions: it runs on CartPole only."""
@@ -44,6 +46,8 @@ class POPGymSpec:
     (``seeds`` training seeds), reported as POPGym's MMER beside a uniform-random policy's.
 
     ``overrides`` go under every row's own (after :data:`COMMON`); ``threads``: torch threads per cell.
+    ``popgym_env``: the agents act in POPGym's own env (``env.popgym_task``, TorchRL's ``GymEnv``)
+    instead of the verified model's simulator (DVRL, whose readout reads the true state, then sits out).
 
     Examples:
         >>> POPGymSpec().seeds, POPGymSpec.quick().frames
@@ -55,6 +59,7 @@ class POPGymSpec:
     seeds: int = 3
     frames: int = 200_000
     random_episodes: int = 100
+    popgym_env: bool = False
     overrides: tuple[str, ...] = ()
     threads: int = 1
     output: Path = Path(DEFAULT_OUTPUT)

@@ -1,0 +1,44 @@
+"""Training in POPGym's own env (``env.popgym_task``: TorchRL's ``GymEnv``) and in the model's
+simulator, and the refusals that go with the task."""
+
+import math
+
+import pytest
+
+pytest.importorskip("popgym")
+
+from escort_rl.config import ConfigError, compose  # noqa: E402
+from escort_rl.trainers.training import train  # noqa: E402
+from escort_rl.trainers.validation import validate_train_config  # noqa: E402
+
+TINY = ["trainer.num_envs=2", "trainer.iterations=1", "num_particles=8", "actor.hidden=8"]
+BELIEF_PPO = ["trainer=ppo", "filter=sir", "trainer.critic_input=belief", "trainer.warm_start_iterations=0",
+              "trainer.warm_start_filter=null", "trainer.exploring_starts=false"]
+
+
+@pytest.mark.parametrize("overrides", [
+    ["env=popgym_pendulum", "env.popgym_task=NoisyPositionOnlyPendulumHard", "trainer=recurrent_ppo",
+     "trainer.minibatches=2"],
+    ["env=popgym_cartpole", "env.popgym_task=NoisyPositionOnlyCartPoleEasy", *BELIEF_PPO],
+], ids=["gru-pendulum-gym", "belief-ppo-cartpole-gym"])
+def test_training_in_popgyms_own_env(tmp_path, overrides):
+    from escort_rl.trainers.checkpointing import load_checkpoint
+
+    run = train(compose([*overrides, *TINY, f"output_dir={tmp_path / 'run'}"]), progress=False)
+    history = load_checkpoint(run)["trainer_state"]["history"]
+    assert history[-1]["frames"] >= 2 * 200  # one iteration: at least an episode of 200 steps per env
+    ret = history[-1]["episode_return"]
+    assert math.isnan(ret) or -1.0 - 1e-5 <= ret <= 1.0 + 1e-5  # POPGym's scaled returns
+
+
+@pytest.mark.parametrize("overrides,field", [
+    (["env=popgym_cartpole", "env.popgym_task=NoisyPositionOnlyPendulumEasy", *BELIEF_PPO], "env.popgym_task"),
+    (["env=popgym_cartpole", "env.popgym_task=Pong", *BELIEF_PPO], "env.popgym_task"),
+    (["env=popgym_cartpole", "env.popgym_task=PositionOnlyCartPoleHard", *BELIEF_PPO], "env.max_steps"),
+    (["env=popgym_cartpole", "env.popgym_task=NoisyPositionOnlyCartPoleEasy", "trainer=dvrl_a2c"], "env.popgym_task"),
+    (["env=popgym_cartpole", "env.popgym_task=NoisyPositionOnlyCartPoleEasy", "trainer=ppo",
+      "trainer.critic_input=state"], "env.popgym_task"),
+])
+def test_a_task_that_does_not_fit_is_named(overrides, field):
+    with pytest.raises(ConfigError, match=f"^{field}"):
+        validate_train_config(compose(overrides))
