@@ -100,6 +100,7 @@ class AtariTrainerConfig:
     updates_per_iteration: int = _f(MISSING, ge=1)
     lr: float = _f(MISSING, gt=0, lt=MAX_LR)
     belief_lr: Optional[float] = _f(None, gt=0, lt=MAX_LR)  # DVRL's and ESCORT-latent's rate; None: lr
+    normalize_advantage: bool = True  # each window's advantages standardised (A2C and DVRL use them raw)
     rmsprop_alpha: float = _f(MISSING, ge=0, lt=1)
     rmsprop_eps: float = _f(MISSING, gt=0)
     gamma: float = _f(MISSING, gt=0, le=1)

@@ -157,7 +157,8 @@ class AtariA2C(Algorithm):
             with torch.no_grad():
                 bootstrap = self.policy(self.td.clone())["state_value"].squeeze(-1)
             loss, terms = a2c_loss(window, bootstrap, float(t.gamma), float(t.entropy_coef),
-                                   float(t.value_loss_coef), float(t.encoding_loss_coef), elbo_key=elbo_key)
+                                   float(t.value_loss_coef), float(t.encoding_loss_coef), elbo_key=elbo_key,
+                                   normalize_advantage=bool(t.get("normalize_advantage", True)))
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(self.policy.parameters(), float(t.max_grad_norm))

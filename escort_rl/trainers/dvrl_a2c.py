@@ -97,20 +97,21 @@ def window_returns(reward: torch.Tensor, done: torch.Tensor, bootstrap: torch.Te
 
 def a2c_loss(window: TensorDictBase, bootstrap: torch.Tensor, gamma: float, entropy_coef: float,
              value_loss_coef: float, encoding_loss_coef: float, reward_scale: float = 1.0,
-             elbo_key: str | None = "dvrl_elbo") -> tuple[torch.Tensor, dict]:
+             elbo_key: str | None = "dvrl_elbo", normalize_advantage: bool = True) -> tuple[torch.Tensor, dict]:
     """The DVRL objective of one window ``[B, T]`` (see the module docstring).
 
     ``window`` holds ``logits [B, T, A]``, ``action [B, T]``, ``state_value [B, T, 1]``, ``elbo_key``
     ``[B, T]`` (with gradients) and ``("next", "reward" | "done") [B, T, 1]``; ``bootstrap [B]`` and the
     values are in units of ``reward_scale × reward``. ``elbo_key=None`` (an agent without a model, e.g.
-    a GRU) drops the ELBO term: plain A2C. Returns the loss and its terms as floats.
+    a GRU) drops the ELBO term: plain A2C. ``normalize_advantage``: the window's advantages standardised
+    (ours; A2C and DVRL use them as they are). Returns the loss and its terms as floats.
     """
     reward = reward_scale * window["next", "reward"].squeeze(-1)
     done = window["next", "done"].squeeze(-1)
     value = window["state_value"].squeeze(-1)
     returns = window_returns(reward, done, bootstrap, gamma)
     advantage = (returns - value).detach()
-    if advantage.numel() > 1:
+    if normalize_advantage and advantage.numel() > 1:
         advantage = (advantage - advantage.mean()) / (advantage.std() + 1e-8)
     dist = torch.distributions.Categorical(logits=window["logits"])
     policy_loss = -(dist.log_prob(window["action"]) * advantage).mean()

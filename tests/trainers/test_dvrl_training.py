@@ -56,6 +56,26 @@ def test_a2c_loss_pushes_toward_advantaged_actions_and_up_the_elbo():
     assert (value.grad.squeeze(-1)[action == 0] < 0).all()  # value rises toward the positive return
 
 
+def test_a2c_loss_uses_raw_advantages_when_asked():
+    """Without normalisation the policy loss is ``−mean(log π(a) · (R − V))`` with the raw advantage."""
+    torch.manual_seed(0)
+    b, t, a = 3, 4, 2
+    logits = torch.randn(b, t, a)
+    value = torch.randn(b, t, 1)
+    action = torch.randint(0, a, (b, t))
+    reward = torch.rand(b, t, 1)
+    window = TensorDict({"logits": logits, "state_value": value, "action": action, ("next", "reward"): reward,
+                         ("next", "done"): torch.zeros(b, t, 1, dtype=torch.bool)}, batch_size=[b, t])
+    _, raw = a2c_loss(window, torch.zeros(b), gamma=0.0, entropy_coef=0.0, value_loss_coef=0.0,
+                      encoding_loss_coef=0.0, elbo_key=None, normalize_advantage=False)
+    log_pi = torch.distributions.Categorical(logits=logits).log_prob(action)
+    want = -(log_pi * (reward.squeeze(-1) - value.squeeze(-1))).mean()
+    assert raw["policy_loss"] == pytest.approx(float(want), rel=1e-5)
+    _, normed = a2c_loss(window, torch.zeros(b), gamma=0.0, entropy_coef=0.0, value_loss_coef=0.0,
+                         encoding_loss_coef=0.0, elbo_key=None)
+    assert normed["policy_loss"] != pytest.approx(raw["policy_loss"])
+
+
 def test_readout_fits_in_standardised_units_and_answers_in_state_units():
     readout = StateReadout(4, 2, hidden=8, loc=4.0, scale=2.0)
     summary = torch.randn(5, 4)
