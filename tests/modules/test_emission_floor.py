@@ -1,5 +1,5 @@
 """The floor on the emission's learned standard deviation (``emission_min_std``), and the belief
-agents' own rate (``trainer.belief_lr``) in the MinAtar settings."""
+agents' own rate (``trainer.belief_lr``) in the bench's settings."""
 
 import math
 
@@ -36,13 +36,12 @@ def test_feature_emission_of_escort_latent_is_floored_too():
     assert torch.allclose(_scale(model.emission, h, z, a), torch.tensor(0.1))
 
 
-def test_minatar_settings_give_the_belief_agents_their_floor_and_rate():
+def test_the_settings_give_the_belief_agents_their_floor_and_rate():
     from escort_rl.bench.atari.settings import load_settings
     from escort_rl.trainers.atari_a2c import agent_lr, build_atari_policy
 
-    settings = load_settings(tier="minatar")
-    for agent, lr in (("gru", float(settings.trainer.lr)), ("dvrl", float(settings.trainer.belief_lr)),
-                      ("escort_latent", float(settings.trainer.belief_lr))):
+    settings = load_settings(("trainer.belief_lr=0.0003",), tier="minatar")
+    for agent, lr in (("gru", float(settings.trainer.lr)), ("dvrl", 3e-4), ("escort_latent", 3e-4)):
         cfg = OmegaConf.create({**OmegaConf.to_container(settings, resolve=True), "agent": agent})
         cfg.escort.compile = False
         assert agent_lr(cfg) == lr
