@@ -64,6 +64,7 @@ from torch import Tensor
 from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.clipped_gaussian import ClippedGaussianObservation
 from escort_rl.models.gaussian import FilterNoiseTransition
+from escort_rl.models.popgym_task import POPGymTask
 
 GRAVITY, MASS_CART, MASS_POLE, HALF_LENGTH, FORCE_MAG, TAU = 9.8, 1.0, 0.1, 0.5, 10.0, 0.02
 """gymnasium CartPole's constants (``length`` is half the pole's length, as gymnasium names it)."""
@@ -109,7 +110,7 @@ class POPGymCartPoleParams:
     process_noise: float = param(0.05, ge=0)
 
 
-class POPGymCartPole(HasParams, FilterNoiseTransition, ClippedGaussianObservation):
+class POPGymCartPole(POPGymTask, HasParams, FilterNoiseTransition, ClippedGaussianObservation):
     """POPGym's (Noisy) PositionOnlyCartPole as a model; float32 tensors on ``device``.
 
     Takes :class:`POPGymCartPoleParams` (or its fields as keyword arguments) and ``device``;
@@ -117,6 +118,8 @@ class POPGymCartPole(HasParams, FilterNoiseTransition, ClippedGaussianObservatio
     """
 
     Params = POPGymCartPoleParams
+    TASKS = CARTPOLE_TASKS
+    SYSTEM = "CartPole"
     state_dim = 4
     obs_dim = 2
     n_actions = 2
@@ -132,15 +135,6 @@ class POPGymCartPole(HasParams, FilterNoiseTransition, ClippedGaussianObservatio
         self.obs_low = -self.obs_high
         self.process_std = p.process_noise * torch.tensor(TYPICAL_STEP, **f32)
         self.observation_std = max(p.obs_noise, p.obs_noise_floor)
-
-    @classmethod
-    def from_name(cls, name: str, **kwargs) -> "POPGymCartPole":
-        """The model of POPGym's task ``name`` (a key of :data:`CARTPOLE_TASKS`, or its gymnasium id
-        ``popgym-<name>-v0``); ``kwargs`` (``process_noise``, ``obs_noise_floor``, ``device``) on top."""
-        key = str(name).removeprefix("popgym-").removesuffix("-v0")
-        if key not in CARTPOLE_TASKS:
-            raise ValueError(f"name: unknown POPGym CartPole task '{name}'; choose one of {sorted(CARTPOLE_TASKS)}")
-        return cls(**{**CARTPOLE_TASKS[key], **kwargs})
 
     # ------------------------------------------------------------------ dynamics
     def initial_state(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor:

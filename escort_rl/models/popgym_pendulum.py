@@ -58,6 +58,7 @@ from torch import Tensor
 from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.clipped_gaussian import ClippedGaussianObservation
 from escort_rl.models.gaussian import FilterNoiseTransition
+from escort_rl.models.popgym_task import POPGymTask
 
 GRAVITY, MASS, LENGTH, DT, MAX_SPEED, MAX_TORQUE = 10.0, 1.0, 1.0, 0.05, 8.0, 2.0
 """gymnasium Pendulum's constants (``g = 10`` is its default)."""
@@ -105,7 +106,7 @@ class POPGymPendulumParams:
     process_noise: float = param(0.05, ge=0)
 
 
-class POPGymPendulum(HasParams, FilterNoiseTransition, ClippedGaussianObservation):
+class POPGymPendulum(POPGymTask, HasParams, FilterNoiseTransition, ClippedGaussianObservation):
     """POPGym's (Noisy) PositionOnlyPendulum as a model with a continuous action; float32 tensors on
     ``device``.
 
@@ -114,6 +115,8 @@ class POPGymPendulum(HasParams, FilterNoiseTransition, ClippedGaussianObservatio
     """
 
     Params = POPGymPendulumParams
+    TASKS = PENDULUM_TASKS
+    SYSTEM = "Pendulum"
     state_dim = 2
     obs_dim = 2
     action_dim = 1
@@ -132,15 +135,6 @@ class POPGymPendulum(HasParams, FilterNoiseTransition, ClippedGaussianObservatio
         self.start_high = torch.tensor(START_HIGH, **f32)
         self.process_std = p.process_noise * torch.tensor(TYPICAL_STEP, **f32)
         self.observation_std = max(p.obs_noise, p.obs_noise_floor)
-
-    @classmethod
-    def from_name(cls, name: str, **kwargs) -> "POPGymPendulum":
-        """The model of POPGym's task ``name`` (a key of :data:`PENDULUM_TASKS`, or its gymnasium id
-        ``popgym-<name>-v0``); ``kwargs`` (``process_noise``, ``obs_noise_floor``, ``device``) on top."""
-        key = str(name).removeprefix("popgym-").removesuffix("-v0")
-        if key not in PENDULUM_TASKS:
-            raise ValueError(f"name: unknown POPGym Pendulum task '{name}'; choose one of {sorted(PENDULUM_TASKS)}")
-        return cls(**{**PENDULUM_TASKS[key], **kwargs})
 
     # ------------------------------------------------------------------ dynamics
     def initial_state(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor:
