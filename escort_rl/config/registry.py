@@ -80,6 +80,20 @@ def resolve(kind: str, name: str) -> type:
     return import_target(target(kind, name))
 
 
+def name_of(kind: str, cls: type) -> str:
+    """The name ``cls`` is registered under (the inverse of :func:`resolve`); ``ValueError`` when none.
+
+    Example:
+        >>> from escort_rl.models import POPGymPendulum
+        >>> name_of("model", POPGymPendulum)
+        'popgym_pendulum'
+    """
+    for name in names(kind):
+        if target(kind, name).rpartition(".")[2] == cls.__name__ and resolve(kind, name) is cls:
+            return name
+    raise ValueError(f"cls: {cls.__name__} is not a registered {kind}")
+
+
 def params(kind: str, name: str) -> type:
     """The parameters dataclass of the class registered as ``name`` (its ``Params``)."""
     if kind == "trainer":

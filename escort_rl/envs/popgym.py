@@ -52,7 +52,9 @@ def popgym_task(name: str) -> str:
         >>> popgym_task("popgym-NoisyPositionOnlyPendulumHard-v0")
         'NoisyPositionOnlyPendulumHard'
     """
-    key = str(name).removeprefix("popgym-").removesuffix("-v0")
+    from escort_rl.models.popgym_task import task_key
+
+    key = task_key(name)
     if key not in POPGYM_CONTROL:
         raise ValueError(f"name: unknown POPGym control task '{name}'; choose one of {sorted(POPGYM_CONTROL)}")
     return key
@@ -111,8 +113,7 @@ def popgym_model(name: str, **kwargs):
         >>> type(m).__name__, m.obs_noise, m.max_episode_length
         ('POPGymCartPole', 0.2, 200)
     """
-    from escort_rl.models import POPGymCartPole, POPGymPendulum
+    from escort_rl.models import popgym_model_class
 
     key = popgym_task(name)
-    model = POPGymCartPole if "CartPole" in key else POPGymPendulum
-    return model.from_name(key, **kwargs)
+    return popgym_model_class(key).from_name(key, **kwargs)

@@ -11,6 +11,7 @@ from escort_rl.models.multi_target import MultiTargetTracking20D
 from escort_rl.models.multi_target_params import MultiTargetTracking20DParams
 from escort_rl.models.popgym_cartpole import POPGymCartPole, POPGymCartPoleParams
 from escort_rl.models.popgym_pendulum import POPGymPendulum, POPGymPendulumParams
+from escort_rl.models.popgym_task import popgym_model_class
 from escort_rl.models.protocol import POMDPModel, check_model, has_goal, position_dims, position_error, velocity_dims
 
 # The paper's domains by their config name (``configs/env/<name>.yaml``).
@@ -22,4 +23,4 @@ __all__ = ["DOMAINS", "GYM_DOMAINS", "KidnappedRobot20D", "KidnappedRobot20DPara
            "LightDark10DContinuous", "LightDark10DParams", "LightDark1D", "LightDark1DParams", "LinearGaussian",
            "LinearGaussianParams", "MultiTargetTracking20D", "MultiTargetTracking20DParams", "POMDPModel",
            "POPGymCartPole", "POPGymCartPoleParams", "POPGymPendulum", "POPGymPendulumParams", "check_model",
-           "has_goal", "position_dims", "position_error", "velocity_dims"]
+           "has_goal", "popgym_model_class", "position_dims", "position_error", "velocity_dims"]

@@ -79,19 +79,18 @@ def check_popgym_task(cfg: DictConfig) -> None:
     task = cfg.env.get("popgym_task", None)
     if not task:
         return
-    from escort_rl.envs.popgym import POPGYM_CONTROL
-    from escort_rl.models.popgym_cartpole import CARTPOLE_TASKS
-    from escort_rl.models.popgym_pendulum import PENDULUM_TASKS
+    from escort_rl.config.registry import name_of
+    from escort_rl.models import popgym_model_class
+    from escort_rl.models.popgym_task import task_key
 
-    tables = {"popgym_cartpole": CARTPOLE_TASKS, "popgym_pendulum": PENDULUM_TASKS}
-    if task not in POPGYM_CONTROL:
-        raise ConfigError(f"env.popgym_task: unknown POPGym control task '{task}'; choose one of "
-                          f"{', '.join(sorted(POPGYM_CONTROL))}")
-    table = tables.get(str(cfg.env.name))
-    if table is None or task not in table:
-        raise ConfigError(f"env.popgym_task: '{task}' is not a task of env={cfg.env.name}; use env=popgym_cartpole "
-                          "or env=popgym_pendulum with one of its own tasks")
-    length = int(table[task]["max_episode_length"])
+    try:
+        model = popgym_model_class(task)
+    except ValueError as error:
+        raise ConfigError(f"env.popgym_task: {str(error).removeprefix('name: ')}") from None
+    if str(cfg.env.name) != name_of("model", model):
+        raise ConfigError(f"env.popgym_task: '{task}' is not a task of env={cfg.env.name}; use "
+                          f"env={name_of('model', model)}")
+    length = int(model.TASKS[task_key(task)]["max_episode_length"])
     if int(cfg.env.max_steps) != length:
         raise ConfigError(f"env.max_steps: POPGym's {task} runs {length} steps, got {cfg.env.max_steps}; set "
                           f"env.max_steps={length}")

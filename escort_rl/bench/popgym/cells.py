@@ -18,11 +18,11 @@ def task_overrides(task: str) -> tuple[str, ...]:
         >>> task_overrides("NoisyPositionOnlyPendulumHard")
         ('env=popgym_pendulum', 'env.model.obs_noise=0.3', 'env.model.max_episode_length=200', 'env.max_steps=200')
     """
-    from escort_rl.models.popgym_cartpole import CARTPOLE_TASKS
-    from escort_rl.models.popgym_pendulum import PENDULUM_TASKS
+    from escort_rl.config.registry import name_of
+    from escort_rl.models import popgym_model_class
 
-    group, table = ("popgym_cartpole", CARTPOLE_TASKS) if "CartPole" in task else ("popgym_pendulum", PENDULUM_TASKS)
-    params = table[task]
+    model = popgym_model_class(task)
+    group, params = name_of("model", model), model.TASKS[task]
     return (f"env={group}", f"env.model.obs_noise={params['obs_noise']}",
             f"env.model.max_episode_length={params['max_episode_length']}",
             f"env.max_steps={params['max_episode_length']}")
