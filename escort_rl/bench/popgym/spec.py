@@ -28,7 +28,7 @@ for every row, as DVRL's is: equal frames."""
 ROWS = (
     ("PPO on SIR beliefs", (*BELIEF_PPO, "filter=sir")),
     ("PPO on EnKF beliefs", (*BELIEF_PPO, "filter=enkf")),
-    ("PPO on ESCORT beliefs", (*BELIEF_PPO, "filter=escort")),
+    ("PPO on ESCORT beliefs", (*BELIEF_PPO, "filter=escort_train")),
     ("GRU (recurrent PPO)", ("trainer=recurrent_ppo", "trainer.rollout_steps=50")),
     ("DVRL", ("trainer=dvrl_a2c",)),
 )
