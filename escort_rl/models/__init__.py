@@ -10,8 +10,8 @@ from escort_rl.models.linear_gaussian import LinearGaussian, LinearGaussianParam
 from escort_rl.models.multi_target import MultiTargetTracking20D
 from escort_rl.models.multi_target_params import MultiTargetTracking20DParams
 from escort_rl.models.popgym_cartpole import POPGymCartPole, POPGymCartPoleParams
+from escort_rl.models.popgym_models import popgym_model_class
 from escort_rl.models.popgym_pendulum import POPGymPendulum, POPGymPendulumParams
-from escort_rl.models.popgym_task import popgym_model_class
 from escort_rl.models.protocol import POMDPModel, check_model, has_goal, position_dims, position_error, velocity_dims
 
 # The paper's domains by their config name (``configs/env/<name>.yaml``).

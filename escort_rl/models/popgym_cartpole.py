@@ -61,10 +61,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from escort_rl.config.params import HasParams, build_params, param
+from escort_rl.config.params import HasParams, build_params
 from escort_rl.models.clipped_gaussian import ClippedGaussianObservation
 from escort_rl.models.gaussian import FilterNoiseTransition
-from escort_rl.models.popgym_task import POPGymTask
+from escort_rl.models.popgym_task import POPGymParams, POPGymTask
 
 GRAVITY, MASS_CART, MASS_POLE, HALF_LENGTH, FORCE_MAG, TAU = 9.8, 1.0, 0.1, 0.5, 10.0, 0.02
 """gymnasium CartPole's constants (``length`` is half the pole's length, as gymnasium names it)."""
@@ -91,23 +91,9 @@ CARTPOLE_TASKS = {
 
 
 @dataclass(frozen=True)
-class POPGymCartPoleParams:
-    """:class:`POPGymCartPole`'s parameters (see the module docstring for the choices).
-
-    Attributes:
-        max_episode_length: POPGym's episode length ``L``: the reward is ``1/L`` a step, and the env
-            truncates after ``L`` steps (200, 400, 600 for Easy, Medium, Hard).
-        obs_noise: POPGym's ``noise_sigma``, the std of the clipped observation noise (0 on the
-            stateless tasks; 0.1, 0.2, 0.3 on the noisy ones).
-        obs_noise_floor: the smallest observation std the density uses (filter side).
-        process_noise: the filter-side process noise, in units of :data:`TYPICAL_STEP` per coordinate
-            (0: POPGym's deterministic step, and no transition density).
-    """
-
-    max_episode_length: int = param(200, ge=1)
-    obs_noise: float = param(0.0, ge=0)
-    obs_noise_floor: float = param(0.01, ge=0)
-    process_noise: float = param(0.05, ge=0)
+class POPGymCartPoleParams(POPGymParams):
+    """:class:`POPGymCartPole`'s parameters: :class:`~escort_rl.models.popgym_task.POPGymParams`, with
+    episodes of 200, 400, 600 steps for Easy, Medium, Hard."""
 
 
 class POPGymCartPole(POPGymTask, HasParams, FilterNoiseTransition, ClippedGaussianObservation):

@@ -55,10 +55,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from escort_rl.config.params import HasParams, build_params, param
+from escort_rl.config.params import HasParams, build_params
 from escort_rl.models.clipped_gaussian import ClippedGaussianObservation
 from escort_rl.models.gaussian import FilterNoiseTransition
-from escort_rl.models.popgym_task import POPGymTask
+from escort_rl.models.popgym_task import POPGymParams, POPGymTask
 
 GRAVITY, MASS, LENGTH, DT, MAX_SPEED, MAX_TORQUE = 10.0, 1.0, 1.0, 0.05, 8.0, 2.0
 """gymnasium Pendulum's constants (``g = 10`` is its default)."""
@@ -87,23 +87,9 @@ def angle_normalize(theta: Tensor) -> Tensor:
 
 
 @dataclass(frozen=True)
-class POPGymPendulumParams:
-    """:class:`POPGymPendulum`'s parameters (see the module docstring for the choices).
-
-    Attributes:
-        max_episode_length: POPGym's episode length ``L``: the reward is scaled by ``1/L``, and the
-            env truncates after ``L`` steps (200, 150, 100 for Easy, Medium, Hard).
-        obs_noise: POPGym's ``noise_sigma``, the std of the clipped observation noise (0 on the
-            stateless tasks; 0.1, 0.2, 0.3 on the noisy ones).
-        obs_noise_floor: the smallest observation std the density uses (filter side).
-        process_noise: the filter-side process noise, in units of :data:`TYPICAL_STEP` per coordinate
-            (0: POPGym's deterministic step, and no transition density).
-    """
-
-    max_episode_length: int = param(200, ge=1)
-    obs_noise: float = param(0.0, ge=0)
-    obs_noise_floor: float = param(0.01, ge=0)
-    process_noise: float = param(0.05, ge=0)
+class POPGymPendulumParams(POPGymParams):
+    """:class:`POPGymPendulum`'s parameters: :class:`~escort_rl.models.popgym_task.POPGymParams`, with
+    episodes of 200, 150, 100 steps for Easy, Medium, Hard."""
 
 
 class POPGymPendulum(POPGymTask, HasParams, FilterNoiseTransition, ClippedGaussianObservation):

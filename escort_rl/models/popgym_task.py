@@ -1,7 +1,31 @@
-"""What POPGym's CartPole and Pendulum models share beyond their dynamics: building one of POPGym's
-tasks by name."""
+"""What POPGym's CartPole and Pendulum models share beyond their dynamics: their parameters and
+building one of POPGym's tasks by name."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+
+from escort_rl.config.params import param
+
+
+@dataclass(frozen=True)
+class POPGymParams:
+    """The parameters of a POPGym control model (each model's module docstring says why).
+
+    Attributes:
+        max_episode_length: POPGym's episode length ``L``: the reward is scaled by ``1/L``, and the
+            env truncates after ``L`` steps (each task's is in the model's ``TASKS``).
+        obs_noise: POPGym's ``noise_sigma``, the std of the clipped observation noise (0 on the
+            stateless tasks; 0.1, 0.2, 0.3 on the noisy ones).
+        obs_noise_floor: the smallest observation std the density uses (filter side).
+        process_noise: the filter-side process noise, in units of the model's ``TYPICAL_STEP`` per
+            coordinate (0: POPGym's deterministic step, and no transition density).
+    """
+
+    max_episode_length: int = param(200, ge=1)
+    obs_noise: float = param(0.0, ge=0)
+    obs_noise_floor: float = param(0.01, ge=0)
+    process_noise: float = param(0.05, ge=0)
 
 
 class POPGymTask:
@@ -30,21 +54,3 @@ def task_key(name: str) -> str:
     """
     return str(name).removeprefix("popgym-").removesuffix("-v0")
 
-
-def popgym_model_class(name: str) -> type[POPGymTask]:
-    """The model class whose ``TASKS`` hold POPGym's task ``name`` (or its gymnasium id): the one map
-    from a task to its system.
-
-    Example:
-        >>> popgym_model_class("NoisyPositionOnlyCartPoleEasy").__name__
-        'POPGymCartPole'
-    """
-    from escort_rl.models.popgym_cartpole import POPGymCartPole
-    from escort_rl.models.popgym_pendulum import POPGymPendulum
-
-    key = task_key(name)
-    for model in (POPGymCartPole, POPGymPendulum):
-        if key in model.TASKS:
-            return model
-    tasks = sorted(POPGymCartPole.TASKS) + sorted(POPGymPendulum.TASKS)
-    raise ValueError(f"name: unknown POPGym control task '{name}'; choose one of {', '.join(tasks)}")
