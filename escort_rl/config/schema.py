@@ -192,6 +192,9 @@ MultiTargetTracking20DEnvConfig = env_schema("mtt20d", MultiTargetTracking20DMod
 LinearGaussianEnvConfig = env_schema("linear_gaussian", LinearGaussianModelConfig, "LinearGaussianEnvConfig")
 POPGymCartPoleEnvConfig = env_schema("popgym_cartpole", POPGymCartPoleModelConfig, "POPGymCartPoleEnvConfig")
 POPGymPendulumEnvConfig = env_schema("popgym_pendulum", POPGymPendulumModelConfig, "POPGymPendulumEnvConfig")
+POPGymAnyEnvConfig = env_schema("popgym", Dict[str, Any], "POPGymAnyEnvConfig")
+"""``env=popgym``: any POPGym task (``env.popgym_task``) in POPGym's own env, for the model-free GRU
+(``trainer=recurrent_ppo``); no model, so ``env.model`` stays empty."""
 CustomEnvConfig = env_schema("custom", Dict[str, Any], "CustomEnvConfig")
 """``env=custom``: a user's own model. ``env.model`` is open: its ``_target_`` (the class, or any
 callable returning a model) and the keyword arguments that go with it, each added with
@@ -200,7 +203,7 @@ ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "lightdark10d_continuous":
                "kidnapped20d": KidnappedRobot20DEnvConfig,
                "mtt20d": MultiTargetTracking20DEnvConfig, "linear_gaussian": LinearGaussianEnvConfig,
                "popgym_cartpole": POPGymCartPoleEnvConfig, "popgym_pendulum": POPGymPendulumEnvConfig,
-               "custom": CustomEnvConfig}
+               "popgym": POPGymAnyEnvConfig, "custom": CustomEnvConfig}
 
 
 # ------------------------------------------------------------------------------------ filters

@@ -1,4 +1,4 @@
-"""POPGym's control tasks as TorchRL envs, and their known models.
+"""POPGym's tasks as TorchRL envs, and the known models of its control tasks.
 
 POPGym (Morad et al., ICLR 2023, the ``popgym`` package, installed by ``pip install
 'escort-rl[popgym]'``) has twelve control tasks, each in three difficulties:
@@ -19,7 +19,9 @@ too), so importing this module needs no ``popgym``.
 
 :func:`popgym_model` gives a task's known torch model
 (:class:`~escort_rl.models.POPGymCartPole`, :class:`~escort_rl.models.POPGymPendulum`), which
-reproduces the env step for step and adds the densities a filter needs.
+reproduces the env step for step and adds the densities a filter needs. POPGym's other tasks (the
+memory games: Repeat Previous, Battleship, Concentration...) have no model here; they run through
+:func:`make_popgym_env` with one-hot observations, and the GRU trains on them (``env=popgym``).
 """
 
 from __future__ import annotations
@@ -60,15 +62,87 @@ def popgym_task(name: str) -> str:
     return key
 
 
-def make_single_popgym_env(name: str, device: str = "cpu", seed: int | None = None):
-    """One POPGym task as a TorchRL ``GymEnv``: ``"observation"`` ``[2]`` float32, ``"action"`` an int64
-    scalar (``Categorical(2)``) on CartPole and ``[1]`` float32 in ``Bounded(−2, 2)`` on Pendulum.
-    Module level, so ``functools.partial`` of it travels to ``ParallelEnv`` workers."""
-    from torchrl.envs import GymEnv
+def popgym_tasks() -> dict[str, str]:
+    """Every POPGym task (the memory games as well as the control tasks): name -> gymnasium id, read
+    from gymnasium's registry after ``import popgym`` (which needs the ``popgym`` extra).
 
-    env_id = POPGYM_CONTROL[popgym_task(name)]
+    Example:
+        >>> popgym_tasks()["RepeatPreviousEasy"]  # doctest: +SKIP
+        'popgym-RepeatPreviousEasy-v0'
+    """
+    import gymnasium as gym
+
     import_popgym()
-    env = GymEnv(env_id, device=device, categorical_action_encoding=True)
+    return {env_id.removeprefix("popgym-").removesuffix("-v0"): env_id
+            for env_id in gym.registry if env_id.startswith("popgym-")}
+
+
+def popgym_any_task(name: str) -> str:
+    """The task name of ``name`` (any of :func:`popgym_tasks`, or its gymnasium id); an unknown one
+    raises ``ValueError`` listing them."""
+    from escort_rl.models.popgym_task import task_key
+
+    key, tasks = task_key(name), popgym_tasks()
+    if key not in tasks:
+        raise ValueError(f"name: unknown POPGym task '{name}'; choose one of {', '.join(sorted(tasks))}")
+    return key
+
+
+def make_gym_popgym_env(name: str):
+    """POPGym's task ``name`` as a gymnasium env with a flat float observation and one discrete (or
+    real) action: a discrete, multi-discrete or tuple observation becomes its one-hot encoding in
+    float32 (gymnasium's ``FlattenObservation`` and ``DtypeObservation``), a multi-discrete action
+    one discrete action over their product (POPGym's ``DiscreteAction``). The control tasks are left
+    as they are."""
+    import gymnasium as gym
+    import numpy as np
+
+    key = popgym_any_task(name)
+    from popgym.wrappers import DiscreteAction
+
+    env = gym.make(popgym_tasks()[key])
+    if isinstance(env.action_space, gym.spaces.MultiDiscrete):
+        env = DiscreteAction(env.unwrapped)  # POPGym's wrappers take its own env, not gymnasium's
+    if not isinstance(env.observation_space, gym.spaces.Box):
+        env = gym.wrappers.DtypeObservation(gym.wrappers.FlattenObservation(env), np.float32)
+    return env
+
+
+def popgym_episode_length(name: str) -> int | None:
+    """The longest episode of POPGym's task ``name`` (its ``max_episode_length``, or the fixed
+    ``episode_length`` of Concentration), or ``None`` where POPGym states none (HigherLower: a deck)."""
+    env = make_gym_popgym_env(name).unwrapped
+    length = getattr(env, "max_episode_length", None) or getattr(env, "episode_length", None)
+    return None if length is None else int(length)
+
+
+def popgym_task_spaces(name: str, device: str = "cpu"):
+    """The :class:`~escort_rl.models.TaskSpaces` of POPGym's task ``name`` as
+    :func:`make_single_popgym_env` presents it: the observation's width and the actions."""
+    import gymnasium as gym
+    import torch
+
+    from escort_rl.models import TaskSpaces
+
+    env = make_gym_popgym_env(name)
+    obs_dim = int(gym.spaces.flatdim(env.observation_space))
+    action = env.action_space
+    if isinstance(action, gym.spaces.Discrete):
+        return TaskSpaces(obs_dim=obs_dim, n_actions=int(action.n))
+    low, high = (torch.as_tensor(bound, dtype=torch.float32, device=device).reshape(-1)
+                 for bound in (action.low, action.high))
+    return TaskSpaces(obs_dim=obs_dim, action_dim=int(low.numel()), action_low=low, action_high=high)
+
+
+def make_single_popgym_env(name: str, device: str = "cpu", seed: int | None = None):
+    """One POPGym task (any of :func:`popgym_tasks`) as a TorchRL ``GymWrapper``: ``"observation"`` a flat
+    float32 vector (``[2]`` on the control tasks; one-hot codes on the memory games, see
+    :func:`make_gym_popgym_env`), ``"action"`` an int64 scalar (``Categorical``) or, on Pendulum, ``[1]``
+    float32 in ``Bounded(−2, 2)``. Module level, so ``functools.partial`` of it travels to
+    ``ParallelEnv`` workers."""
+    from torchrl.envs import GymWrapper
+
+    env = GymWrapper(make_gym_popgym_env(name), device=device, categorical_action_encoding=True)
     if seed is not None:
         env.set_seed(int(seed))
     return env
@@ -76,12 +150,12 @@ def make_single_popgym_env(name: str, device: str = "cpu", seed: int | None = No
 
 def make_popgym_env(name: str, num_envs: int = 1, parallel: bool = False, seed: int | None = None,
                     device: str = "cpu"):
-    """POPGym's control task ``name`` as a TorchRL env.
+    """POPGym's task ``name`` as a TorchRL env (:func:`make_single_popgym_env`).
 
     Args:
-        name: a task of :data:`POPGYM_CONTROL` (or its gymnasium id); an unknown one raises
+        name: any task of :func:`popgym_tasks` (or its gymnasium id); an unknown one raises
             ``ValueError`` listing them.
-        num_envs: ``1``: a ``GymEnv`` (batch size ``()``); more: a ``SerialEnv`` of that many, batch size
+        num_envs: ``1``: a ``GymWrapper`` (batch size ``()``); more: a ``SerialEnv`` of that many, batch size
             ``(num_envs,)``.
         parallel: a ``ParallelEnv`` (spawned worker processes) instead of a ``SerialEnv``.
         seed: seeds the env (a batched env seeds its workers ``seed``, ``seed + 1``, ...).
@@ -89,7 +163,7 @@ def make_popgym_env(name: str, num_envs: int = 1, parallel: bool = False, seed: 
     """
     from torchrl.envs import ParallelEnv, SerialEnv
 
-    key = popgym_task(name)
+    key = popgym_any_task(name)
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ValueError(f"num_envs: expected a positive int, got {num_envs!r}")
     import_popgym()  # here too, for the message before any worker starts

@@ -13,6 +13,7 @@ from escort_rl.models.popgym_cartpole import POPGymCartPole, POPGymCartPoleParam
 from escort_rl.models.popgym_models import popgym_model_class
 from escort_rl.models.popgym_pendulum import POPGymPendulum, POPGymPendulumParams
 from escort_rl.models.protocol import POMDPModel, check_model, has_goal, position_dims, position_error, velocity_dims
+from escort_rl.models.task_spaces import TaskSpaces
 
 # The paper's domains by their config name (``configs/env/<name>.yaml``).
 DOMAINS = {"lightdark10d": LightDark10D, "kidnapped20d": KidnappedRobot20D, "mtt20d": MultiTargetTracking20D}
@@ -22,5 +23,5 @@ GYM_DOMAINS = {**DOMAINS, "lightdark10d_continuous": LightDark10DContinuous}
 __all__ = ["DOMAINS", "GYM_DOMAINS", "KidnappedRobot20D", "KidnappedRobot20DParams", "LightDark10D",
            "LightDark10DContinuous", "LightDark10DParams", "LightDark1D", "LightDark1DParams", "LinearGaussian",
            "LinearGaussianParams", "MultiTargetTracking20D", "MultiTargetTracking20DParams", "POMDPModel",
-           "POPGymCartPole", "POPGymCartPoleParams", "POPGymPendulum", "POPGymPendulumParams", "check_model",
-           "has_goal", "popgym_model_class", "position_dims", "position_error", "velocity_dims"]
+           "POPGymCartPole", "POPGymCartPoleParams", "POPGymPendulum", "POPGymPendulumParams", "TaskSpaces",
+           "check_model", "has_goal", "popgym_model_class", "position_dims", "position_error", "velocity_dims"]

@@ -47,8 +47,12 @@ def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
     """The POMDP model of ``env.model._target_`` (configs saved without one: the model named by
     ``env.name``) with the other keys of ``env.model`` as keyword arguments, and ``device`` when
     the target takes it. The result is checked against the model protocol
-    (:func:`escort_rl.models.check_model`)."""
+    (:func:`escort_rl.models.check_model`). ``env=popgym`` has no model: its task's spaces
+    (:class:`~escort_rl.models.TaskSpaces`), all a model-free trainer reads."""
     from escort_rl.models import check_model
+
+    if env_cfg.get("name") == "popgym":
+        return build_task_spaces(env_cfg, device)
 
     model_cfg = env_cfg.get("model") or {}
     if OmegaConf.is_config(model_cfg) and OmegaConf.is_missing(model_cfg, "_target_"):
@@ -64,6 +68,20 @@ def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
     except (TypeError, ValueError) as err:
         raise ConfigError(_prefixed("env.model", err)) from None
     return model
+
+
+def build_task_spaces(env_cfg: DictConfig, device: str | torch.device = "cpu"):
+    """The :class:`~escort_rl.models.TaskSpaces` of ``env=popgym``'s ``env.popgym_task``."""
+    from escort_rl.envs.popgym import popgym_task_spaces
+
+    task = env_cfg.get("popgym_task", None)
+    if not task:
+        raise ConfigError("env.popgym_task: env=popgym trains in one of POPGym's tasks; name it, e.g. "
+                          "env.popgym_task=RepeatPreviousEasy")
+    try:
+        return popgym_task_spaces(str(task), str(device))
+    except (ImportError, ValueError) as err:
+        raise ConfigError(f"env.popgym_task: {str(err).splitlines()[0].removeprefix('name: ')}") from None
 
 
 def _takes(target: str, name: str) -> bool:
@@ -134,10 +152,9 @@ def build_pomdp_env(cfg: DictConfig, num_envs: int, seed: int | None = None, mod
     if task:
         from torchrl.envs import SerialEnv
 
-        from escort_rl.envs.popgym import import_popgym, make_single_popgym_env, popgym_task
+        from escort_rl.envs.popgym import make_single_popgym_env, popgym_any_task
 
-        import_popgym()
-        env = SerialEnv(int(num_envs), partial(make_single_popgym_env, popgym_task(str(task)), device=cfg.device),
+        env = SerialEnv(int(num_envs), partial(make_single_popgym_env, popgym_any_task(str(task)), device=cfg.device),
                         device=cfg.device)  # batch [num_envs], as POMDPEnv's, even for one env
         if seed is not None:
             env.set_seed(int(seed))

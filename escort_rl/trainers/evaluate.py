@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from escort_rl.models import has_goal, position_dims, position_error, velocity_dims
+from escort_rl.models import TaskSpaces, has_goal, position_dims, position_error, velocity_dims
 from escort_rl.planners import ScriptedBeliefController
 from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
@@ -50,7 +50,8 @@ def first_episode_metrics(rollout: TensorDict, model, belief_mean: torch.Tensor 
     if belief_mean is None:
         belief_w = torch.softmax(rollout["next", "particle_log_weights"], -1).unsqueeze(-1)
         belief_mean = (belief_w * rollout["next", "particles"]).sum(-2)  # [E, T, d]
-    pos_err = position_error(model, belief_mean, true_state)
+    pos_err = (position_error(model, belief_mean, true_state) if model.state_dim  # no state: no error (NaN)
+               else torch.full((e, t), float("nan")))
     goal = has_goal(model)
     return {
         "final_distance": model.distance_to_goal(final_state) if goal else torch.full((e,), float("nan")),
@@ -194,10 +195,12 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
         rows = {}
         rows["trained"], trained, trained_error = policy_summary(cfg, model, policy, episodes, seed, make=make,
                                                                  estimates=estimates)
-    scripted = scripted_policy(cfg, model)
+    model_free = isinstance(model, TaskSpaces)  # env=popgym: no model, no filter, no scripted controller
+    scripted = None if model_free else scripted_policy(cfg, model)
     if scripted is not None:
         rows["scripted"] = policy_summary(cfg, model, scripted, episodes, seed)[0]
-    rows["random"] = policy_summary(cfg, model, None, episodes, seed)[0]
+    in_own_env = {"make": make, "estimates": estimates} if model_free else {}
+    rows["random"] = policy_summary(cfg, model, None, episodes, seed, **in_own_env)[0]
     result = {
         "checkpoint": display_path(ckpt_path),
         "env": cfg.env.name,
@@ -234,7 +237,10 @@ def _markdown(r: dict) -> str:
         m = r[name]
 
         def cell(key: str, digits: int) -> str:
-            return "—" if m[key] is None else f"{m[key]:.{digits}f} ± {m[f'{key}_se']:.{digits}f}"
+            value = m[key]
+            if value is None or value != value:  # not applicable: no goal, or no state to estimate (NaN)
+                return "—"
+            return f"{value:.{digits}f} ± {m[f'{key}_se']:.{digits}f}"
 
         rows.append(
             f"| {name} | {cell('final_distance', 3)} | {cell('success_rate', 3)} | {cell('episode_return', 1)} | "
@@ -242,13 +248,14 @@ def _markdown(r: dict) -> str:
             f"{m['mean_length']:.0f} | {1e3 * m['seconds_per_step']:.2f} |"
         )
     return "\n".join([
-        f"# Evaluation: {r['env']}, belief filter {r['filter']} (N={r['num_particles']})",
+        f"# Evaluation: {r['env']}, belief filter {r['filter']}"
+        + ("" if r.get("trainer") == "recurrent_ppo" else f" (N={r['num_particles']})"),
         "",
         f"Checkpoint `{r['checkpoint']}` ({r.get('trainer', 'reinforce')}) after {r['trained_iterations']} "
         f"iterations ({r.get('frames', 0)} frames); {r['episodes']} episodes with env seed {r['eval_seed']}, "
         f"the same for every policy; trained policy {'greedy' if r['greedy'] else 'sampled'}. "
         + ("scripted: the domain's PD controller on the belief mean of the same filter. " if "scripted" in r else "")
-        + "Mean ± standard error; — where the model has no goal.",
+        + "Mean ± standard error; — where the model has no goal or no state.",
         "",
         "| policy | final distance to goal | success rate | return | final position error | steps | "
         "ms per step (batch) |",

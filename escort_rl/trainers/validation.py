@@ -72,11 +72,32 @@ def check_exploring_starts(cfg: DictConfig, field: str = "exploring_starts") -> 
 
 
 
+def check_popgym_any_task(cfg: DictConfig) -> None:
+    """``env=popgym``: any POPGym task (``env.popgym_task``), no model of it, so only the model-free GRU
+    (``trainer=recurrent_ppo``) trains there, and an iteration (``env.max_steps`` per env) holds at least
+    the task's longest episode."""
+    from escort_rl.envs.popgym import popgym_any_task, popgym_episode_length
+    from escort_rl.trainers.builders import build_task_spaces
+
+    build_task_spaces(cfg.env)  # the task is named, known, and popgym installed
+    if cfg.trainer.get("algorithm") != "recurrent_ppo":
+        raise ConfigError(f"trainer: env=popgym has no model of the task's dynamics, so no belief can be computed "
+                          f"and only the model-free GRU trains on it (trainer=recurrent_ppo), got "
+                          f"trainer={cfg.trainer.get('algorithm')}; with beliefs, use env=popgym_cartpole or "
+                          "env=popgym_pendulum")
+    length = popgym_episode_length(popgym_any_task(str(cfg.env.popgym_task)))
+    if length is not None and int(cfg.env.max_steps) < length:
+        raise ConfigError(f"env.max_steps: an iteration must hold {cfg.env.popgym_task}'s longest episode "
+                          f"({length} steps), got {cfg.env.max_steps}; set env.max_steps={length} or more")
+
+
 def check_popgym_task(cfg: DictConfig) -> None:
     """``env.popgym_task`` (the agents act in POPGym's own env): a POPGym control task of the env
     group's system, with its episode length as ``env.max_steps``; not with a trainer that reads the
     simulator's true state (``trainer=dvrl_a2c``'s readout, ``trainer.critic_input=state``)."""
     task = cfg.env.get("popgym_task", None)
+    if cfg.env.name == "popgym":
+        return check_popgym_any_task(cfg)
     if not task:
         return
     from escort_rl.config.registry import name_of
