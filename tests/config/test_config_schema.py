@@ -20,8 +20,9 @@ from escort_rl.trainers.resume import merge_override_lists, recompose, saved_con
 from escort_rl.trainers.validation import validate_train_config
 
 ENVS = option_names("env")
-PACKAGE_ENVS = [e for e in ENVS if e != "custom"]
-"""The env options with a package model (``custom`` names the user's, with no default)."""
+PACKAGE_ENVS = [e for e in ENVS if e not in ("custom", "popgym")]
+"""The env options with a package model (``custom`` names the user's, with no default; ``popgym`` has
+none: tests/trainers/test_popgym_training.py)."""
 FILTERS = option_names("filter")
 TRAINERS = option_names("trainer")
 
@@ -42,7 +43,7 @@ def test_default_config_is_typed():
 
 def test_the_options_are_the_yaml_files():
     assert set(ENVS) == {"lightdark10d", "lightdark10d_continuous", "kidnapped20d", "mtt20d", "linear_gaussian",
-                         "popgym_cartpole", "popgym_pendulum", "custom"}
+                         "popgym_cartpole", "popgym_pendulum", "popgym", "custom"}
     assert {"sir", "enkf", "svgd", "escort", "escort_nocorr", "escort_train"} <= set(FILTERS)
     assert set(TRAINERS) == {"reinforce", "ppo", "dvrl_a2c", "recurrent_ppo"}
 

@@ -1,5 +1,6 @@
 """POPGym's control tasks as TorchRL envs: the names and ids, the specs (discrete CartPole, continuous
-Pendulum), batched and spawned envs, a collector, and the returns POPGym promises."""
+Pendulum), batched and spawned envs, a collector, and the returns POPGym promises (the memory games:
+test_popgym_memory_games.py)."""
 
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ def test_the_twelve_control_tasks_and_their_registered_ids():
 
 
 def test_unknown_names_and_bad_sizes_are_refused():
-    with pytest.raises(ValueError, match="unknown POPGym control task 'CartPole'.*PositionOnlyCartPoleEasy"):
+    with pytest.raises(ValueError, match="unknown POPGym task 'CartPole'.*PositionOnlyCartPoleEasy"):
         make_popgym_env("CartPole")
     with pytest.raises(ValueError, match="num_envs: expected a positive int, got 0"):
         make_popgym_env("PositionOnlyCartPoleEasy", num_envs=0)
