@@ -231,6 +231,8 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
 
 def _markdown(r: dict) -> str:
     rows = []
+    returns = [abs(r[name]["episode_return"]) for name in ("trained", "scripted", "random") if name in r]
+    digits = 3 if max(returns, default=0.0) < 10 else 1  # POPGym's returns lie in [-1, 1]
     for name in ("trained", "scripted", "random"):
         if name not in r:
             continue
@@ -243,7 +245,7 @@ def _markdown(r: dict) -> str:
             return f"{value:.{digits}f} ± {m[f'{key}_se']:.{digits}f}"
 
         rows.append(
-            f"| {name} | {cell('final_distance', 3)} | {cell('success_rate', 3)} | {cell('episode_return', 1)} | "
+            f"| {name} | {cell('final_distance', 3)} | {cell('success_rate', 3)} | {cell('episode_return', digits)} | "
             f"{cell('final_position_error', 3)} | "
             f"{m['mean_length']:.0f} | {1e3 * m['seconds_per_step']:.2f} |"
         )
