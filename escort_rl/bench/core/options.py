@@ -152,6 +152,18 @@ def compile_override(overrides) -> bool:
     return value.lower() == "true"
 
 
+def given(args, *names: str) -> dict:
+    """The options among ``names`` that the command line set (not ``None``), by name: what a spec's
+    ``replace`` takes over its defaults.
+
+    Example:
+        >>> from argparse import Namespace
+        >>> given(Namespace(seeds=3, frames=None, threads=1), "seeds", "frames", "threads")
+        {'seeds': 3, 'threads': 1}
+    """
+    return {name: getattr(args, name) for name in names if getattr(args, name) is not None}
+
+
 def set_threads(args) -> None:
     """Apply ``--threads`` (when given) to torch, for a benchmark without cells."""
     threads = getattr(args, "threads", None)

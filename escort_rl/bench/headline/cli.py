@@ -33,8 +33,7 @@ def register(subparsers) -> None:
 
 def spec_from_args(args) -> HeadlineSpec:
     base = HeadlineSpec.quick() if args.quick else HeadlineSpec()
-    changes = {k: v for k, v in (("seeds", args.seeds), ("episodes", args.episodes), ("threads", args.threads))
-               if v is not None}
+    changes = options.given(args, "seeds", "episodes", "threads")
     if args.gains is not None:
         changes["gains"] = tuple(args.gains)
     return base.replace(output=Path(args.output), **changes)

@@ -38,8 +38,7 @@ def register(subparsers) -> None:
 
 def spec_from_args(args) -> POPGymSpec:
     base = POPGymSpec.quick() if args.quick else POPGymSpec()
-    changes = {k: v for k, v in (("seeds", args.seeds), ("frames", args.frames), ("threads", args.threads))
-               if v is not None}
+    changes = options.given(args, "seeds", "frames", "threads")
     if args.tasks is not None:
         changes["tasks"] = tuple(args.tasks)
     if args.rows is not None:
