@@ -7,7 +7,7 @@ import pytest
 
 from escort_rl.bench.popgym.cells import POPGymRandomCell, POPGymTrainCell, task_overrides
 from escort_rl.bench.popgym.cli import grid, spec_from_args
-from escort_rl.bench.popgym.report import markdown_table, mmer, summarise
+from escort_rl.bench.popgym.report import GRU, markdown_table, mmer, summarise, versus, versus_table
 from escort_rl.bench.popgym.spec import POPGymSpec
 from escort_rl.config import compose
 
@@ -41,6 +41,18 @@ def test_summarise_aggregates_seeds_and_adds_random():
     random_row = next(r for r in rows if r["policy"] == "random")
     assert random_row["mmer"][0] == pytest.approx(0.1)
     assert "| T | A | 0.600 ± 0.100 |" in markdown_table(rows)
+
+
+def test_versus_the_gru_per_task_with_the_combined_standard_error():
+    runs = [{"task": task, "label": label, "seed": s, "frames": [10], "episode_return": [r], "seconds": [1.0]}
+            for task, label, returns in (("T", GRU, (0.4, 0.6)), ("T", "B", (0.9, 0.7)), ("U", "B", (0.1, 0.3)))
+            for s, r in enumerate(returns)]
+    rows = summarise(runs, [{"task": "T", "episode_return": [0.0, 0.2]}])
+    (only,) = versus(rows)  # U has no GRU row, and random is no trained row
+    assert (only["task"], only["policy"]) == ("T", "B")
+    assert only["difference"] == pytest.approx(0.3)
+    assert only["se"] == pytest.approx(math.hypot(0.1, 0.1)) and only["z"] == pytest.approx(0.3 / math.hypot(0.1, 0.1))
+    assert "| T | B | 0.300 ± 0.141 | +2.1 |" in versus_table(rows)
 
 
 def test_grid_skips_dvrl_on_pendulum_and_names_runs_apart(tmp_path):

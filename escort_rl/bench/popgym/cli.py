@@ -73,7 +73,7 @@ def grid(spec: POPGymSpec) -> tuple[list, list]:
 
 
 def main(args) -> None:
-    from escort_rl.bench.popgym.report import markdown_table, summarise
+    from escort_rl.bench.popgym.report import GRU, markdown_table, summarise, versus_table
 
     spec = spec_from_args(args)
     trained, randoms = grid(spec)
@@ -90,7 +90,10 @@ def main(args) -> None:
                 "deterministic); the agents act "
                 + ("in POPGym's own envs (TorchRL's GymEnv); DVRL sits out (its readout reads the true state).\n"
                    if spec.popgym_env else "in the model without it, which equals POPGym's env step for step "
-                   "(tests/models/test_popgym_models.py). DVRL takes discrete actions: CartPole only.\n"))
+                   "(tests/models/test_popgym_models.py). DVRL takes discrete actions: CartPole only.\n")
+                + f"\n## Beside the {GRU}\n\n" + versus_table(rows)
+                + "\nEach row's MMER less the GRU's on the same task, with the standard error of the difference "
+                "(the rows' seeds are independent runs); in s.e.: that difference over its standard error.\n")
     write_results(spec.output, "popgym", {"spec": {"tasks": list(spec.tasks), "frames": spec.frames,
                                                    "seeds": spec.seeds, "overrides": list(spec.overrides),
                                                    "popgym_env": spec.popgym_env},

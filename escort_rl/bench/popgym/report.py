@@ -13,6 +13,7 @@ import math
 from escort_rl.reporting.stats import format_mean_se, mean_se
 
 RANDOM = "random"
+GRU = "GRU (recurrent PPO)"
 
 
 def mmer(returns: list[float]) -> float:
@@ -54,4 +55,36 @@ def markdown_table(rows: list[dict]) -> str:
         frames = f"{r['frames']:,}" if r["frames"] else "—"
         lines.append(f"| {r['task']} | {r['policy']} | {format_mean_se(r['mmer'])} | {seeds} | "
                      f"{format_mean_se(r['last'])} | {frames} | {format_mean_se(r['minutes'], 1)} |")
+    return "\n".join(lines) + "\n"
+
+
+def versus(rows: list[dict], reference: str = GRU) -> list[dict]:
+    """Each trained row's MMER less the ``reference`` row's on the same task: the difference of the
+    means, its standard error ``sqrt(se_a² + se_b²)`` (the two rows' seeds are independent runs), and
+    the difference in those standard errors (``z``).
+
+    Example:
+        >>> rows = [{"task": "T", "policy": "GRU (recurrent PPO)", "mmer": (0.5, 0.03)},
+        ...         {"task": "T", "policy": "PPO on SIR beliefs", "mmer": (0.8, 0.04)}]
+        >>> [(r["policy"], round(r["difference"], 3), round(r["se"], 3), round(r["z"], 1)) for r in versus(rows)]
+        [('PPO on SIR beliefs', 0.3, 0.05, 6.0)]
+    """
+    base = {r["task"]: r["mmer"] for r in rows if r["policy"] == reference}
+    out = []
+    for r in rows:
+        if r["policy"] in (reference, RANDOM) or r["task"] not in base:
+            continue
+        (m, se), (m0, se0) = r["mmer"], base[r["task"]]
+        spread = math.hypot(se, se0)
+        out.append({"task": r["task"], "policy": r["policy"], "difference": m - m0, "se": spread,
+                    "z": (m - m0) / spread if spread > 0 else math.nan})
+    return out
+
+
+def versus_table(rows: list[dict], reference: str = GRU) -> str:
+    """:func:`versus` as a Markdown table."""
+    lines = [f"| task | policy | MMER − {reference}'s | in s.e. |", "| --- | --- | --- | --- |"]
+    for r in versus(rows, reference):
+        z = "—" if math.isnan(r["z"]) else f"{r['z']:+.1f}"
+        lines.append(f"| {r['task']} | {r['policy']} | {format_mean_se((r['difference'], r['se']))} | {z} |")
     return "\n".join(lines) + "\n"
