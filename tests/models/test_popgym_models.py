@@ -19,7 +19,7 @@ import gymnasium as gym  # noqa: E402
 
 from conftest import gen, hoeffding  # noqa: E402
 from escort_rl.envs.popgym import POPGYM_CONTROL, import_popgym, popgym_model  # noqa: E402
-from escort_rl.models import POPGymCartPole, POPGymPendulum, check_model  # noqa: E402
+from escort_rl.models import POPGymCartPole, POPGymPendulum, check_model, popgym_model_class  # noqa: E402
 from escort_rl.models.clipped_gaussian import clipped_gaussian_log_prob  # noqa: E402
 from escort_rl.models.popgym_cartpole import CARTPOLE_TASKS, THETA_THRESHOLD, X_THRESHOLD  # noqa: E402
 from escort_rl.models.popgym_pendulum import PENDULUM_TASKS  # noqa: E402
@@ -128,6 +128,13 @@ def test_from_name_reads_popgym_parameters(name):
     assert type(model) is (POPGymCartPole if "CartPole" in name else POPGymPendulum)
     with pytest.raises(ValueError, match="unknown POPGym .* task 'Pendulum'"):
         type(model).from_name("Pendulum")
+    assert popgym_model_class(f"popgym-{name}-v0") is type(model)  # the one map from a task to its model
+
+
+def test_a_task_without_a_model_is_named():
+    with pytest.raises(ValueError, match="unknown POPGym control task 'RepeatPreviousEasy'; choose one of "
+                                         "NoisyPositionOnlyCartPoleEasy"):
+        popgym_model_class("RepeatPreviousEasy")
 
 
 # ------------------------------------------------------------------------------ the observation law
