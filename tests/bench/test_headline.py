@@ -58,3 +58,23 @@ def test_bad_settings_name_their_option():
         HeadlineSpec(episodes=0)
     with pytest.raises(ValueError, match=r"^--gains: give one or more positive velocity gains"):
         HeadlineSpec(gains=(1.0, -2.0))
+
+
+def test_overrides_under_every_row_run_the_table_on_the_continuous_task(tmp_path):
+    from escort_rl.bench.headline.cli import spec_from_args
+    from escort_rl.bench.headline.report import headline_markdown
+    from escort_rl.cli import _parser
+
+    args = _parser().parse_args(["bench", "headline", "--quick", "--seeds", "1", "--episodes", "2", "--gains", "1",
+                                 "--output", str(tmp_path), "env=lightdark10d_continuous"])
+    spec = spec_from_args(args)
+    assert spec.overrides[-1] == "env=lightdark10d_continuous" and spec.overrides[:-1] == HeadlineSpec.quick().overrides
+    result = run_headline(spec, make_backend("inprocess"))
+    assert result["spec"]["env"] == "lightdark10d_continuous"
+    assert headline_markdown(result).startswith("# Headline: PPO on particle beliefs, lightdark10d_continuous\n")
+    from omegaconf import OmegaConf
+
+    configs = [OmegaConf.load(f"{r['run_dir']}/config.yaml") for r in result["runs"]]
+    assert len(configs) == 2 and {c.env.name for c in configs} == {"lightdark10d_continuous"}
+    policies = [r["policy"] for r in result["rows"]]
+    assert policies[-1] == "random" and policies.count("scripted controller (gain 1)") == 2

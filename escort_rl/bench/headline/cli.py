@@ -20,6 +20,8 @@ def register(subparsers) -> None:
         "for each training seed, evaluate every final policy on the same episodes, beside the scripted controller "
         "at its best gain (chosen on other episodes) and a random policy; mean ± s.e. across training seeds. "
         "A killed run resumes: finished cells are loaded and a training cell continues from its last checkpoint.")
+    options.add_overrides_argument(p, "overrides under every row, e.g. env=lightdark10d_continuous (a force vector "
+                                   "for an action)")
     options.add_seeds_option(p, None, "training seeds 0..N-1 per trained row", str(full.seeds))
     p.add_argument("--episodes", type=int, default=None, help=f"evaluation episodes (default: {full.episodes})")
     p.add_argument("--gains", type=float, nargs="+", default=None,
@@ -36,7 +38,8 @@ def spec_from_args(args) -> HeadlineSpec:
     changes = options.given(args, "seeds", "episodes", "threads")
     if args.gains is not None:
         changes["gains"] = tuple(args.gains)
-    return base.replace(output=Path(args.output), **changes)
+    overrides = (*base.overrides, *getattr(args, "overrides", ()))
+    return base.replace(output=Path(args.output), overrides=overrides, **changes)
 
 
 def write_headline(result: dict, out: Path) -> str:
@@ -49,7 +52,7 @@ def write_headline(result: dict, out: Path) -> str:
     (out / "headline.md").write_text(md)
     (out / "headline.json").write_text(json.dumps(with_metadata(result), indent=1))
     plot_rows_with_seeds(result["rows"], "success", out / "headline.png", "success rate (mean ± s.e.; dots: seeds)",
-                         title=f"Light-Dark 10D, {result['spec']['episodes']} evaluation episodes")
+                         title=f"{result['spec']['env']}, {result['spec']['episodes']} evaluation episodes")
     return md
 
 

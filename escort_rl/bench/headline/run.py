@@ -8,6 +8,7 @@ import math
 from escort_rl.bench.core.runner import CellStore, run_cells
 from escort_rl.bench.headline.cells import FixedPolicyCell, TrainedCell, row_overrides, safe_name
 from escort_rl.bench.headline.spec import HeadlineSpec
+from escort_rl.config import compose
 
 
 def mean_se(values: list[float]) -> tuple[float, float]:
@@ -88,8 +89,10 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
     rows += [fixed_row(f"scripted controller (gain {chosen[f]:g})", r, "scripted")
              for f, r in zip(spec.scripted_filters, fixed)]
     rows.append(fixed_row("random", fixed[-1], "random"))
-    return {"rows": rows, "spec": {"seeds": spec.seeds, "episodes": spec.episodes, "eval_seed": spec.eval_seed,
-                                   "selection_seed": spec.selection_seed, "gains": list(spec.gains),
+    env = str(compose(row_overrides(spec.overrides, ())).env.name)
+    return {"rows": rows, "spec": {"env": env, "seeds": spec.seeds, "episodes": spec.episodes,
+                                   "eval_seed": spec.eval_seed, "selection_seed": spec.selection_seed,
+                                   "gains": list(spec.gains),
                                    "overrides": list(spec.overrides), "threads": spec.threads},
             "selection": [{"filter": c.filter, "gain": c.gain, "success": mean_se(r["success"])[0]}
                           for c, r in zip(selection, results)],
