@@ -51,8 +51,9 @@ def write_headline(result: dict, out: Path) -> str:
     md = headline_markdown(result)
     (out / "headline.md").write_text(md)
     (out / "headline.json").write_text(json.dumps(with_metadata(result), indent=1))
+    spec = result["spec"]
     plot_rows_with_seeds(result["rows"], "success", out / "headline.png", "success rate (mean ± s.e.; dots: seeds)",
-                         title=f"{result['spec']['env']}, {result['spec']['episodes']} evaluation episodes")
+                         title=f"{spec.get('env', 'lightdark10d')}, {spec['episodes']} evaluation episodes")
     return md
 
 

@@ -15,7 +15,7 @@ def headline_markdown(result: dict) -> str:
     """The table: each row's success, final distance, return and steps (mean ± s.e.), its belief,
     its training frames and minutes; then the gain search and how to read the table."""
     spec = result["spec"]
-    lines = [f"# Headline: PPO on particle beliefs, {spec['env']}", "",
+    lines = [f"# Headline: PPO on particle beliefs, {spec.get('env', 'lightdark10d')}", "",
              f"Trained rows: {spec['seeds']} training seeds each, every seed's final policy greedy on the same "
              f"{spec['episodes']} episodes (env seeds {spec['eval_seed']}..); mean ± s.e. **across training seeds** "
              "of the per-seed means. Scripted and random rows: the same episodes, mean ± s.e. **over episodes**. "
