@@ -44,7 +44,7 @@ def spec_from_args(args) -> HeadlineSpec:
 
 def write_headline(result: dict, out: Path) -> str:
     """``headline.md``, ``headline.json`` and ``headline.png`` in ``out``; returns the Markdown."""
-    from escort_rl.bench.headline.report import headline_markdown
+    from escort_rl.bench.headline.report import env_name, headline_markdown
     from escort_rl.reporting.plots import plot_rows_with_seeds
 
     out.mkdir(parents=True, exist_ok=True)
@@ -53,7 +53,7 @@ def write_headline(result: dict, out: Path) -> str:
     (out / "headline.json").write_text(json.dumps(with_metadata(result), indent=1))
     spec = result["spec"]
     plot_rows_with_seeds(result["rows"], "success", out / "headline.png", "success rate (mean ± s.e.; dots: seeds)",
-                         title=f"{spec.get('env', 'lightdark10d')}, {spec['episodes']} evaluation episodes")
+                         title=f"{env_name(spec)}, {spec['episodes']} evaluation episodes")
     return md
 
 

@@ -11,11 +11,16 @@ def _cell(mean: float, se: float, digits: int) -> str:
     return f"{mean:.{digits}f} ± {se:.{digits}f}"
 
 
+def env_name(spec: dict) -> str:
+    """The env the table ran on (a result written before the table named it ran on Light-Dark 10D)."""
+    return spec.get("env", "lightdark10d")
+
+
 def headline_markdown(result: dict) -> str:
     """The table: each row's success, final distance, return and steps (mean ± s.e.), its belief,
     its training frames and minutes; then the gain search and how to read the table."""
     spec = result["spec"]
-    lines = [f"# Headline: PPO on particle beliefs, {spec.get('env', 'lightdark10d')}", "",
+    lines = [f"# Headline: PPO on particle beliefs, {env_name(spec)}", "",
              f"Trained rows: {spec['seeds']} training seeds each, every seed's final policy greedy on the same "
              f"{spec['episodes']} episodes (env seeds {spec['eval_seed']}..); mean ± s.e. **across training seeds** "
              "of the per-seed means. Scripted and random rows: the same episodes, mean ± s.e. **over episodes**. "
