@@ -106,6 +106,12 @@ class PPOParams(BeliefTrainerParams):
             random subset of M of each frame's N particles, with the old log-probabilities recomputed
             on it; the policy acts on all N. 25 of 100 halved a 64-env iteration on SIR beliefs and
             learned as fast per frame as all 100 did.
+        max_importance_ratio: a cap ``c`` on the ratio ``π_θ(a|b) / π_old(a|b)`` that weighs the
+            surrogate (``ClipPPOLoss``'s own ``max_importance_ratio``); ``None``: no cap. PPO's clip
+            bounds the ratio only where the advantage is positive; where it is negative the surrogate
+            grows with the ratio unbounded, and a TanhNormal that has learned bang-bang control gives
+            ratios of 1e18 (an action near the box's edge drawn from a wide policy, later narrowed).
+            The cap bounds that term at ``c·A``, as dual-clip PPO does (Ye et al. 2020, ``c = 3``).
     """
 
     iterations: int = param(33, ge=1)
@@ -124,6 +130,7 @@ class PPOParams(BeliefTrainerParams):
     critic_input: str = param("state", choices=["belief", "state"])
     action_repeat: int = param(1, ge=1)
     update_particles: Optional[int] = param(25, ge=1)
+    max_importance_ratio: Optional[float] = param(None, gt=1)
 
 
 @dataclass(frozen=True)

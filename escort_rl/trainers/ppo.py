@@ -45,6 +45,12 @@ from escort_rl.trainers.params import PPOParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, in_warm_start, make_collector
 
 
+def importance_cap(trainer_cfg) -> float | None:
+    """``trainer.max_importance_ratio`` as a float, or ``None`` (also for a config saved before it existed)."""
+    cap = trainer_cfg.get("max_importance_ratio", None)
+    return None if cap is None else float(cap)
+
+
 def make_ppo_loss(policy, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:
     """``ClipPPOLoss`` over ``policy`` (a ``ProbabilisticActor`` on ``cfg``'s belief keys, e.g. from
     :func:`~escort_rl.trainers.builders.build_policy`) and a critic reading ``critic_keys`` (default:
@@ -54,7 +60,7 @@ def make_ppo_loss(policy, critic, cfg: DictConfig, critic_keys: list | None = No
     value = ValueOperator(critic, in_keys=critic_keys or list(belief_keys(cfg)))
     loss = ClipPPOLoss(policy, value, clip_epsilon=float(t.clip_epsilon), entropy_coeff=float(t.entropy_coef),
                        critic_coeff=float(t.critic_coef), loss_critic_type="smooth_l1",
-                       normalize_advantage=True)
+                       normalize_advantage=True, max_importance_ratio=importance_cap(t))
     loss.set_keys(sample_log_prob="action_log_prob")
     loss.make_value_estimator(ValueEstimators.GAE, gamma=float(t.gamma), lmbda=float(t.gae_lambda))
     return loss
@@ -136,13 +142,16 @@ class PPOBase(CollectorAlgorithm):
     # ------------------------------------------------------------------ the shared update
     def update(self, batch) -> dict:
         """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled): GAE, then ``epochs`` passes
-        of one Adam step per minibatch; returns the mean losses."""
+        of one Adam step per minibatch. Returns the losses averaged over the steps taken, and
+        ``skipped_steps``: the fraction of minibatches whose gradient was non-finite and was not applied
+        (a TanhNormal's log-probability of an action at the edge of its box can overflow). Raises
+        ``FloatingPointError`` when no step of the update was finite."""
         t = self.cfg.trainer
         self.estimate_advantages(batch)
         source = self.fill(batch)
         sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
                 "clip_fraction": 0.0, "grad_norm": 0.0}
-        steps = 0
+        steps = skipped = 0
         for _ in range(self.epochs):
             for minibatch in self.minibatches(source):
                 out = self.loss_terms(minibatch)
@@ -150,13 +159,20 @@ class PPOBase(CollectorAlgorithm):
                 self.optimizer.zero_grad(set_to_none=True)
                 total.backward()
                 grad_norm = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(t.max_grad_norm))
+                if not torch.isfinite(grad_norm):
+                    skipped += 1  # clipping cannot rescale an inf: applying it would turn every weight to NaN
+                    continue
                 self.optimizer.step()
                 for key in sums:
                     value = grad_norm if key == "grad_norm" else out.get(key, None)
                     if value is not None:
                         sums[key] += float(value.detach())
                 steps += 1
-        return {k: v / steps for k, v in sums.items()}
+        if steps == 0:
+            raise FloatingPointError(
+                f"PPO update: all {skipped} gradient steps were non-finite, so training has diverged; lower "
+                "trainer.lr or trainer.epochs, or raise trainer.minibatches")
+        return {**{k: v / steps for k, v in sums.items()}, "skipped_steps": skipped / (steps + skipped)}
 
     def iteration(self, index: int, seed: int) -> dict:
         collector = self.collectors.for_iteration(index)

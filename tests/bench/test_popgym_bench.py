@@ -64,6 +64,10 @@ def test_grid_skips_dvrl_on_pendulum_and_names_runs_apart(tmp_path):
     assert ("NoisyPositionOnlyPendulumEasy", "DVRL") not in labels
     assert len(trained) == 2 * (5 + 4) and len(randoms) == 2
     assert len({c.run_dir for c in trained}) == len(trained) and len({c.key() for c in trained}) == len(trained)
+    # the importance cap goes under every trained row on Pendulum (continuous actions), nowhere else
+    cap = "trainer.max_importance_ratio=3"
+    assert all((cap in c.overrides) == ("Pendulum" in c.task) for c in trained)
+    assert not any(cap in r.overrides for r in randoms)
 
 
 def test_bad_options_are_named(tmp_path):

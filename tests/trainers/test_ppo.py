@@ -245,3 +245,80 @@ def test_warm_start_epochs_apply_to_the_warm_start_iterations_only():
         ppo.close()
     plain = PPO(compose([*TINY_PPO, "trainer.warm_start_filter=null", "trainer.warm_start_epochs=3"]), LightDark10D())
     assert plain.epochs_for(0) == 2
+
+
+def _continuous_loss(cap):
+    """A TanhNormal PPO loss on a 1-D box [-2, 2], with ``trainer.max_importance_ratio=cap``."""
+    cfg = compose(["trainer=ppo", "trainer.clip_epsilon=0.2", "trainer.entropy_coef=0.0",
+                   f"trainer.max_importance_ratio={'null' if cap is None else cap}"])
+    torch.manual_seed(0)
+    actor, critic = DeepSetsActor(10, 2, hidden=8), DeepSetsActor(10, 1, hidden=8)
+    box = (torch.tensor([-2.0]), torch.tensor([2.0]))
+    return make_ppo_loss(make_deepsets_policy(actor, *belief_keys(cfg), action_box=box), critic, cfg), actor
+
+
+def test_the_importance_cap_bounds_the_surrogate_as_dual_clip_does():
+    """With cap ``c`` the ratio ``r`` that weighs the surrogate is ``min(r, c)``: the objective is
+    ``−mean(min(min(r, c)·A, clip(r, 1 ± ε)·min(r, c)/r·A))``; a negative advantage contributes at most
+    ``c·|A|``, where uncapped it grows with ``r`` (here about e^40)."""
+    batch = _tiny_batch()
+    batch["action"] = torch.linspace(-1.9, 1.9, 6).unsqueeze(-1)
+    batch["action_log_prob"] = torch.full((6,), -40.0)  # drawn from a policy far wider than today's
+    batch["advantage"] = torch.tensor([[-1.0], [-0.5], [0.3], [1.0], [-2.0], [0.7]])
+    uncapped, _ = _continuous_loss(None)
+    assert float(uncapped(batch.clone())["loss_objective"].detach()) > 1e12
+    loss, actor = _continuous_loss(3.0)
+    out = loss(batch.clone())
+    with torch.no_grad():
+        dist = loss.actor_network.get_dist(batch.clone())
+        ratio = torch.exp(dist.log_prob(batch["action"]) - batch["action_log_prob"])
+    adv = batch["advantage"].squeeze(-1)
+    adv = (adv - adv.mean()) / adv.std().clamp_min(1e-6)
+    capped = ratio.clamp_max(3.0)
+    objective = -torch.minimum(capped * adv, ratio.clamp(0.8, 1.2) * capped / ratio * adv).mean()
+    assert bool((ratio > 3.0).all())  # every sample is capped
+    torch.testing.assert_close(out["loss_objective"], objective, rtol=1e-4, atol=1e-5)
+    assert float(out["loss_objective"]) <= 3.0 * float(adv.abs().max())
+
+
+def _ppo_with_poisoned_losses(poisoned):
+    """A tiny PPO whose ``total_loss`` is made infinite on the minibatch steps in ``poisoned``
+    (``"all"``: every step), and the list of the Adam steps it took."""
+    from escort_rl.models import LightDark10D
+    from escort_rl.trainers.ppo import PPO
+
+    ppo = PPO(compose([*TINY_PPO, "trainer.warm_start_filter=null"]), LightDark10D())
+    calls, steps = [], []
+    total_loss, step = ppo.total_loss, ppo.optimizer.step
+
+    def poisoned_total(minibatch, out):
+        calls.append(1)
+        value = total_loss(minibatch, out)
+        return value * float("inf") if poisoned == "all" or len(calls) in poisoned else value
+
+    ppo.total_loss = poisoned_total
+    ppo.optimizer.step = lambda *a, **k: (steps.append(1), step(*a, **k))[1]
+    return ppo, steps
+
+
+def test_a_non_finite_gradient_step_is_skipped_and_counted():
+    ppo, steps = _ppo_with_poisoned_losses({1, 3})
+    try:
+        stats = ppo.iteration(0, seed=1)
+        per_iteration = ppo.batches * ppo.epochs * int(ppo.cfg.trainer.minibatches)
+        assert len(steps) == per_iteration - 2
+        assert stats["skipped_steps"] == pytest.approx(2 / per_iteration)
+        assert math.isfinite(stats["grad_norm"]) and math.isfinite(stats["loss_objective"])
+        assert all(bool(torch.isfinite(p).all()) for p in ppo.loss.parameters())
+    finally:
+        ppo.close()
+
+
+def test_an_update_with_no_finite_step_raises_and_names_the_fix():
+    ppo, steps = _ppo_with_poisoned_losses("all")
+    try:
+        with pytest.raises(FloatingPointError, match="trainer.lr"):
+            ppo.iteration(0, seed=1)
+        assert steps == []
+    finally:
+        ppo.close()

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import CellStore, backend_from_args, run_cells
-from escort_rl.bench.popgym.spec import COMMON, DEFAULT_OUTPUT, TASKS, POPGymSpec
+from escort_rl.bench.popgym.spec import COMMON, CONTINUOUS, DEFAULT_OUTPUT, TASKS, POPGymSpec
 from escort_rl.reporting.paths import write_results
 
 
@@ -55,15 +55,19 @@ def spec_from_args(args) -> POPGymSpec:
 def grid(spec: POPGymSpec) -> tuple[list, list]:
     """The training cells (every row but DVRL on a task with continuous actions) and the random cells."""
     from escort_rl.bench.popgym.cells import POPGymRandomCell, POPGymTrainCell, safe_name, task_overrides
+    from escort_rl.models import popgym_model_class
+    from escort_rl.models.protocol import is_continuous
 
     trained, randoms = [], []
     for task in spec.tasks:
+        continuous = is_continuous(popgym_model_class(task))
         base = (*task_overrides(task), *COMMON, *spec.overrides)
+        trainer = (*task_overrides(task), *COMMON, *(CONTINUOUS if continuous else ()), *spec.overrides)
         own = (f"env.popgym_task={task}",) if spec.popgym_env else ()
         for label, row in spec.rows:
-            if "trainer=dvrl_a2c" in row and ("Pendulum" in task or spec.popgym_env):
+            if "trainer=dvrl_a2c" in row and (continuous or spec.popgym_env):
                 continue  # DVRL takes discrete actions, and its readout reads the simulator's true state
-            trained += [POPGymTrainCell(task=task, label=label, overrides=(*base, *own, *row), seed=seed,
+            trained += [POPGymTrainCell(task=task, label=label, overrides=(*trainer, *own, *row), seed=seed,
                                         frames=spec.frames,
                                         run_dir=str(spec.output / "runs" / task / f"{safe_name(label)}-seed{seed}"),
                                         threads=spec.threads)

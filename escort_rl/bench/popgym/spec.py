@@ -18,6 +18,12 @@ TASKS = tuple(f"NoisyPositionOnly{system}{level}" for system in ("CartPole", "Pe
 COMMON = ("trainer.num_envs=16",)
 """Under every row: 16 envs."""
 
+CONTINUOUS = ("trainer.max_importance_ratio=3",)
+"""Under every row on a task with continuous actions (Pendulum; every such row is PPO): the ratio that
+weighs PPO's surrogate is capped at 3, as dual-clip PPO does. Without it a TanhNormal that learns
+bang-bang torques meets ratios of 1e18 and non-finite gradients (one EnKF seed on Pendulum Hard
+diverged). CartPole's categorical policies never came near it, and run without."""
+
 BELIEF_PPO = ("trainer=ppo", "trainer.exploring_starts=false", "trainer.warm_start_filter=null",
               "trainer.warm_start_iterations=0", "trainer.critic_input=belief", "trainer.rollout_steps=50")
 """PPO on beliefs from the task's own start distribution, no warm start, and a critic that reads the
