@@ -95,6 +95,8 @@ def main(args) -> None:
                 + ("in POPGym's own envs (TorchRL's GymEnv); DVRL sits out (its readout reads the true state).\n"
                    if spec.popgym_env else "in the model without it, which equals POPGym's env step for step "
                    "(tests/models/test_popgym_models.py). DVRL takes discrete actions: CartPole only.\n")
+                + (f"On the tasks with continuous actions (Pendulum) every row runs with `{' '.join(CONTINUOUS)}`: "
+                   "PPO's importance ratio capped as dual-clip PPO does (docs/DESIGN.md).\n")
                 + f"\n## Beside the {GRU}\n\n" + versus_table(rows)
                 + "\nEach row's MMER less the GRU's on the same task, with the standard error of the difference "
                 "(the rows' seeds are independent runs); in s.e.: that difference over its standard error.\n")
