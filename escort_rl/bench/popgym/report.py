@@ -28,7 +28,8 @@ def mmer(returns: list[float]) -> float:
 
 
 def summarise(trained: list[dict], randoms: list[dict]) -> list[dict]:
-    """One row per (task, label) of the trained runs and one random row per task."""
+    """One row per (task, label) of the trained runs and one random row per task, grouped by task in
+    the order the trained runs name them (the spec's: Easy, Medium, Hard)."""
     rows = []
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in trained:
@@ -44,7 +45,10 @@ def summarise(trained: list[dict], randoms: list[dict]) -> list[dict]:
         rows.append({"task": r["task"], "policy": RANDOM, "seeds": 0, "per_seed": [],
                      "mmer": mean_se(r["episode_return"]), "last": mean_se(r["episode_return"]),
                      "frames": 0, "minutes": (math.nan, math.nan)})
-    return sorted(rows, key=lambda row: row["task"])
+    order: dict[str, int] = {}
+    for row in rows:
+        order.setdefault(row["task"], len(order))
+    return sorted(rows, key=lambda row: order[row["task"]])  # the tasks in the order the runs came
 
 
 def markdown_table(rows: list[dict]) -> str:
