@@ -170,8 +170,8 @@ class PPOBase(CollectorAlgorithm):
                 steps += 1
         if steps == 0:
             raise FloatingPointError(
-                f"PPO update: all {skipped} gradient steps were non-finite, so training has diverged; lower "
-                "trainer.lr or trainer.epochs, or raise trainer.minibatches")
+                f"PPO update: all {skipped} gradient steps were non-finite, so training has diverged; cap the "
+                "importance ratio (trainer.max_importance_ratio=3), or lower trainer.lr or trainer.epochs")
         return {**{k: v / steps for k, v in sums.items()}, "skipped_steps": skipped / (steps + skipped)}
 
     def iteration(self, index: int, seed: int) -> dict:

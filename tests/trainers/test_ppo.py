@@ -317,7 +317,7 @@ def test_a_non_finite_gradient_step_is_skipped_and_counted():
 def test_an_update_with_no_finite_step_raises_and_names_the_fix():
     ppo, steps = _ppo_with_poisoned_losses("all")
     try:
-        with pytest.raises(FloatingPointError, match="trainer.lr"):
+        with pytest.raises(FloatingPointError, match="trainer.max_importance_ratio=3"):
             ppo.iteration(0, seed=1)
         assert steps == []
     finally:
