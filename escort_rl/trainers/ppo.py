@@ -45,10 +45,18 @@ from escort_rl.trainers.params import PPOParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, in_warm_start, make_collector
 
 
-def importance_cap(trainer_cfg) -> float | None:
-    """``trainer.max_importance_ratio`` as a float, or ``None`` (also for a config saved before it existed)."""
-    cap = trainer_cfg.get("max_importance_ratio", None)
-    return None if cap is None else float(cap)
+def clip_ppo_loss(policy, value, trainer_cfg) -> ClipPPOLoss:
+    """TorchRL's ``ClipPPOLoss`` with ``trainer.*``'s clip, coefficients and importance cap
+    (``max_importance_ratio``; ``None`` also for a config saved before it existed), a smooth-L1 critic
+    loss and normalised advantages, reading the log-probability the policy wrote (``action_log_prob``).
+    The caller sets its value estimator."""
+    t = trainer_cfg
+    cap = t.get("max_importance_ratio", None)
+    loss = ClipPPOLoss(policy, value, clip_epsilon=float(t.clip_epsilon), entropy_coeff=float(t.entropy_coef),
+                       critic_coeff=float(t.critic_coef), loss_critic_type="smooth_l1",
+                       normalize_advantage=True, max_importance_ratio=None if cap is None else float(cap))
+    loss.set_keys(sample_log_prob="action_log_prob")
+    return loss
 
 
 def make_ppo_loss(policy, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:
@@ -58,10 +66,7 @@ def make_ppo_loss(policy, critic, cfg: DictConfig, critic_keys: list | None = No
     wrote (``action_log_prob``); a TanhNormal policy's entropy is estimated by sampling."""
     t = cfg.trainer
     value = ValueOperator(critic, in_keys=critic_keys or list(belief_keys(cfg)))
-    loss = ClipPPOLoss(policy, value, clip_epsilon=float(t.clip_epsilon), entropy_coeff=float(t.entropy_coef),
-                       critic_coeff=float(t.critic_coef), loss_critic_type="smooth_l1",
-                       normalize_advantage=True, max_importance_ratio=importance_cap(t))
-    loss.set_keys(sample_log_prob="action_log_prob")
+    loss = clip_ppo_loss(policy, value, t)
     loss.make_value_estimator(ValueEstimators.GAE, gamma=float(t.gamma), lmbda=float(t.gae_lambda))
     return loss
 

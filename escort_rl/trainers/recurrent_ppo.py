@@ -38,7 +38,7 @@ from escort_rl.modules import policy_outputs
 from escort_rl.modules.recurrent import make_recurrent_actor_critic, make_recurrent_primer
 from escort_rl.trainers.builders import build_model, build_pomdp_env, input_scaling
 from escort_rl.trainers.params import RecurrentPPOParams
-from escort_rl.trainers.ppo import PPOBase, importance_cap
+from escort_rl.trainers.ppo import PPOBase, clip_ppo_loss
 
 DEFAULT_HIDDEN = 64
 
@@ -109,10 +109,7 @@ def make_recurrent_ppo_loss(policy, value, cfg: DictConfig) -> ClipPPOLoss:
     (``ClipPPOLoss`` finds the parameters the two share and counts them once). Call the loss and its
     value estimator under ``set_recurrent_mode(True)`` on batches ``[E, T]``."""
     t = cfg.trainer
-    loss = ClipPPOLoss(policy, value, clip_epsilon=float(t.clip_epsilon), entropy_coeff=float(t.entropy_coef),
-                       critic_coeff=float(t.critic_coef), loss_critic_type="smooth_l1",
-                       normalize_advantage=True, max_importance_ratio=importance_cap(t))
-    loss.set_keys(sample_log_prob="action_log_prob")
+    loss = clip_ppo_loss(policy, value, t)
     loss.make_value_estimator(ValueEstimators.GAE, gamma=float(t.gamma), lmbda=float(t.gae_lambda),
                               deactivate_vmap=True)
     return loss
