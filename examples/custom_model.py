@@ -80,6 +80,8 @@ def main() -> None:
                  "num_particles=32", "filter.compile=false", "evaluate.episodes=16", f"output_dir={args.output}"]
     run_dir = escort_rl.train(overrides, model=Heater(obs_std=0.5), progress=False)
     result = escort_rl.evaluate(run_dir)
+    print("trained on", ", ".join(f"{frames} frames of {name}" for name, frames in
+                                  result["training"]["frames_by_filter"].items()))
     for name in ("trained", "random"):
         print(f"{name}: return {result[name]['episode_return']:.1f} ± {result[name]['episode_return_se']:.1f}, "
               f"success {result[name]['success_rate']}")  # None: the heater has no goal

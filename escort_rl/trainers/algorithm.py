@@ -83,6 +83,26 @@ class Algorithm(ABC):
         """Collect and learn for iteration ``index`` (0-based), seeded with ``seed``; return
         ``{"frames": int, **scalars}``."""
 
+    belief_label: str | None = None
+    """What the policy acts on when it is not a belief filter's particles (e.g. recurrent PPO's
+    ``"none (GRU on raw observations)"``); ``None``: the particles of a filter of the config."""
+
+    @classmethod
+    def belief_of(cls, cfg: DictConfig, params, index: int) -> str:
+        """What iteration ``index`` (0-based) of a run of ``cfg`` collects on, as
+        ``evaluation/metrics.json``'s ``"filter"`` names it: the config name of the filter whose
+        beliefs the policy reads (the warm-start filter during a warm start, then ``filter.name``), or
+        :attr:`belief_label`. ``params``: the run's ``Params`` (``None`` without)."""
+        if cls.belief_label is not None:
+            return cls.belief_label
+        run_filter = str(cfg.filter.name)
+        filter_at = getattr(params, "filter_at", None)  # trainers with a warm start (BeliefTrainerParams)
+        return run_filter if filter_at is None else filter_at(index, run_filter)
+
+    def belief_at(self, index: int) -> str:
+        """:meth:`belief_of` this run's iteration ``index``."""
+        return self.belief_of(self.cfg, self.params, index)
+
     @abstractmethod
     def close(self) -> None:
         """Shut the algorithm's collectors and envs down (called once, also after a failure)."""

@@ -132,6 +132,11 @@ class AtariA2C(Algorithm):
     def components(self) -> dict:
         return {"actor": self.policy, "optimizer": self.optimizer, "games": self.games}
 
+    @classmethod
+    def belief_of(cls, cfg: DictConfig, params, index: int) -> str:
+        """The agent's own state (``cfg.agent``): no particle filter runs here."""
+        return f"{cfg.agent} (learned)"
+
     def iteration(self, index: int, seed: int) -> dict:
         t = self.cfg.trainer
         if self.td is None:  # a session's first iteration: new games, seeded

@@ -131,6 +131,7 @@ class DVRLA2C(Algorithm):
     readout), ``optimizer`` and ``readout_optimizer``."""
 
     Params = DVRLA2CParams
+    belief_label = "dvrl (learned belief)"
 
     def __init__(self, cfg: DictConfig, model) -> None:
         validate_dvrl_config(cfg)

@@ -171,6 +171,27 @@ def scripted_policy(cfg, model):
         return None
 
 
+def planned_beliefs(cfg) -> list[str]:
+    """What each iteration of ``cfg``'s run collects on (the trainer's ``Algorithm.belief_of``):
+    e.g. ``["sir_rough"] * 30 + ["escort_train"] * 3`` for the default job."""
+    from escort_rl.config import registry
+    from escort_rl.trainers.algorithm import trainer_params
+
+    cls = registry.resolve("trainer", algorithm(cfg))
+    params = trainer_params(cls.Params, cfg.trainer) if cls.Params is not None else None
+    return [cls.belief_of(cfg, params, i) for i in range(int(cfg.trainer.iterations))]
+
+
+def training_record(trainer_state: dict, beliefs: list[str]) -> dict:
+    """``metrics.json``'s ``"training"``: ``frames_by_filter`` (the frames each belief was trained on,
+    from the history; :func:`~escort_rl.trainers.scaffold.frames_by_belief`) and ``wall_s`` (the
+    training's seconds)."""
+    from escort_rl.trainers.scaffold import frames_by_belief, training_plan
+
+    return {"frames_by_filter": frames_by_belief(trainer_state.get("history", []), training_plan(beliefs)),
+            "wall_s": float(trainer_state.get("seconds", float("nan")))}
+
+
 def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | Path | None = None,
              greedy: bool | None = None) -> dict:
     """Evaluate the checkpointed policy, the scripted controller on the same filter's belief (where the
@@ -201,11 +222,11 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
         rows["scripted"] = policy_summary(cfg, model, scripted, episodes, seed)[0]
     in_own_env = {"make": make, "estimates": estimates} if model_free else {}
     rows["random"] = policy_summary(cfg, model, None, episodes, seed, **in_own_env)[0]
+    beliefs = planned_beliefs(cfg)
     result = {
         "checkpoint": display_path(ckpt_path),
         "env": cfg.env.name,
-        "filter": {"dvrl_a2c": "dvrl (learned belief)", "recurrent_ppo": "none (GRU on raw observations)"}.get(
-            algorithm(cfg), cfg.filter.name),
+        "filter": beliefs[-1] if beliefs else str(cfg.filter.name),
         "num_particles": int(cfg.num_particles),
         "episodes": episodes,
         "eval_seed": seed,
@@ -214,6 +235,7 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
         "trainer": algorithm(cfg),
         "frames": int(meta["trainer_state"].get("frames", 0)),
         "train_seconds": float(meta["trainer_state"].get("seconds", float("nan"))),
+        "training": training_record(meta["trainer_state"], beliefs),
         **rows,
     }
     (out / "metrics.json").write_text(json.dumps(with_metadata(result), indent=2))
@@ -227,6 +249,15 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
                                position_error=trained_error)
     (out / "summary.md").write_text(_markdown(result))
     return result
+
+
+def _training_sentence(training: dict | None) -> str:
+    """`` Trained on 960000 frames of sir_rough, 96000 of escort_train (7.1 minutes).``"""
+    if not training or not training.get("frames_by_filter"):
+        return ""
+    parts = [f"{frames} frames of {name}" if i == 0 else f"{frames} of {name}"
+             for i, (name, frames) in enumerate(training["frames_by_filter"].items())]
+    return f" Trained on {', '.join(parts)} ({training['wall_s'] / 60:.1f} minutes)."
 
 
 def _markdown(r: dict) -> str:
@@ -257,7 +288,8 @@ def _markdown(r: dict) -> str:
         f"iterations ({r.get('frames', 0)} frames); {r['episodes']} episodes with env seed {r['eval_seed']}, "
         f"the same for every policy; trained policy {'greedy' if r['greedy'] else 'sampled'}. "
         + ("scripted: the domain's PD controller on the belief mean of the same filter. " if "scripted" in r else "")
-        + "Mean ± standard error; — where the model has no goal or no state.",
+        + "Mean ± standard error; — where the model has no goal or no state."
+        + _training_sentence(r.get("training")),
         "",
         "| policy | final distance to goal | success rate | return | final position error | steps | "
         "ms per step (batch) |",

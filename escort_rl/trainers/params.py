@@ -61,6 +61,21 @@ class BeliefTrainerParams(TrainerParams):
     warm_start_filter: Optional[str] = param(None, check=check_filter_name)
     warm_start_iterations: int = param(0, ge=0)
 
+    def in_warm_start(self, index: int) -> bool:
+        """Whether iteration ``index`` (0-based) collects on ``warm_start_filter``'s beliefs.
+
+        Examples:
+            >>> p = BeliefTrainerParams(warm_start_filter="sir_rough", warm_start_iterations=2)
+            >>> [p.in_warm_start(i) for i in range(3)]
+            [True, True, False]
+        """
+        return bool(self.warm_start_filter) and index < self.warm_start_iterations
+
+    def filter_at(self, index: int, run_filter: str) -> str:
+        """The filter (a ``configs/filter/`` name) whose beliefs iteration ``index`` collects on: the
+        warm-start filter during the warm start, ``run_filter`` (the run's ``filter.name``) after it."""
+        return str(self.warm_start_filter) if self.in_warm_start(index) else str(run_filter)
+
 
 @dataclass(frozen=True)
 class ReinforceParams(BeliefTrainerParams):

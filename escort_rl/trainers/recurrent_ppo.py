@@ -143,6 +143,7 @@ class RecurrentPPO(PPOBase):
     (the value network; it shares the encoder and the GRU with the policy) and ``optimizer``."""
 
     Params = RecurrentPPOParams
+    belief_label = "none (GRU on raw observations)"
 
     def __init__(self, cfg: DictConfig, model) -> None:
         validate_recurrent_ppo_config(cfg)

@@ -135,6 +135,60 @@ def make_collector(cfg: DictConfig, factory, policy, frames_per_batch: int, rese
     return MultiSyncCollector(factories, policy, cat_results="stack", **common)
 
 
+def training_plan(beliefs: list[str]) -> list[tuple[int, int, str]]:
+    """The stages of a run from the belief of each of its iterations (``Algorithm.belief_at``):
+    ``(first, last, belief)`` with 1-based iterations, one tuple per run of equal beliefs.
+
+    Examples:
+        >>> training_plan(["sir_rough"] * 3 + ["escort_train"] * 2)
+        [(1, 3, 'sir_rough'), (4, 5, 'escort_train')]
+    """
+    stages: list[tuple[int, int, str]] = []
+    for i, belief in enumerate(beliefs, start=1):
+        if stages and stages[-1][2] == belief:
+            stages[-1] = (stages[-1][0], i, belief)
+        else:
+            stages.append((i, i, belief))
+    return stages
+
+
+def describe_plan(stages: list[tuple[int, int, str]]) -> str:
+    """``"iterations 1–30 on sir_rough, 31–33 on escort_train"``: a :func:`training_plan` in words.
+
+    Examples:
+        >>> describe_plan([(1, 30, "sir_rough"), (31, 33, "escort_train")])
+        'iterations 1–30 on sir_rough, 31–33 on escort_train'
+        >>> describe_plan([(1, 1, "sir")])
+        'iteration 1 on sir'
+    """
+    parts = [f"{a}–{b} on {name}" if b > a else f"{a} on {name}" for a, b, name in stages]
+    single = len(stages) == 1 and stages[0][0] == stages[0][1]
+    return ("iteration " if single else "iterations ") + ", ".join(parts)
+
+
+def frames_by_belief(history: list[dict], plan: list[tuple[int, int, str]] | None = None) -> dict[str, int]:
+    """The frames each belief was trained on, from a run's history (each record's cumulative
+    ``frames`` and its ``filter``); a record without ``filter`` (a run saved before the history named
+    it) takes the belief of ``plan``'s stage holding its iteration (``"unknown"`` without one).
+
+    Examples:
+        >>> frames_by_belief([{"iteration": 1, "frames": 10, "filter": "sir"},
+        ...                   {"iteration": 2, "frames": 30, "filter": "escort_train"}])
+        {'sir': 10, 'escort_train': 20}
+    """
+    out: dict[str, int] = {}
+    previous = 0
+    for record in history:
+        belief = record.get("filter")
+        if belief is None:
+            it = int(record["iteration"])
+            belief = next((name for a, b, name in plan or () if a <= it <= b), "unknown")
+        frames = int(record["frames"])
+        out[belief] = out.get(belief, 0) + frames - previous
+        previous = frames
+    return out
+
+
 def in_warm_start(cfg: DictConfig, index: int) -> bool:
     """Whether iteration ``index`` collects on ``trainer.warm_start_filter``'s beliefs."""
     return bool(cfg.trainer.get("warm_start_filter", None)) and index < int(cfg.trainer.get("warm_start_iterations", 0))
@@ -368,6 +422,9 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
     n_iter = int(cfg.trainer.iterations)
     if state["iteration"] >= n_iter:
         return run_dir
+    plan = describe_plan(training_plan([algorithm.belief_at(i) for i in range(n_iter)]))
+    start = f"resuming at iteration {state['iteration'] + 1} of {n_iter}; " if state["iteration"] else ""
+    print(f"{desc}: {start}{plan}", flush=True)
     rotation = CheckpointRotation(checkpoint_dir(run_dir), keep_last=int(cfg.trainer.keep_checkpoints))
     config_dict = OmegaConf.to_container(cfg, resolve=True)
     every = int(cfg.trainer.checkpoint_every)
@@ -387,7 +444,7 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
             state["iteration"] = it + 1
             state["frames"] += int(stats.pop("frames"))
             state["seconds"] += seconds
-            record = {"iteration": it + 1, "frames": state["frames"], **stats,
+            record = {"iteration": it + 1, "filter": algorithm.belief_at(it), "frames": state["frames"], **stats,
                       "fps": stats.get("fps", float("nan")), "seconds": seconds,
                       "wall_seconds": state["seconds"]}
             bad = [k for k, v in record.items()
@@ -399,7 +456,7 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
             bar.update(1)
             state["history"].append(record)
             for key, value in record.items():
-                if key != "iteration":
+                if key != "iteration" and isinstance(value, (int, float)):  # the filter's name is history only
                     logger.log_scalar(key, value, step=it + 1)
             if (it + 1) % every == 0 or it + 1 == n_iter:
                 last_checkpoint = save_checkpoint(rotation, it + 1, state, config_dict, **components)

@@ -28,6 +28,7 @@ def validate_train_config(cfg: DictConfig) -> None:
             f"collector.workers: trainer.num_envs ({t.num_envs}) must be divisible by the number of "
             f"workers ({cfg.collector.workers})"
         )
+    check_warm_start(cfg)
     check_exploring_starts(cfg)
     check_exploring_starts(cfg, "simulator")
     check_popgym_task(cfg)
@@ -37,6 +38,23 @@ def validate_train_config(cfg: DictConfig) -> None:
     if cfg.logger.backend == "wandb" and importlib.util.find_spec("wandb") is None:
         raise ConfigError("logger.backend: 'wandb' needs the wandb package (pip install escort-rl[wandb]); "
                           "or use logger.backend=csv")
+
+
+def check_warm_start(cfg: DictConfig) -> None:
+    """A warm start on another filter must leave iterations on the run's own: ``ConfigError`` naming
+    ``trainer.warm_start_iterations`` when it covers every iteration (the run would never train on
+    ``filter``)."""
+    t = cfg.trainer
+    warm = t.get("warm_start_filter", None)  # trainers without a warm start have no such key
+    if not warm or str(warm) == str(cfg.filter.name):
+        return
+    iterations, covered = int(t.iterations), int(t.warm_start_iterations)
+    if covered >= iterations:
+        raise ConfigError(
+            f"trainer.warm_start_iterations: the warm start ({covered} iterations on {warm}) covers all "
+            f"{iterations} iterations, so the run would never train on its filter ({cfg.filter.name}); set "
+            f"trainer.warm_start_iterations below {iterations} (e.g. trainer.warm_start_iterations={iterations // 2}), "
+            f"or trainer.warm_start_filter=null to train on {cfg.filter.name} throughout")
 
 
 def check_exploring_starts(cfg: DictConfig, field: str = "exploring_starts") -> None:
