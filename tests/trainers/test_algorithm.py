@@ -21,7 +21,8 @@ from escort_rl.trainers.reinforce import Reinforce
 from escort_rl.trainers.scaffold import CollectorAlgorithm, StagedCollector, run_training
 from escort_rl.trainers.training import train
 
-TINY_PPO = ["trainer=ppo", "filter=sir", "trainer.warm_start_filter=null", "trainer.num_envs=4", "trainer.rollout_steps=6", "env.max_steps=12",
+TINY_PPO = ["trainer=ppo", "filter=sir", "trainer.warm_start_filter=null", "trainer.num_envs=4",
+            "trainer.rollout_steps=6", "env.max_steps=12",
             "num_particles=8", "actor.hidden=8", "trainer.minibatches=2", "trainer.epochs=2"]
 TINY_REINFORCE = ["trainer=reinforce", "trainer.num_envs=4", "env.max_steps=12", "num_particles=16",
                   "actor.hidden=16", "trainer.minibatch_size=64", "trainer.checkpoint_every=1", "filter.compile=false"]

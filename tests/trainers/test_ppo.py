@@ -14,7 +14,8 @@ from escort_rl.trainers.checkpointing import load_checkpoint
 from escort_rl.trainers.ppo import make_ppo_loss
 from escort_rl.trainers.training import train
 
-TINY_PPO = ["trainer=ppo", "filter=sir", "trainer.warm_start_filter=null", "trainer.num_envs=4", "trainer.rollout_steps=6", "env.max_steps=12",
+TINY_PPO = ["trainer=ppo", "filter=sir", "trainer.warm_start_filter=null", "trainer.num_envs=4",
+            "trainer.rollout_steps=6", "env.max_steps=12",
             "num_particles=8", "actor.hidden=8", "trainer.minibatches=2", "trainer.epochs=2",
             "trainer.warm_start_epochs=null", "trainer.checkpoint_every=1"]
 
