@@ -270,8 +270,8 @@ def test_output_dir_with_a_tilde_puts_the_whole_run_in_the_home_folder(tmp_path,
     cwd.mkdir()
     monkeypatch.setenv("HOME", str(home))
     monkeypatch.chdir(cwd)
-    cfg = compose(["trainer.iterations=1", "trainer.num_envs=2", "env.max_steps=3", "num_particles=8",
-                   "actor.hidden=8", "filter.compile=false", "output_dir='~/run'"])
+    cfg = compose(["trainer.iterations=1", "trainer.warm_start_filter=null", "trainer.num_envs=2", "env.max_steps=3",
+                   "num_particles=8", "actor.hidden=8", "filter.compile=false", "output_dir='~/run'"])
     run_dir = train(cfg, progress=False)
     assert run_dir == home / "run"
     for name in ("config.yaml", "history.json", "checkpoints", "logs"):
@@ -394,7 +394,7 @@ def test_weights_are_not_sent_to_a_collector_with_a_dead_worker():
     sent = []
     workers = [SimpleNamespace(pid=1, exitcode=None), SimpleNamespace(pid=2, exitcode=None)]
     collector = SimpleNamespace(procs=workers, update_policy_weights_=lambda: sent.append(True))
-    staged = StagedCollector(cfg=None, build=None)
+    staged = StagedCollector(cfg=None, build=None, filter_at=None)
     staged.collector = collector
     staged.update_policy_weights()
     assert sent == [True]
@@ -433,7 +433,7 @@ def test_a_worker_that_dies_while_weights_are_sent_ends_the_wait():
         worker.sending = True
         release.wait()  # the dead worker's acknowledgement never comes
 
-    staged = StagedCollector(cfg=None, build=None)
+    staged = StagedCollector(cfg=None, build=None, filter_at=None)
     staged.collector = SimpleNamespace(procs=[worker], update_policy_weights_=send_and_wait_for_acks)
     try:
         with pytest.raises(RuntimeError, match="^collector: a worker process has ended$"):

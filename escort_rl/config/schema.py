@@ -271,6 +271,7 @@ class KeysConfig:
 class ActorConfig:
     hidden: int = _f(MISSING, ge=1)
     encoder_layers: int = _f(2, ge=1)
+    summary: bool = _f(False)
 
 
 def check_ray_installed(value: str) -> str | None:

@@ -20,9 +20,10 @@ def _mlp(sizes: list[int], activation: type[nn.Module] = nn.Tanh, last_activatio
     return nn.Sequential(*layers)
 
 
-class DeepSetsActor(nn.Module):
-    """``logits = g(ρ(Σ_i w_i φ(x_i)))``: a per-particle encoder φ, weighted pooling, an MLP ρ and a
-    linear head g.
+class DeepSetsNet(nn.Module):
+    """``out = g(ρ(Σ_i w_i φ(x_i)))``: a per-particle encoder φ, weighted pooling, an MLP ρ and a
+    linear head g: the body of :class:`DeepSetsActor` (the head gives logits or a TanhNormal's
+    parameters) and :class:`DeepSetsCritic` (the head gives a value).
 
     With equal weights the pooling is the mean (the paper's ``(1/n) Σ_i h_i``); with SIR weights
     it is the weighted mean under ``softmax(log_weights)``. The output is invariant to any permutation
@@ -41,13 +42,19 @@ class DeepSetsActor(nn.Module):
         periodic_dims: state indices that are angles (e.g. a pendulum's ``θ``, which its dynamics do
             not wrap): φ reads ``(cos x_i, sin x_i)`` for each instead of the standardised ``x_i``, so
             that ``x_i`` and ``x_i + 2π`` are one input.
+        summary: ρ also reads the belief's weighted moments, per input coordinate of φ: the mean
+            ``m = Σ_i w_i z_i`` and the log standard deviation ``½·log(Σ_i w_i (z_i − m)² + 10⁻⁶)`` of the
+            standardised particles ``z_i``. The pooled embedding of one tanh layer carries the mean only
+            through the encoder's saturation; this branch hands it to ρ exactly (a PD rule on the
+            belief mean is then one linear map away).
 
     Shapes: ``particles`` ``[*B, N, d]``, ``log_weights`` ``[*B, N]`` or ``None`` -> ``[*B, n_actions]``.
     """
 
     def __init__(self, state_dim: int, n_actions: int, hidden: int = 64,
                  input_loc: float | list[float] = 0.0, input_scale: float | list[float] = 1.0,
-                 encoder_layers: int = 2, periodic_dims: tuple[int, ...] | list[int] = ()) -> None:
+                 encoder_layers: int = 2, periodic_dims: tuple[int, ...] | list[int] = (),
+                 summary: bool = False) -> None:
         super().__init__()
         self.state_dim, self.n_actions = state_dim, n_actions
         periodic = sorted({int(i) for i in periodic_dims})
@@ -59,8 +66,10 @@ class DeepSetsActor(nn.Module):
         self.register_buffer("input_scale", torch.as_tensor(input_scale, dtype=torch.float32).expand(state_dim).clone())
         if encoder_layers < 1:
             raise ValueError(f"encoder_layers: must be >= 1, got {encoder_layers}")
-        self.phi = _mlp([state_dim + len(periodic)] + [hidden] * encoder_layers)
-        self.rho = _mlp([hidden, hidden])
+        inputs = state_dim + len(periodic)
+        self.summary = bool(summary)
+        self.phi = _mlp([inputs] + [hidden] * encoder_layers)
+        self.rho = _mlp([hidden + (2 * inputs if self.summary else 0), hidden])
         self.head = nn.Linear(hidden, n_actions)
 
     def features(self, particles: Tensor) -> Tensor:
@@ -79,16 +88,48 @@ class DeepSetsActor(nn.Module):
                 f"particles: last dimension {particles.shape[-1]} does not match the actor's "
                 f"state_dim {self.state_dim}"
             )
-        h = self.phi(self.features(particles))  # [*B, N, H]
+        z = self.features(particles)  # [*B, N, d']
+        h = self.phi(z)  # [*B, N, H]
         if log_weights is None:
-            pooled = h.mean(-2)
+            w = torch.full_like(z[..., :1], 1.0 / z.shape[-2])
         else:
-            w = torch.softmax(log_weights, dim=-1).unsqueeze(-1)
-            pooled = (w * h).sum(-2)
+            w = torch.softmax(log_weights, dim=-1).unsqueeze(-1)  # [*B, N, 1]
+        pooled = (w * h).sum(-2)
+        if self.summary:
+            mean = (w * z).sum(-2)  # [*B, d']
+            log_std = 0.5 * torch.log((w * (z - mean.unsqueeze(-2)) ** 2).sum(-2) + 1e-6)
+            pooled = torch.cat([pooled, mean, log_std], dim=-1)
         return self.rho(pooled)
 
     def forward(self, particles: Tensor, log_weights: Tensor | None = None) -> Tensor:
         return self.head(self.pool(particles, log_weights))
+
+
+class DeepSetsActor(DeepSetsNet):
+    """A belief policy's network: ``logits = g(ρ(Σ_i w_i φ(x_i)))`` (:class:`DeepSetsNet`) with
+    ``n_actions`` outputs, the discrete actions' logits or ``2·action_dim`` for a TanhNormal
+    (:func:`make_deepsets_policy`).
+
+    Example:
+        >>> actor = DeepSetsActor(state_dim=10, n_actions=10, hidden=16)
+        >>> actor(torch.randn(4, 100, 10), torch.zeros(4, 100)).shape
+        torch.Size([4, 10])
+    """
+
+
+class DeepSetsCritic(DeepSetsNet):
+    """A value network on the belief: ``V(b) = g(ρ(Σ_i w_i φ(x_i)))`` (:class:`DeepSetsNet` with one
+    output), for ``trainer.critic_input=belief``. Takes :class:`DeepSetsNet`'s arguments but
+    ``n_actions``.
+
+    Example:
+        >>> critic = DeepSetsCritic(state_dim=10, hidden=16)
+        >>> critic(torch.randn(4, 100, 10), torch.zeros(4, 100)).shape
+        torch.Size([4, 1])
+    """
+
+    def __init__(self, state_dim: int, **kwargs) -> None:
+        super().__init__(state_dim, 1, **kwargs)
 
 
 def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",

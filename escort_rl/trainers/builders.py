@@ -12,7 +12,7 @@ from torchrl.modules import ProbabilisticActor
 
 from escort_rl.config import ConfigError, registry
 from escort_rl.envs import POMDPEnv
-from escort_rl.modules import DeepSetsActor, make_deepsets_policy, policy_outputs
+from escort_rl.modules import DeepSetsActor, DeepSetsCritic, make_deepsets_policy, policy_outputs
 from escort_rl.transforms import ActionRepeat, BeliefTransform
 
 
@@ -170,8 +170,12 @@ def build_pomdp_env(cfg: DictConfig, num_envs: int, seed: int | None = None, mod
 
 
 def trained_action_repeat(cfg: DictConfig) -> int:
-    """Env steps per decision of the trained policy (``trainer.action_repeat``, default 1)."""
-    return int(cfg.trainer.get("action_repeat", 1) or 1)
+    """Env steps per decision of the policy trained by ``cfg``: its trainer's typed
+    ``trainer.action_repeat`` (PPO), 1 for a trainer that decides at every step (REINFORCE)."""
+    from escort_rl.trainers.algorithm import trainer_params
+
+    params = trainer_params(registry.params("trainer", str(cfg.trainer.algorithm)), cfg.trainer)
+    return int(getattr(params, "action_repeat", 1))
 
 
 def belief_keys(cfg: DictConfig) -> tuple[str, str]:
@@ -196,16 +200,17 @@ def input_scaling(cfg: DictConfig) -> tuple:
     return plain(cfg.env.input_loc), plain(cfg.env.input_scale)
 
 
-def build_critic(cfg: DictConfig, model) -> tuple:
-    """The value network of ``trainer.critic_input`` and the keys it reads: ``belief`` (default), a
-    DeepSets network on the particles; ``state``, an MLP on the simulator's ``true_state``
-    (asymmetric actor-critic: only training reads it, the policy still acts on the belief)."""
+def build_critic(cfg: DictConfig, model, critic_input: str) -> tuple:
+    """The value network of ``critic_input`` (``trainer.critic_input``) and the keys it reads:
+    ``belief``, a :class:`~escort_rl.modules.DeepSetsCritic` on the particles (the actor's sizes and
+    input scaling); ``state``, an MLP on the simulator's ``true_state`` (asymmetric actor-critic: only
+    training reads it, the policy still acts on the belief)."""
     from escort_rl.modules.critics import StateValueNet
 
-    if cfg.trainer.get("critic_input", "belief") == "state":
+    if critic_input == "state":
         loc, scale = input_scaling(cfg)
         return StateValueNet(model.state_dim, int(cfg.actor.hidden), loc, scale), ["true_state"]
-    return build_actor(cfg, model.state_dim, 1), list(belief_keys(cfg))
+    return DeepSetsCritic(model.state_dim, **deepsets_sizes(cfg)), list(belief_keys(cfg))
 
 
 def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticActor]:
@@ -217,10 +222,19 @@ def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticAc
     return actor, make_deepsets_policy(actor, *belief_keys(cfg), action_box=box)
 
 
+def deepsets_sizes(cfg: DictConfig) -> dict:
+    """The keyword arguments of a :class:`~escort_rl.modules.DeepSetsNet` from the ``actor`` group: width
+    ``actor.hidden``, depth ``actor.encoder_layers``, ``actor.summary``, and the env group's input
+    scaling and angles (``env.periodic_dims``)."""
+    from escort_rl.config.schema import ActorConfig
+
+    actor = OmegaConf.merge(OmegaConf.structured(ActorConfig), cfg.actor)  # typed; a saved config's absent keys
+    loc, scale = input_scaling(cfg)                                         # take the schema's defaults
+    periodic = cfg.env.get("periodic_dims", None) or ()  # an env key of the angle-carrying env groups only
+    return dict(hidden=actor.hidden, input_loc=loc, input_scale=scale, encoder_layers=actor.encoder_layers,
+                periodic_dims=list(periodic), summary=actor.summary)
+
+
 def build_actor(cfg: DictConfig, state_dim: int, n_actions: int) -> DeepSetsActor:
-    """A :class:`DeepSetsActor` of width ``actor.hidden`` with the env group's input scaling and angles
-    (``env.periodic_dims``)."""
-    loc, scale = input_scaling(cfg)
-    periodic = cfg.env.get("periodic_dims", None) or ()
-    return DeepSetsActor(state_dim, n_actions, hidden=int(cfg.actor.hidden), input_loc=loc, input_scale=scale,
-                         encoder_layers=int(cfg.actor.get("encoder_layers", 2)), periodic_dims=list(periodic))
+    """A :class:`DeepSetsActor` of the ``actor`` group's sizes (:func:`deepsets_sizes`)."""
+    return DeepSetsActor(state_dim, n_actions, **deepsets_sizes(cfg))

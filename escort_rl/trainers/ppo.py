@@ -40,20 +40,20 @@ from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.modules import ValueOperator
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from escort_rl.trainers.builders import belief_keys, build_critic, build_policy, env_factory, trained_action_repeat
+from escort_rl.trainers.algorithm import trainer_params
+from escort_rl.trainers.builders import belief_keys, build_critic, build_policy, env_factory
 from escort_rl.trainers.params import PPOParams
-from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, in_warm_start, make_collector
+from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
 
 
-def clip_ppo_loss(policy, value, trainer_cfg) -> ClipPPOLoss:
-    """TorchRL's ``ClipPPOLoss`` with ``trainer.*``'s clip, coefficients and importance cap
-    (``max_importance_ratio``; ``None`` also for a config saved before it existed), a smooth-L1 critic
-    loss and normalised advantages, reading the log-probability the policy wrote (``action_log_prob``).
-    The caller sets its value estimator."""
-    t = trainer_cfg
-    cap = t.get("max_importance_ratio", None)
-    loss = ClipPPOLoss(policy, value, clip_epsilon=float(t.clip_epsilon), entropy_coeff=float(t.entropy_coef),
-                       critic_coeff=float(t.critic_coef), loss_critic_type="smooth_l1",
+def clip_ppo_loss(policy, value, params: PPOParams) -> ClipPPOLoss:
+    """TorchRL's ``ClipPPOLoss`` with ``params``' clip, coefficients and importance cap
+    (``max_importance_ratio``), a smooth-L1 critic loss and normalised advantages, reading the
+    log-probability the policy wrote (``action_log_prob``). The caller sets its value estimator."""
+    p = params
+    cap = p.max_importance_ratio
+    loss = ClipPPOLoss(policy, value, clip_epsilon=p.clip_epsilon, entropy_coeff=p.entropy_coef,
+                       critic_coeff=p.critic_coef, loss_critic_type="smooth_l1",
                        normalize_advantage=True, max_importance_ratio=None if cap is None else float(cap))
     loss.set_keys(sample_log_prob="action_log_prob")
     return loss
@@ -62,12 +62,13 @@ def clip_ppo_loss(policy, value, trainer_cfg) -> ClipPPOLoss:
 def make_ppo_loss(policy, critic, cfg: DictConfig, critic_keys: list | None = None) -> ClipPPOLoss:
     """``ClipPPOLoss`` over ``policy`` (a ``ProbabilisticActor`` on ``cfg``'s belief keys, e.g. from
     :func:`~escort_rl.trainers.builders.build_policy`) and a critic reading ``critic_keys`` (default:
-    the belief keys), with GAE as its value estimator. The loss reads the log-probability the policy
+    the belief keys), with GAE as its value estimator; the settings are ``cfg.trainer``'s, read as
+    :class:`~escort_rl.trainers.params.PPOParams`. The loss reads the log-probability the policy
     wrote (``action_log_prob``); a TanhNormal policy's entropy is estimated by sampling."""
-    t = cfg.trainer
+    p = trainer_params(PPOParams, cfg.trainer)
     value = ValueOperator(critic, in_keys=critic_keys or list(belief_keys(cfg)))
-    loss = clip_ppo_loss(policy, value, t)
-    loss.make_value_estimator(ValueEstimators.GAE, gamma=float(t.gamma), lmbda=float(t.gae_lambda))
+    loss = clip_ppo_loss(policy, value, p)
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=p.gamma, lmbda=p.gae_lambda)
     return loss
 
 
@@ -97,22 +98,22 @@ class PPOBase(CollectorAlgorithm):
         super().__init__(cfg, model, lambda c: make_collector(
             c, lambda n, s: self.make_env_factory(c, n, s), self.policy, self.frames_per_batch,
             reset_at_each_iter=False))
-        t = cfg.trainer
+        p = self.params
         self.policy, self.loss, self.repeat = policy, loss, int(repeat)
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
-        self.epochs = int(t.epochs)
+        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=p.lr)
+        self.epochs = p.epochs
         decisions = -(-int(cfg.env.max_steps) // self.repeat)  # per env and episode
-        self.rollout_steps = min(int(t.rollout_steps), decisions)  # never past one episode
+        self.rollout_steps = min(p.rollout_steps, decisions)  # never past one episode
         self.batches = -(-decisions // self.rollout_steps)  # PPO updates per iteration
-        self.frames_per_batch = int(t.num_envs) * self.rollout_steps
+        self.frames_per_batch = p.num_envs * self.rollout_steps
 
     def epochs_for(self, index: int) -> int:
         """The epochs of iteration ``index``'s updates: ``trainer.warm_start_epochs`` during the warm
         start when set, else ``trainer.epochs``. Where collection is cheap (SIR beliefs: a batch
         costs about what its update does) fresh batches beat more passes; where it is dear (ESCORT
         beliefs: about twenty times the update) more passes over each batch pay."""
-        warm = self.cfg.trainer.get("warm_start_epochs", None)
-        return int(warm) if warm is not None and in_warm_start(self.cfg, index) else int(self.cfg.trainer.epochs)
+        p = self.params
+        return p.warm_start_epochs if p.warm_start_epochs is not None and p.in_warm_start(index) else p.epochs
 
     # ------------------------------------------------------------------ the hooks
     @abstractmethod
@@ -147,15 +148,15 @@ class PPOBase(CollectorAlgorithm):
     # ------------------------------------------------------------------ the shared update
     def update(self, batch) -> dict:
         """One PPO update on ``batch`` ``[E, T]`` (rewards already scaled): GAE, then ``epochs`` passes
-        of one Adam step per minibatch. Returns the losses averaged over the steps taken, and
+        of one Adam step per minibatch. Returns every scalar the loss gives (its terms, ``entropy``,
+        ``clip_fraction``, ``kl_approx``, ``ESS``, ``explained_variance``) and ``grad_norm``, averaged over the
+        steps taken, and
         ``skipped_steps``: the fraction of minibatches whose gradient was non-finite and was not applied
         (a TanhNormal's log-probability of an action at the edge of its box can overflow). Raises
         ``FloatingPointError`` when no step of the update was finite."""
-        t = self.cfg.trainer
         self.estimate_advantages(batch)
         source = self.fill(batch)
-        sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0,
-                "clip_fraction": 0.0, "grad_norm": 0.0}
+        sums: dict[str, float] = {}
         steps = skipped = 0
         for _ in range(self.epochs):
             for minibatch in self.minibatches(source):
@@ -163,15 +164,16 @@ class PPOBase(CollectorAlgorithm):
                 total = self.total_loss(minibatch, out)
                 self.optimizer.zero_grad(set_to_none=True)
                 total.backward()
-                grad_norm = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(t.max_grad_norm))
+                grad_norm = torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.params.max_grad_norm)
                 if not torch.isfinite(grad_norm):
                     skipped += 1  # clipping cannot rescale an inf: applying it would turn every weight to NaN
                     continue
                 self.optimizer.step()
-                for key in sums:
-                    value = grad_norm if key == "grad_norm" else out.get(key, None)
-                    if value is not None:
-                        sums[key] += float(value.detach())
+                # every scalar the loss returns: its terms, entropy, clip_fraction, kl_approx, ESS,
+                # explained_variance (of the critic), ...
+                for key, value in [*out.items(), ("grad_norm", grad_norm)]:
+                    if isinstance(key, str) and value.numel() == 1:
+                        sums[key] = sums.get(key, 0.0) + float(value.detach())
                 steps += 1
         if steps == 0:
             raise FloatingPointError(
@@ -193,7 +195,7 @@ class PPOBase(CollectorAlgorithm):
             seen.append(batch.select(("next", "reward"), ("next", "done"), ("next", "terminated"),
                                      ("next", "true_state"), strict=False).clone())  # no true_state in POPGym's env
             frames += int(batch["next", "repeats"].sum()) if self.repeat > 1 else batch.numel()
-            batch["next", "reward"] = batch["next", "reward"] * float(self.cfg.trainer.reward_scale)
+            batch["next", "reward"] = batch["next", "reward"] * self.params.reward_scale
             for key, value in self.update(batch).items():
                 stats[key] = stats.get(key, 0.0) + value / self.batches
             if int(self.cfg.collector.workers) > 1:
@@ -209,11 +211,12 @@ class PPO(PPOBase):
     Params = PPOParams
 
     def __init__(self, cfg: DictConfig, model) -> None:
+        params = trainer_params(self.Params, cfg.trainer)
         self.actor, policy = build_policy(cfg, model)  # the policy is what the collector runs
-        self.critic, critic_keys = build_critic(cfg, model)
+        self.critic, critic_keys = build_critic(cfg, model, params.critic_input)
         loss = make_ppo_loss(policy, self.critic, cfg, critic_keys)
-        super().__init__(cfg, model, policy, loss, repeat=trained_action_repeat(cfg))
-        self.minibatch = max(1, self.frames_per_batch // int(cfg.trainer.minibatches))
+        super().__init__(cfg, model, policy, loss, repeat=params.action_repeat)
+        self.minibatch = max(1, self.frames_per_batch // self.params.minibatches)
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(self.frames_per_batch),
                                    sampler=SamplerWithoutReplacement(), batch_size=self.minibatch)
 
@@ -233,7 +236,7 @@ class PPO(PPOBase):
 
     def minibatches(self, source):
         """One epoch's minibatches: ``minibatches`` shuffled draws of frames without replacement."""
-        return (source.sample() for _ in range(int(self.cfg.trainer.minibatches)))
+        return (source.sample() for _ in range(self.params.minibatches))
 
     def subsample_particles(self, batch):
         """The batch the epochs train on: with ``trainer.update_particles = M`` below the belief's
@@ -241,7 +244,7 @@ class PPO(PPOBase):
         pooling renormalises them), and ``action_log_prob`` is recomputed on that subset, so that the
         PPO ratio compares the new and the old policy on the same input. The policy still acts on all
         N particles; the update's cost, mostly the per-particle encoder, falls by ``N / M``."""
-        m = self.cfg.trainer.get("update_particles")
+        m = self.params.update_particles
         if m is None:
             return batch
         particles_key, log_weights_key = belief_keys(self.cfg)

@@ -36,11 +36,10 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 from escort_rl.config import ConfigError
 from escort_rl.modules import policy_outputs
 from escort_rl.modules.recurrent import make_recurrent_actor_critic, make_recurrent_primer
+from escort_rl.trainers.algorithm import trainer_params
 from escort_rl.trainers.builders import build_model, build_pomdp_env, input_scaling
 from escort_rl.trainers.params import RecurrentPPOParams
 from escort_rl.trainers.ppo import PPOBase, clip_ppo_loss
-
-DEFAULT_HIDDEN = 64
 
 
 # ------------------------------------------------------------------------------------ building
@@ -72,7 +71,13 @@ def observation_scaling(cfg: DictConfig, model) -> tuple[list[float], list[float
 
 def recurrent_hidden(cfg: DictConfig) -> int:
     """``trainer.hidden``: the width of the GRU and of its encoder and heads."""
-    return int(cfg.trainer.get("hidden", DEFAULT_HIDDEN))
+    return recurrent_params(cfg).hidden
+
+
+def recurrent_params(cfg: DictConfig) -> RecurrentPPOParams:
+    """``cfg.trainer`` as :class:`~escort_rl.trainers.params.RecurrentPPOParams` (checked; a key the config
+    lacks takes its default)."""
+    return trainer_params(RecurrentPPOParams, cfg.trainer)
 
 
 def build_recurrent_actor_critic(cfg: DictConfig, model):
@@ -108,23 +113,22 @@ def make_recurrent_ppo_loss(policy, value, cfg: DictConfig) -> ClipPPOLoss:
     """``ClipPPOLoss`` over the recurrent policy and value network, with GAE as its value estimator
     (``ClipPPOLoss`` finds the parameters the two share and counts them once). Call the loss and its
     value estimator under ``set_recurrent_mode(True)`` on batches ``[E, T]``."""
-    t = cfg.trainer
-    loss = clip_ppo_loss(policy, value, t)
-    loss.make_value_estimator(ValueEstimators.GAE, gamma=float(t.gamma), lmbda=float(t.gae_lambda),
-                              deactivate_vmap=True)
+    p = recurrent_params(cfg)
+    loss = clip_ppo_loss(policy, value, p)
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=p.gamma, lmbda=p.gae_lambda, deactivate_vmap=True)
     return loss
 
 
 def validate_recurrent_ppo_config(cfg: DictConfig) -> None:
-    t = cfg.trainer
-    if t.get("warm_start_filter", None) or int(t.get("warm_start_iterations", 0) or 0) > 0:
+    t = recurrent_params(cfg)
+    if t.warm_start_filter or t.warm_start_iterations > 0:
         raise ConfigError("trainer.warm_start_filter: trainer=recurrent_ppo runs on raw observations (no belief "
-                          f"filter to warm start), got {t.get('warm_start_filter')}; set it to null and "
+                          f"filter to warm start), got {t.warm_start_filter}; set it to null and "
                           "trainer.warm_start_iterations=0")
-    if int(t.get("action_repeat", 1) or 1) != 1:
+    if t.action_repeat != 1:
         raise ConfigError("trainer.action_repeat: trainer=recurrent_ppo decides at every step (its GRU reads every "
                           f"observation), got {t.action_repeat}; set it to 1")
-    if t.get("update_particles", None) is not None:
+    if t.update_particles is not None:
         raise ConfigError("trainer.update_particles: trainer=recurrent_ppo reads raw observations, no particles, "
                           f"got {t.update_particles}; set it to null")
     per_worker = int(t.num_envs) // int(cfg.collector.workers)
@@ -172,7 +176,7 @@ class RecurrentPPO(PPOBase):
 
     def minibatches(self, batch: TensorDictBase):
         """One epoch's minibatches: the E rows in ``minibatches`` random groups (time is never shuffled)."""
-        return (batch[rows] for rows in torch.randperm(batch.shape[0]).tensor_split(int(self.cfg.trainer.minibatches)))
+        return (batch[rows] for rows in torch.randperm(batch.shape[0]).tensor_split(self.params.minibatches))
 
     def loss_terms(self, minibatch: TensorDictBase):
         with set_recurrent_mode(True):

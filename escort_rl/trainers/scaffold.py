@@ -189,51 +189,49 @@ def frames_by_belief(history: list[dict], plan: list[tuple[int, int, str]] | Non
     return out
 
 
-def in_warm_start(cfg: DictConfig, index: int) -> bool:
-    """Whether iteration ``index`` collects on ``trainer.warm_start_filter``'s beliefs."""
-    return bool(cfg.trainer.get("warm_start_filter", None)) and index < int(cfg.trainer.get("warm_start_iterations", 0))
+def collection_config(cfg: DictConfig, filter_name: str, exploring_starts: bool) -> DictConfig:
+    """The config of the envs that collect on ``filter_name``'s beliefs (a ``configs/filter/`` name).
 
-
-def collection_config(cfg: DictConfig, index: int) -> DictConfig:
-    """The config of the envs that collect iteration ``index``.
-
-    - ``trainer.exploring_starts=true`` applies the env group's ``exploring_starts`` (model keys,
-      e.g. Light-Dark's ``{start_low: 0.0, start_high: 10.0}``) to the training envs only: a start
-      distribution wider than the evaluation's, so that training visits the states near and past the
-      goal from the first iteration (the evaluation keeps the env group's own start distribution).
-    - During the warm start (``index < trainer.warm_start_iterations``) the belief filter is the one
-      named by ``trainer.warm_start_filter`` (a ``configs/filter/`` name): policies over particles
-      move between filters.
+    - ``exploring_starts`` (``trainer.exploring_starts``) applies the env group's ``exploring_starts``
+      (model keys, e.g. Light-Dark's ``{start_low: 0.0, start_high: 10.0}``) to the training envs only:
+      a start distribution wider than the evaluation's, so that training visits the states near and
+      past the goal from the first iteration (the evaluation keeps the env group's own start
+      distribution).
+    - A ``filter_name`` other than the run's ``filter.name`` (the warm start's,
+      ``trainer.warm_start_filter``) replaces the filter group: policies over particles move between
+      filters.
     """
-    warm = in_warm_start(cfg, index)
-    starts = cfg.env.get("exploring_starts", None) if cfg.trainer.get("exploring_starts", False) else None
-    if not warm and not starts:
+    starts = cfg.env.exploring_starts if exploring_starts else None
+    other_filter = str(filter_name) != str(cfg.filter.name)
+    if not other_filter and not starts:
         return cfg
     out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     OmegaConf.set_struct(out, False)
     if starts:
         out.env.model = OmegaConf.merge(out.env.model, starts)
-    if warm:
+    if other_filter:
         from escort_rl.config import compose
 
-        out.filter = compose([f"filter={cfg.trainer.warm_start_filter}"]).filter
+        out.filter = compose([f"filter={filter_name}"]).filter
     return out
 
 
 class StagedCollector:
-    """The collector of the current stage (warm start or main) of a run: :meth:`for_iteration`
-    builds it on first use through ``build(cfg)`` and shuts the previous stage's down."""
+    """The collector of the current stage (the warm start's filter, or the run's) of a run:
+    :meth:`for_iteration` builds it on first use through ``build(cfg)`` with the stage's
+    :func:`collection_config` and shuts the previous stage's down. ``filter_at(index)``: the filter
+    iteration ``index`` collects on; ``exploring_starts``: ``trainer.exploring_starts``."""
 
-    def __init__(self, cfg: DictConfig, build) -> None:
-        self.cfg, self.build = cfg, build
+    def __init__(self, cfg: DictConfig, build, filter_at, exploring_starts: bool = False) -> None:
+        self.cfg, self.build, self.filter_at, self.exploring_starts = cfg, build, filter_at, bool(exploring_starts)
         self.collector, self.iterator, self.stage = None, None, None
 
     def for_iteration(self, index: int):
-        stage = "warm" if in_warm_start(self.cfg, index) else "main"
+        stage = self.filter_at(index)
         if stage != self.stage:
             self.close()
-            self.collector, self.stage = self.build(collection_config(self.cfg, index)), stage
-            self.iterator = iter(self.collector)
+            self.collector = self.build(collection_config(self.cfg, stage, self.exploring_starts))
+            self.stage, self.iterator = stage, iter(self.collector)
         return self.collector
 
     def next(self):
@@ -278,14 +276,17 @@ class StagedCollector:
 
 class CollectorAlgorithm(Algorithm):
     """The base of an algorithm that collects through a :class:`StagedCollector` (PPO, recurrent
-    PPO, REINFORCE): ``collectors`` is built from ``build_collector(cfg) -> collector`` (called on
-    first use for each stage, with the stage's config: :func:`collection_config`), and
+    PPO, REINFORCE; their ``Params`` are :class:`~escort_rl.trainers.params.BeliefTrainerParams`):
+    ``collectors`` is built from ``build_collector(cfg) -> collector`` (called on first use for each
+    stage, with the stage's config: :func:`collection_config`), and
     :meth:`close` shuts the current collector down. Building it draws nothing from torch's
     generator, so a subclass may build it before or after its networks."""
 
     def __init__(self, cfg: DictConfig, model, build_collector) -> None:
         super().__init__(cfg, model)
-        self.collectors = StagedCollector(cfg, build_collector)
+        run_filter = str(cfg.filter.name)
+        self.collectors = StagedCollector(cfg, build_collector, lambda i: self.params.filter_at(i, run_filter),
+                                          self.params.exploring_starts)
 
     def close(self) -> None:
         self.collectors.close()

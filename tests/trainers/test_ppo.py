@@ -1,6 +1,7 @@
 """PPO (escort_rl.trainers.ppo): the loss against hand-computed values, GAE's shape, renamed keys,
 warm start and exact resume."""
 
+import dataclasses
 import math
 
 import pytest
@@ -95,7 +96,7 @@ def _params(run) -> dict:
     from escort_rl.trainers.builders import build_actor, build_critic
 
     cfg = OmegaConf.create(load_checkpoint(run)["config"])
-    actor, (critic, _) = build_actor(cfg, 10, 10), build_critic(cfg, LightDark10D())
+    actor, (critic, _) = build_actor(cfg, 10, 10), build_critic(cfg, LightDark10D(), "state")
     load_checkpoint(run, actor=actor, critic=critic)
     return {**{f"a.{k}": v for k, v in actor.state_dict().items()},
             **{f"c.{k}": v for k, v in critic.state_dict().items()}}
@@ -121,7 +122,7 @@ def test_collection_config_applies_exploring_starts_and_the_warm_start_filter():
 
     cfg = compose([*TINY_PPO, "filter=escort", "trainer.warm_start_filter=sir", "trainer.warm_start_iterations=2",
                    "trainer.exploring_starts=true"])
-    warm, main = collection_config(cfg, 1), collection_config(cfg, 2)
+    warm, main = collection_config(cfg, "sir", True), collection_config(cfg, "escort", True)
     assert warm.filter.kind == "sir" and main.filter.kind == "escort"
     for c in (warm, main):
         assert (c.env.model.start_low, c.env.model.start_high, c.env.model.prior_width) == (0.0, 10.0, 2.0)
@@ -129,7 +130,7 @@ def test_collection_config_applies_exploring_starts_and_the_warm_start_filter():
     # evaluation's env unchanged: the paper's box, and the prior is the start distribution
     assert (cfg.env.model.start_low, cfg.env.model.start_high, cfg.env.model.prior_width) == (0.0, 2.0, None)
     plain = compose([*TINY_PPO, "trainer.exploring_starts=false", "trainer.warm_start_filter=null"])
-    assert collection_config(plain, 0) is plain
+    assert collection_config(plain, "sir", False) is plain
 
 
 def test_a_short_run_improves_the_return():
@@ -216,8 +217,7 @@ def test_update_particles_trains_on_a_subset_with_the_old_log_prob_recomputed_on
         expected = algorithm.policy.get_dist(sub).log_prob(sub["action"])
         torch.testing.assert_close(sub["action_log_prob"], expected)
         assert not torch.allclose(sub["action_log_prob"], batch["action_log_prob"])
-        full = compose([*TINY_PPO, "trainer.update_particles=5", f"output_dir={tmp_path}"])
-        algorithm.cfg = full
+        algorithm.params = dataclasses.replace(algorithm.params, update_particles=5)
         assert algorithm.subsample_particles(batch) is batch  # M >= N: the batch as collected
     finally:
         algorithm.close()

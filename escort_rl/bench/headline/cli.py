@@ -8,7 +8,7 @@ from pathlib import Path
 
 from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import backend_from_args
-from escort_rl.bench.headline.spec import DEFAULT_OUTPUT, HeadlineSpec
+from escort_rl.bench.headline.spec import DEFAULT_OUTPUT, ROW_SETS, HeadlineSpec
 from escort_rl.reporting.metadata import with_metadata
 
 
@@ -27,6 +27,9 @@ def register(subparsers) -> None:
     p.add_argument("--gains", type=float, nargs="+", default=None,
                    help="the scripted controller's velocity gains searched (default: "
                    f"{' '.join(f'{g:g}' for g in full.gains)})")
+    p.add_argument("--rows", choices=sorted(ROW_SETS), default="headline",
+                   help="the trained rows: headline (the default job and PPO on SIR beliefs) or ablation (the "
+                   "learner's changes one at a time)")
     options.add_quick_option(p, f"{quick.seeds} seeds of a 2-iteration job, {quick.episodes} episodes of 20 steps")
     options.add_output_option(p, DEFAULT_OUTPUT, "headline.md, headline.json, headline.png, cells/ and runs/")
     options.add_runner_options(p, seeds_per_cell=False)
@@ -39,6 +42,7 @@ def spec_from_args(args) -> HeadlineSpec:
     if args.gains is not None:
         changes["gains"] = tuple(args.gains)
     overrides = (*base.overrides, *getattr(args, "overrides", ()))
+    changes["rows"] = ROW_SETS[args.rows]
     return base.replace(output=Path(args.output), overrides=overrides, **changes)
 
 

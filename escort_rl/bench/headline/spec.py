@@ -18,6 +18,19 @@ TRAINED_ROWS = (
 """The trained rows: a label and the overrides on top of the default job. The SIR-only row trains
 for the default job's 33 iterations, all on its warm-start filter (``sir_rough``): equal frames."""
 
+ABLATION_ROWS = (
+    ("PPO on SIR beliefs (as shipped)", ("filter=sir_rough", "trainer.warm_start_iterations=0")),
+    ("+ belief summary to the actor", ("filter=sir_rough", "trainer.warm_start_iterations=0", "actor.summary=true")),
+    ("+ γ 0.995", ("filter=sir_rough", "trainer.warm_start_iterations=0", "trainer.gamma=0.995")),
+    ("default job (as shipped)", ()),
+    ("default job + belief summary", ("actor.summary=true",)),
+)
+"""``--rows ablation``: the learner's changes one at a time, on SIR beliefs (the learner alone, no belief
+shift) and on the default job (SIR warm start, then ESCORT)."""
+
+ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS}
+"""The trained rows ``--rows`` picks by name."""
+
 SCRIPTED_FILTERS = ("escort_train", "sir_rough")
 """The beliefs the scripted controller acts on: each trained row's filter."""
 
@@ -52,7 +65,7 @@ class HeadlineSpec:
     episodes: int = 100
     eval_seed: int = 10000
     selection_seed: int = 20000
-    gains: tuple[float, ...] = (1.0, 2.0, 3.0)
+    gains: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0, 3.0)
     rows: tuple[tuple[str, tuple[str, ...]], ...] = TRAINED_ROWS
     scripted_filters: tuple[str, ...] = SCRIPTED_FILTERS
     overrides: tuple[str, ...] = ()
