@@ -27,7 +27,7 @@ from torchrl.objectives import ReinforceLoss, ValueEstimators
 from escort_rl.config import ConfigError
 from escort_rl.models.protocol import is_continuous
 from escort_rl.modules import make_deepsets_policy
-from escort_rl.trainers.builders import belief_keys, build_actor, env_factory
+from escort_rl.trainers.builders import belief_keys, build_actor, build_critic, env_factory
 from escort_rl.trainers.params import ReinforceParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
 
@@ -68,10 +68,10 @@ class Reinforce(CollectorAlgorithm):
     Params = ReinforceParams
 
     def __init__(self, cfg: DictConfig, model) -> None:
-        frames = int(cfg.trainer.num_envs) * int(cfg.env.max_steps)  # num_envs full episodes
         super().__init__(cfg, model, lambda c: make_collector(
             c, lambda n, s: env_factory(c, n, seed=s), self.policy, frames, reset_at_each_iter=True))
-        t = cfg.trainer
+        t = self.params
+        frames = t.num_envs * int(cfg.env.max_steps)  # num_envs full episodes
         if is_continuous(model):
             raise ConfigError("trainer: trainer=reinforce takes discrete actions and this env's are continuous; use "
                               "trainer=ppo (a TanhNormal policy)")
@@ -79,17 +79,16 @@ class Reinforce(CollectorAlgorithm):
         self.actor = build_actor(cfg, model.state_dim, model.n_actions)
         self.policy = make_deepsets_policy(self.actor, particles_key=particles_key, log_weights_key=log_weights_key)
         if t.baseline == "learned":
-            self.critic = build_actor(cfg, model.state_dim, 1)
-            value = ValueOperator(self.critic, in_keys=[particles_key, log_weights_key])
+            self.critic, critic_keys = build_critic(cfg, model, "belief")
+            value = ValueOperator(self.critic, in_keys=critic_keys)
         else:
             self.critic = TimeBaseline(int(cfg.env.max_steps))
             value = ValueOperator(self.critic, in_keys=["step_count"])
         self.loss = ReinforceLoss(self.policy, value, loss_critic_type="l2")
         self.loss.set_keys(sample_log_prob="action_log_prob")
-        self.loss.make_value_estimator(ValueEstimators.TD1, gamma=float(t.gamma))
-        params = list(self.actor.parameters()) + list(self.critic.parameters())
-        self.params = params
-        self.optimizer = torch.optim.Adam(params, lr=float(t.lr))
+        self.loss.make_value_estimator(ValueEstimators.TD1, gamma=t.gamma)
+        self.trainable = list(self.actor.parameters()) + list(self.critic.parameters())
+        self.optimizer = torch.optim.Adam(self.trainable, lr=t.lr)
 
     @property
     def components(self) -> dict:
@@ -97,7 +96,7 @@ class Reinforce(CollectorAlgorithm):
 
     def update(self, batch) -> dict:
         """One policy-gradient step on ``batch`` ``[E, T]`` of full episodes; returns scalar stats."""
-        t = self.cfg.trainer
+        t = self.params
         keys = self.loss.tensor_keys
         with torch.no_grad():
             if isinstance(self.critic, TimeBaseline):  # fit b(t) to this batch's returns, then G − b(t)
@@ -110,18 +109,18 @@ class Reinforce(CollectorAlgorithm):
         m = flat.shape[0]
         self.optimizer.zero_grad(set_to_none=True)
         sums = {"loss_actor": 0.0, "loss_value": 0.0, "entropy": 0.0}
-        for start in range(0, m, int(t.minibatch_size)):
-            mb = flat[start:start + int(t.minibatch_size)]
+        for start in range(0, m, t.minibatch_size):
+            mb = flat[start:start + t.minibatch_size]
             out = self.loss(mb)
             entropy = self.policy.get_dist(mb).entropy().mean()
-            total = out["loss_actor"] - float(t.entropy_coef) * entropy
+            total = out["loss_actor"] - t.entropy_coef * entropy
             if t.baseline == "learned":
                 total = total + out["loss_value"]
             (total * mb.shape[0] / m).backward()
             for key, value in (("loss_actor", out["loss_actor"]), ("loss_value", out["loss_value"]),
                                ("entropy", entropy)):
                 sums[key] += float(value.detach()) * mb.shape[0] / m
-        grad_norm = torch.nn.utils.clip_grad_norm_(self.params, float(t.max_grad_norm))
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.trainable, t.max_grad_norm)
         self.optimizer.step()
         return {**sums, "grad_norm": float(grad_norm)}
 
@@ -133,7 +132,7 @@ class Reinforce(CollectorAlgorithm):
         collect_s = time.perf_counter() - t0
         batch = batch.reshape(-1, batch.shape[-1])  # [E, T]
         episodes = episode_stats(batch, self.model)
-        batch["next", "reward"] = batch["next", "reward"] * float(self.cfg.trainer.reward_scale)
+        batch["next", "reward"] = batch["next", "reward"] * self.params.reward_scale
         stats = self.update(batch)
         if int(self.cfg.collector.workers) > 1:
             self.collectors.update_policy_weights()

@@ -40,15 +40,23 @@ def validate_train_config(cfg: DictConfig) -> None:
                           "or use logger.backend=csv")
 
 
+def typed_trainer(cfg: DictConfig):
+    """``cfg.trainer`` as its trainer's ``Params`` dataclass (:mod:`escort_rl.trainers.params`), checked."""
+    from escort_rl.config import registry
+    from escort_rl.trainers.algorithm import trainer_params
+
+    return trainer_params(registry.params("trainer", str(cfg.trainer.algorithm)), cfg.trainer)
+
+
 def check_warm_start(cfg: DictConfig) -> None:
     """A warm start on another filter must leave iterations on the run's own: ``ConfigError`` naming
     ``trainer.warm_start_iterations`` when it covers every iteration (the run would never train on
     ``filter``)."""
-    t = cfg.trainer
-    warm = t.get("warm_start_filter", None)  # trainers without a warm start have no such key
+    t = typed_trainer(cfg)
+    warm = getattr(t, "warm_start_filter", None)  # trainers without a warm start have no such field
     if not warm or str(warm) == str(cfg.filter.name):
         return
-    iterations, covered = int(t.iterations), int(t.warm_start_iterations)
+    iterations, covered = t.iterations, t.warm_start_iterations
     if covered >= iterations:
         raise ConfigError(
             f"trainer.warm_start_iterations: the warm start ({covered} iterations on {warm}) covers all "
@@ -133,7 +141,7 @@ def check_popgym_task(cfg: DictConfig) -> None:
     if int(cfg.env.max_steps) != length:
         raise ConfigError(f"env.max_steps: POPGym's {task} runs {length} steps, got {cfg.env.max_steps}; set "
                           f"env.max_steps={length}")
-    if cfg.trainer.get("algorithm") == "dvrl_a2c" or cfg.trainer.get("critic_input", "belief") == "state":
+    if cfg.trainer.algorithm == "dvrl_a2c" or getattr(typed_trainer(cfg), "critic_input", None) == "state":
         raise ConfigError("env.popgym_task: POPGym's own env has no true state, which trainer=dvrl_a2c's readout "
                           "and trainer.critic_input=state read; act in the model's simulator (env.popgym_task=null) "
                           "or set trainer.critic_input=belief")

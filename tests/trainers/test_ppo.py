@@ -323,3 +323,47 @@ def test_an_update_with_no_finite_step_raises_and_names_the_fix():
         assert steps == []
     finally:
         ppo.close()
+
+
+def test_the_log_keeps_what_clip_ppo_loss_returns(tmp_path):
+    """kl_approx, ESS and the critic's explained variance reach the history beside the loss terms."""
+    run = tmp_path / "run"
+    train(compose([*TINY_PPO, "trainer.iterations=1", "trainer.critic_input=belief", f"output_dir={run}"]),
+          progress=False)
+    record = load_checkpoint(run)["trainer_state"]["history"][0]
+    for key in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "clip_fraction", "kl_approx", "ESS",
+                "explained_variance", "grad_norm"):
+        assert math.isfinite(record[key]), key
+    assert 0 < record["ESS"] <= 1  # ClipPPOLoss's normalised effective sample size of the importance ratios
+    assert record["explained_variance"] <= 1
+
+
+@pytest.mark.parametrize("critic_input", ["state", "belief"])
+def test_the_critic_is_the_one_ppo_params_name(critic_input, tmp_path):
+    from escort_rl.models import LightDark10D
+    from escort_rl.modules import DeepSetsActor, DeepSetsCritic
+    from escort_rl.modules.critics import StateValueNet
+    from escort_rl.trainers.params import PPOParams
+    from escort_rl.trainers.ppo import PPO
+
+    overrides = [] if critic_input == PPOParams.critic_input else [f"trainer.critic_input={critic_input}"]
+    algorithm = PPO(compose([*TINY_PPO, *overrides, f"output_dir={tmp_path}"]), LightDark10D())
+    try:
+        assert algorithm.params.critic_input == critic_input
+        expected = StateValueNet if critic_input == "state" else DeepSetsCritic
+        assert type(algorithm.critic) is expected and not isinstance(algorithm.critic, DeepSetsActor)
+    finally:
+        algorithm.close()
+
+
+def test_the_belief_trainers_read_typed_params_not_config_defaults():
+    """No ``cfg.trainer.get(key, default)`` repeats a default of the Params dataclasses (one of them
+    once disagreed with PPOParams on critic_input)."""
+    import inspect
+    import re
+
+    from escort_rl.trainers import builders, ppo, recurrent_ppo, reinforce, scaffold
+
+    for module in (builders, ppo, recurrent_ppo, reinforce, scaffold):
+        found = re.findall(r"\b(?:trainer|t|actor)\.get\(", inspect.getsource(module))
+        assert not found, f"{module.__name__}: {found}"
