@@ -49,7 +49,9 @@ class HeadlineSpec:
 
     The gain is chosen among ``gains`` on ``episodes`` other episodes (env seeds from
     ``selection_seed``), then evaluated on the table's episodes (from ``eval_seed``), so that the
-    choice does not select on the reported noise. ``overrides`` go under every row's own (the
+    choice does not select on the reported noise. The controller's action (push the dimension of the
+    largest ``|k_p·(g − x̂) − k_v·v̂|``) depends on the gains through ``k_v / k_p`` alone, so the grid of
+    velocity gains at ``k_p = 1`` sweeps both; 0 is a pure P rule. ``overrides`` go under every row's own (the
     smoke run's sizes); ``threads``: torch threads per cell.
 
     Examples:
@@ -65,7 +67,7 @@ class HeadlineSpec:
     episodes: int = 100
     eval_seed: int = 10000
     selection_seed: int = 20000
-    gains: tuple[float, ...] = (0.25, 0.5, 1.0, 2.0, 3.0)
+    gains: tuple[float, ...] = (0.0, 0.125, 0.25, 0.5, 1.0, 2.0, 3.0)
     rows: tuple[tuple[str, tuple[str, ...]], ...] = TRAINED_ROWS
     scripted_filters: tuple[str, ...] = SCRIPTED_FILTERS
     overrides: tuple[str, ...] = ()
@@ -76,8 +78,8 @@ class HeadlineSpec:
         for flag, value in (("--seeds", self.seeds), ("--episodes", self.episodes), ("--threads", self.threads)):
             if int(value) < 1:
                 raise ValueError(f"{flag}: must be >= 1, got {value}")
-        if not self.gains or any(float(g) <= 0 for g in self.gains):
-            raise ValueError(f"--gains: give one or more positive velocity gains, got {list(self.gains)}")
+        if not self.gains or any(float(g) < 0 for g in self.gains):
+            raise ValueError(f"--gains: give one or more velocity gains >= 0, got {list(self.gains)}")
         object.__setattr__(self, "gains", tuple(float(g) for g in self.gains))
         object.__setattr__(self, "overrides", tuple(self.overrides))
         object.__setattr__(self, "output", Path(self.output))
