@@ -171,6 +171,9 @@ class EnvConfig:
     periodic_dims: Optional[List[int]] = _f(None)
     # a POPGym task whose own env (TorchRL's GymEnv) the agents act in, instead of the simulator
     popgym_task: Optional[str] = _f(None)
+    # the scripted controller's velocity gain in evaluation (the best of a sweep on the default
+    # job's filter, stored with where it came from); null: the controller's default
+    scripted_gain: Optional[float] = _f(None, ge=0)
 
 
 def env_schema(name: str, model: type, schema_name: str) -> type:

@@ -15,6 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from escort_rl.models import TaskSpaces, has_goal, position_dims, position_error, velocity_dims
 from escort_rl.planners import ScriptedBeliefController
+from escort_rl.planners.scripted import DEFAULT_GAIN_V
 from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
 from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
@@ -161,12 +162,21 @@ def trained_policy(cfg, checkpoint):
             lambda rollout: None)
 
 
+def scripted_gain(cfg) -> float:
+    """The scripted controller's velocity gain for ``cfg``'s env: ``env.scripted_gain`` (the best of a
+    sweep, stored in the env group), else the controller's default (also for a config saved before
+    the key existed)."""
+    gain = OmegaConf.select(cfg, "env.scripted_gain", default=None)
+    return DEFAULT_GAIN_V if gain is None else float(gain)
+
+
 def scripted_policy(cfg, model):
-    """The domain's scripted controller on the belief mean of ``cfg``'s filter, or ``None`` where the
-    domain has none (Kidnapped Robot: no goal to drive to)."""
+    """The domain's scripted controller at :func:`scripted_gain` on the belief mean of ``cfg``'s filter,
+    or ``None`` where the domain has none (Kidnapped Robot: no goal to drive to)."""
     particles_key, log_weights_key = belief_keys(cfg)
     try:
-        return ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key)
+        return ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key,
+                                        gain_v=scripted_gain(cfg))
     except ValueError:
         return None
 
@@ -220,6 +230,7 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     scripted = None if model_free else scripted_policy(cfg, model)
     if scripted is not None:
         rows["scripted"] = policy_summary(cfg, model, scripted, episodes, seed)[0]
+        rows["scripted_gain"] = scripted_gain(cfg)
     in_own_env = {"make": make, "estimates": estimates} if model_free else {}
     rows["random"] = policy_summary(cfg, model, None, episodes, seed, **in_own_env)[0]
     beliefs = planned_beliefs(cfg)
@@ -287,7 +298,8 @@ def _markdown(r: dict) -> str:
         f"Checkpoint `{r['checkpoint']}` ({r.get('trainer', 'reinforce')}) after {r['trained_iterations']} "
         f"iterations ({r.get('frames', 0)} frames); {r['episodes']} episodes with env seed {r['eval_seed']}, "
         f"the same for every policy; trained policy {'greedy' if r['greedy'] else 'sampled'}. "
-        + ("scripted: the domain's PD controller on the belief mean of the same filter. " if "scripted" in r else "")
+        + (f"scripted: the domain's PD controller (velocity gain {r['scripted_gain']:g}) on the belief mean of the "
+           "same filter. " if "scripted" in r else "")
         + "Mean ± standard error; — where the model has no goal or no state."
         + _training_sentence(r.get("training")),
         "",

@@ -50,7 +50,7 @@ def test_the_plan_is_printed_recorded_per_iteration_and_counted_in_the_evaluatio
 
     run = tmp_path / "run"
     cfg = compose([*TINY_PPO, "filter=sir_rough", "trainer.iterations=3", "trainer.warm_start_filter=sir",
-                   "trainer.warm_start_iterations=2", f"output_dir={run}"])
+                   "trainer.warm_start_iterations=2", "env.scripted_gain=0.5", f"output_dir={run}"])
     train(cfg, progress=False)
     assert "iterations 1–2 on sir, 3 on sir_rough" in capsys.readouterr().out
     history = load_checkpoint(run)["trainer_state"]["history"]
@@ -63,7 +63,10 @@ def test_the_plan_is_printed_recorded_per_iteration_and_counted_in_the_evaluatio
     frames = 4 * 12  # an iteration: every env runs env.max_steps steps
     assert metrics["training"]["frames_by_filter"] == {"sir": 2 * frames, "sir_rough": frames}
     assert metrics["training"]["wall_s"] > 0
-    assert "Trained on 96 frames of sir, 48 of sir_rough" in (run / "evaluation" / "summary.md").read_text()
+    summary = (run / "evaluation" / "summary.md").read_text()
+    assert "Trained on 96 frames of sir, 48 of sir_rough" in summary
+    # the scripted row runs at the env group's stored gain
+    assert metrics["scripted_gain"] == 0.5 and "PD controller (velocity gain 0.5)" in summary
 
 
 def test_a_resume_prints_where_it_starts(tmp_path, capsys):
