@@ -110,6 +110,12 @@ def _parser() -> argparse.ArgumentParser:
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     for name in BENCHMARKS:
         importlib.import_module(name).register(bench_sub)
+    probe = sub.add_parser("check-model", help="call every method of your model on a tiny batch and check it",
+                           description="Build pkg.module:Class with --model-arg KEY=VALUE and call every method of the "
+                           "model protocol on a tiny batch: shapes, dtypes, finiteness and the log-densities' "
+                           "gradients in the state. Prints the first problem, naming the method, or that it passes.")
+    probe.add_argument("model", help="your model's class, pkg.module:Class (the module on the Python path)")
+    probe.add_argument("--model-arg", nargs="+", default=[], metavar="KEY=VALUE", help="keyword arguments of the class")
     cfg = sub.add_parser("config", help="print the composed config",
                          description="Print the config as YAML; with resume=RUN_DIR, the config that "
                          "`escort-rl train resume=RUN_DIR ...` would continue that run with.")
@@ -193,6 +199,18 @@ def main(argv: list[str] | None = None) -> int:
             status = args.handler(args)
             if isinstance(status, int):
                 return status
+        elif args.command == "check-model":
+            from escort_rl.bench.frontier.cells import build_model as build_user_model
+            from escort_rl.models import check_model
+
+            model = build_user_model(f"class:{args.model}", tuple(args.model_arg))
+            try:
+                check_model(model)
+            except TypeError as err:
+                print(f"error: {err}", file=sys.stderr)
+                return 2
+            print(f"{args.model}: every method of the model protocol passes the probe (shapes, dtypes, finiteness, "
+                  "gradients)")
         elif args.command == "describe":
             from escort_rl.models.light_dark import describe_correlations
 

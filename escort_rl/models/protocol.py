@@ -12,6 +12,7 @@ user's class that imports nothing from ``escort_rl``.
 
 from __future__ import annotations
 
+import weakref
 from typing import Protocol, runtime_checkable
 
 import torch
@@ -82,10 +83,39 @@ class POMDPModel(Protocol):
     def is_terminal(self, s: Tensor) -> Tensor: ...
 
 
+_PROBED: weakref.WeakSet = weakref.WeakSet()
+"""The models that passed :func:`~escort_rl.models.probe.probe_model` (checked once, then remembered:
+the filters call :func:`check_model` at every update)."""
+
+
 def check_model(model: object) -> None:
-    """Raise ``TypeError`` naming the first missing attribute if ``model`` is not a POMDPModel: it needs
-    ``state_dim`` and ``obs_dim``, the methods, and either ``n_actions`` (discrete actions) or
-    ``action_dim`` with ``action_low`` and ``action_high`` of shape ``[action_dim]`` (continuous)."""
+    """Raise ``TypeError`` naming the first problem if ``model`` is not a POMDPModel.
+
+    It needs ``state_dim`` and ``obs_dim``, the methods, and either ``n_actions`` (discrete actions) or
+    ``action_dim`` with ``action_low`` and ``action_high`` of shape ``[action_dim]`` (continuous). The
+    first time it meets a model it also calls every method on a tiny batch and checks shapes, dtypes,
+    finiteness and the log-densities' gradients (:func:`~escort_rl.models.probe.probe_model`); a
+    class passed instead of an instance is named as such."""
+    if isinstance(model, type):
+        raise TypeError(f"model: got the class {model.__name__}, not an instance of it; pass "
+                        f"{model.__name__}(...) instead")
+    check_model_structure(model)
+    try:
+        if model in _PROBED:
+            return
+    except TypeError:  # not weakly referenceable or not hashable: probed every time
+        pass
+    from escort_rl.models.probe import probe_model
+
+    probe_model(model)
+    try:
+        _PROBED.add(model)
+    except TypeError:
+        pass
+
+
+def check_model_structure(model: object) -> None:
+    """The attributes and methods :func:`check_model` requires, without calling them."""
     for name in ("state_dim", "obs_dim"):
         if not isinstance(getattr(model, name, None), int):
             raise TypeError(
