@@ -17,8 +17,8 @@ trainers call it, on a batch of ``B = 3`` states and ``N = 4`` particles each, a
   gradients; a log-density computed on a detached state gives none, and the filter would ignore the
   observation without a word).
 
-Each failure raises :class:`ModelProbeError` (a ``TypeError`` and a ``ValueError``) naming the method, what was expected and
-what came back.
+Each failure raises :class:`ModelProbeError` (a ``TypeError`` and a ``ValueError``) naming the method,
+what was expected and what came back.
 
 Example:
     >>> from escort_rl.models import LightDark10D
