@@ -24,7 +24,7 @@ from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.models.protocol import (
     action_in_range,
     action_shape,
-    check_model,
+    check_model_structure,
     describe_action_range,
     is_continuous,
     per_particle,
@@ -89,7 +89,7 @@ class BeliefFilter(ABC):
         ignored otherwise. Returns a belief with particles ``[*batch_shape, num_particles, d]`` and
         equal weights.
         """
-        check_model(model)
+        check_model_structure(model)  # the filters check their inputs per update; envs and runs probe the model
         if not isinstance(num_particles, int) or isinstance(num_particles, bool) or num_particles < 1:
             raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
         batch_shape = validate_batch_shape(batch_shape)
@@ -184,7 +184,7 @@ def validate_batch_shape(batch_shape) -> tuple[int, ...]:
 
 def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observation: Tensor) -> None:
     """Raise ``ValueError`` naming the field when the update inputs do not fit together."""
-    check_model(model)
+    check_model_structure(model)
     x, log_w = belief.particles, belief.log_weights
     if not isinstance(x, Tensor) or x.ndim < 2 or not x.dtype.is_floating_point:
         what = f"shape {tuple(x.shape)}, dtype {x.dtype}" if isinstance(x, Tensor) else type(x).__name__
