@@ -123,6 +123,33 @@ def build_filter(filter_cfg: DictConfig):
         raise ConfigError(_prefixed("filter", err)) from None
 
 
+def make_filter(name: str, **overrides):
+    """The belief filter of the config option ``name`` (``configs/filter/<name>.yaml``: ``"sir"``,
+    ``"escort_train"``, ...), built as a run with ``filter=<name>`` builds it, with ``overrides`` (the
+    option's keys, e.g. ``num_steps=10``) on top. ``ConfigError`` names an unknown option or key.
+
+    Example:
+        >>> import escort_rl
+        >>> f = escort_rl.make_filter("escort_train", compile=False)
+        >>> type(f).__name__, f.num_steps
+        ('ESCORTFilter', 15)
+    """
+    from omegaconf.errors import OmegaConfBaseException
+
+    from escort_rl.config import compose
+    from escort_rl.config.checking import check_config, describe_error
+
+    node = compose([f"filter={name}"]).filter
+    try:
+        node = OmegaConf.merge(node, overrides)
+        check_config(node)
+    except OmegaConfBaseException as err:
+        raise ConfigError(_prefixed("filter", ValueError(describe_error(err)))) from None
+    except ConfigError as err:
+        raise ConfigError(_prefixed("filter", err)) from None
+    return build_filter(node)
+
+
 def make_env(cfg: DictConfig, num_envs: int, seed: int | None = None, action_repeat: int = 1) -> TransformedEnv:
     """``TransformedEnv(POMDPEnv(model, (num_envs,)), BeliefTransform(model, filter, N))``, followed
     by :class:`~escort_rl.transforms.ActionRepeat` when ``action_repeat > 1`` (a policy's decision
