@@ -177,6 +177,18 @@ def check_output_argument(args) -> None:
                          "you can write to") from None
 
 
+def interrupted_line(args, err: KeyboardInterrupt) -> str:
+    """What a Ctrl-C prints: a training run's iteration and resume command
+    (:class:`~escort_rl.trainers.scaffold.TrainingInterrupted`), else what to run again."""
+    from escort_rl.trainers.scaffold import TrainingInterrupted
+
+    if isinstance(err, TrainingInterrupted):
+        return str(err)
+    if args.command == "bench":
+        return "interrupted; the same command resumes from the cells it finished"
+    return "interrupted"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     _quiet_compiler_notices()
@@ -240,6 +252,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, CheckpointLoadError, CollectorWorkerDied, FloatingPointError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as err:  # Ctrl-C: one line, no traceback, the shell's exit status for SIGINT
+        print(f"\n{interrupted_line(args, err)}", file=sys.stderr)
+        return 130
     except ValueError as err:
         print(f"error: {str(err).splitlines()[0]}", file=sys.stderr)
         return 2

@@ -320,6 +320,31 @@ def episode_stats(batch: TensorDictBase, model) -> dict:
     }
 
 
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C (SIGINT) during an iteration; its message is the one line a run ends with: the iteration
+    and how to resume from the last checkpoint (:func:`interrupt_message`)."""
+
+
+def caused_by_interrupt(err: BaseException) -> bool:
+    """Whether ``err`` is a ``KeyboardInterrupt`` or was raised while handling one (a module that wraps
+    the interrupt in its own error, as ``TensorDictModule`` does)."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
+
+
+def interrupt_message(iteration: int, last_checkpoint: Path | None, run_dir: Path) -> str:
+    """``interrupted at iteration k; resume with: escort-rl train resume=<dir>`` (or that no checkpoint
+    was written yet)."""
+    if last_checkpoint is None:
+        return f"interrupted at iteration {iteration}, before the first checkpoint; start the run again"
+    return f"interrupted at iteration {iteration}; resume with: escort-rl train resume={run_dir}"
+
+
 class CollectorWorkerDied(RuntimeError):
     """A worker process of a multi-process collector ended during training (one line naming the
     worker and the last checkpoint to resume from)."""
@@ -438,8 +463,11 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
             t0 = time.perf_counter()
             try:
                 stats = algorithm.iteration(it, seed)
-            except Exception:
-                raise_if_worker_died(algorithm, it + 1, last_checkpoint, run_dir)
+            except BaseException as err:
+                if caused_by_interrupt(err):
+                    raise TrainingInterrupted(interrupt_message(it + 1, last_checkpoint, run_dir)) from None
+                if isinstance(err, Exception):
+                    raise_if_worker_died(algorithm, it + 1, last_checkpoint, run_dir)
                 raise
             seconds = time.perf_counter() - t0
             state["iteration"] = it + 1
