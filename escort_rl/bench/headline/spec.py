@@ -21,9 +21,9 @@ for the default job's 33 iterations, all on its warm-start filter (``sir_rough``
 ABLATION_ROWS = (
     ("PPO on SIR beliefs (as shipped)", ("filter=sir_rough", "trainer.warm_start_iterations=0")),
     ("+ belief summary to the actor", ("filter=sir_rough", "trainer.warm_start_iterations=0", "actor.summary=true")),
-    ("+ γ 0.995", ("filter=sir_rough", "trainer.warm_start_iterations=0", "trainer.gamma=0.995")),
     ("default job (as shipped)", ()),
     ("default job + belief summary", ("actor.summary=true",)),
+    ("+ γ 0.995", ("filter=sir_rough", "trainer.warm_start_iterations=0", "trainer.gamma=0.995")),
 )
 """``--rows ablation``: the learner's changes one at a time, on SIR beliefs (the learner alone, no belief
 shift) and on the default job (SIR warm start, then ESCORT)."""
