@@ -84,6 +84,7 @@ def _parser() -> argparse.ArgumentParser:
                          description="Train with the given overrides, then evaluate the final checkpoint.")
     run.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
     run.add_argument("-m", "--multirun", action="store_true", help=MULTIRUN_HELP)
+    run.add_argument("--quiet", action="store_true", help="no progress bars")
     train = sub.add_parser("train", help="train a policy on particle beliefs (trainer=ppo by default)",
                            description="Train; a killed run continues with resume=RUN_DIR.")
     train.add_argument("overrides", nargs="*", help=OVERRIDES_HELP)
@@ -97,6 +98,7 @@ def _parser() -> argparse.ArgumentParser:
     ev.add_argument("--episodes", type=int, default=None,
                     help="number of episodes (default: the config's evaluate.episodes)")
     ev.add_argument("--output", default=None, help="output folder (default: RUN_DIR/evaluation)")
+    ev.add_argument("--quiet", action="store_true", help="no progress bar")
     ev.add_argument("--greedy", action=argparse.BooleanOptionalAction, default=None,
                     help="--greedy: the most probable action; --no-greedy: sample from the policy "
                     "(default: the config's evaluate.greedy, true)")
@@ -129,12 +131,12 @@ def _train(overrides: list[str], quiet: bool = False) -> Path:
     return train(overrides, progress=not quiet)
 
 
-def _run(overrides: list[str]) -> None:
+def _run(overrides: list[str], quiet: bool = False) -> None:
     """Train, then evaluate the run's final checkpoint and print its summary."""
     from escort_rl.trainers.evaluate import evaluate
 
-    run_dir = _train(overrides)
-    evaluate(run_dir)
+    run_dir = _train(overrides, quiet)
+    evaluate(run_dir, progress=not quiet)
     out = run_dir.resolve() / "evaluation"
     print((out / "summary.md").read_text())
     print(f"results: {out} (summary.md, metrics.json, learning_curve.png, belief_projection.png)")
@@ -189,8 +191,21 @@ def interrupted_line(args, err: KeyboardInterrupt) -> str:
     return "interrupted"
 
 
+def parse_args(argv: list[str] | None = None):
+    """The command line, with options accepted before or after the overrides (``train a=1 --quiet b=2``):
+    argparse stops a positional list at the first option, so the overrides it leaves over are put back
+    in order."""
+    parser = _parser()
+    args, rest = parser.parse_known_args(argv)
+    if rest:
+        if not hasattr(args, "overrides") or any(token.startswith("-") for token in rest):
+            parser.error(f"unrecognized arguments: {' '.join(rest)}")
+        args.overrides = [*args.overrides, *rest]
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    args = parse_args(argv)
     _quiet_compiler_notices()
     from escort_rl.bench.methods import check_at_least_one
     from escort_rl.config import ConfigError
@@ -238,11 +253,11 @@ def main(argv: list[str] | None = None) -> int:
                     run_dir = _train(overrides, args.quiet)
                     print(f"checkpoints and logs: {run_dir.resolve()}")
                 else:
-                    _run(overrides)
+                    _run(overrides, args.quiet)
         elif args.command == "evaluate":
             from escort_rl.trainers.evaluate import evaluate
 
-            result = evaluate(args.checkpoint, args.episodes, args.output, args.greedy)
+            result = evaluate(args.checkpoint, args.episodes, args.output, args.greedy, progress=not args.quiet)
             from escort_rl.trainers.checkpointing import resolve_checkpoint
 
             out = Path(args.output) if args.output else resolve_checkpoint(args.checkpoint).parent.parent / "evaluation"

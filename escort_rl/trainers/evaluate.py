@@ -96,22 +96,34 @@ def summarise_episodes(metrics: dict) -> dict:
 
 
 def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = None,
-                 make=make_env) -> tuple[TensorDict, float]:
+                 make=make_env, desc: str | None = None) -> tuple[TensorDict, float]:
     """Roll ``policy`` (or uniform-random actions when ``None``) for one episode in each of
     ``episodes`` envs seeded with ``seed``. Returns the rollout ``[E, T]`` and the seconds per
     batched step (policy + env + belief update) over steps 2..T: the first step is a warm-up (with
     ``filter.compile=true`` it compiles) and its seconds go to ``timing["first_step_seconds"]``.
     ``make(cfg, num_envs, seed)`` builds the env (default: the env with ``cfg``'s belief filter). With
     an :class:`~escort_rl.transforms.ActionRepeat` of ``k`` in the env, ``T = ⌈max_steps / k⌉``
-    decisions, and the seconds are per env step (a decision's seconds over ``k``)."""
+    decisions, and the seconds are per env step (a decision's seconds over ``k``). ``desc``: a progress
+    bar of the steps under that name (the first step compiles a compiled filter: seconds)."""
+    from tqdm import tqdm
+
     env = make(cfg, episodes, seed=seed)
     repeat = action_repeat_of(env)
     torch.manual_seed(seed)
     stamps = []
+    steps = -(-int(cfg.env.max_steps) // repeat)
+    bar = tqdm(total=steps, desc=desc, disable=desc is None, leave=False, dynamic_ncols=True)
+
+    def tick(*_) -> None:
+        stamps.append(time.perf_counter())
+        bar.update(1)
+
     t0 = time.perf_counter()
-    with torch.no_grad():
-        rollout = env.rollout(-(-int(cfg.env.max_steps) // repeat), policy, break_when_any_done=False,
-                              callback=lambda *_: stamps.append(time.perf_counter()))
+    try:
+        with torch.no_grad():
+            rollout = env.rollout(steps, policy, break_when_any_done=False, callback=tick)
+    finally:
+        bar.close()
     env.close()
     if len(stamps) > 1:
         per_step = (stamps[-1] - stamps[0]) / (len(stamps) - 1)
@@ -124,14 +136,14 @@ def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = No
 
 
 def policy_summary(cfg, model, policy, episodes: int, seed: int, make=make_env,
-                   estimates=None) -> tuple[dict, TensorDict, torch.Tensor]:
+                   estimates=None, desc: str | None = None) -> tuple[dict, TensorDict, torch.Tensor]:
     """One policy on ``episodes`` seeded episodes (:func:`run_episodes`; ``policy=None``: uniform-random
     actions). Returns its :func:`summarise_episodes` with ``seconds_per_step`` and
     ``first_step_seconds``, the rollout ``[E, T]``, and the position error per step averaged over the
     episodes ``[T]``. ``estimates(rollout)``: the belief means when the rollout carries no particles
-    (see :func:`trained_policy`)."""
+    (see :func:`trained_policy`); ``desc``: a progress bar's name (``None``: none)."""
     timing: dict = {}
-    rollout, step_s = run_episodes(cfg, policy, episodes, seed, timing, make=make)
+    rollout, step_s = run_episodes(cfg, policy, episodes, seed, timing, make=make, desc=desc)
     metrics = first_episode_metrics(rollout, model, None if estimates is None else estimates(rollout))
     summary = {**summarise_episodes(metrics), "seconds_per_step": step_s, **timing}
     return summary, rollout, torch.nanmean(metrics["position_error"], 0)
@@ -203,9 +215,10 @@ def training_record(trainer_state: dict, beliefs: list[str]) -> dict:
 
 
 def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | Path | None = None,
-             greedy: bool | None = None) -> dict:
+             greedy: bool | None = None, progress: bool = False) -> dict:
     """Evaluate the checkpointed policy, the scripted controller on the same filter's belief (where the
-    domain has one) and a uniform-random policy on the same seeded episodes.
+    domain has one) and a uniform-random policy on the same seeded episodes; ``progress``: a progress
+    bar per policy (the first step of a compiled filter compiles it).
 
     Writes ``summary.md``, ``metrics.json``, ``learning_curve.png`` and ``belief_projection.png``
     into ``output`` (default: ``<run>/evaluation``) and returns the metrics.
@@ -221,18 +234,21 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     out = Path(output) if output is not None else ckpt_path.parent.parent / "evaluation"
     out.mkdir(parents=True, exist_ok=True)
 
+    def bar(name: str) -> str | None:
+        return f"evaluate {name} ({episodes} episodes)" if progress else None
+
     mode = ExplorationType.DETERMINISTIC if greedy else ExplorationType.RANDOM
     with set_exploration_type(mode):
         rows = {}
         rows["trained"], trained, trained_error = policy_summary(cfg, model, policy, episodes, seed, make=make,
-                                                                 estimates=estimates)
+                                                                 estimates=estimates, desc=bar("trained"))
     model_free = isinstance(model, TaskSpaces)  # env=popgym: no model, no filter, no scripted controller
     scripted = None if model_free else scripted_policy(cfg, model)
     if scripted is not None:
-        rows["scripted"] = policy_summary(cfg, model, scripted, episodes, seed)[0]
+        rows["scripted"] = policy_summary(cfg, model, scripted, episodes, seed, desc=bar("scripted"))[0]
         rows["scripted_gain"] = scripted_gain(cfg)
     in_own_env = {"make": make, "estimates": estimates} if model_free else {}
-    rows["random"] = policy_summary(cfg, model, None, episodes, seed, **in_own_env)[0]
+    rows["random"] = policy_summary(cfg, model, None, episodes, seed, **in_own_env, desc=bar("random"))[0]
     beliefs = planned_beliefs(cfg)
     result = {
         "checkpoint": display_path(ckpt_path),

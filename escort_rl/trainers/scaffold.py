@@ -447,6 +447,8 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
     torch.manual_seed(int(cfg.seed))
     n_iter = int(cfg.trainer.iterations)
     if state["iteration"] >= n_iter:
+        print(f"{desc}: the run in {run_dir} has finished its {n_iter} iterations; nothing to train (raise "
+              "trainer.iterations to train it further)", flush=True)
         return run_dir
     plan = describe_plan(training_plan([algorithm.belief_at(i) for i in range(n_iter)]))
     start = f"resuming at iteration {state['iteration'] + 1} of {n_iter}; " if state["iteration"] else ""

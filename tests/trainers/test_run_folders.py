@@ -44,3 +44,22 @@ def test_a_multirun_trains_one_run_per_seed_each_in_its_own_folder(tmp_path, cap
     for seed in (3, 4):
         saved = (tmp_path / f"seed{seed}" / "config.yaml").read_text()
         assert f"seed: {seed}" in saved
+
+
+def test_options_may_follow_the_overrides_and_every_command_takes_quiet():
+    from escort_rl.cli import parse_args
+
+    args = parse_args(["train", "trainer.iterations=2", "--quiet", "seed=1"])
+    assert args.quiet and args.overrides == ["trainer.iterations=2", "seed=1"]
+    assert parse_args(["run", "seed=1", "--quiet"]).quiet
+    assert parse_args(["evaluate", "--checkpoint", "r", "--quiet"]).quiet
+    with pytest.raises(SystemExit):
+        parse_args(["train", "seed=1", "--no-such-option"])
+
+
+def test_a_resume_of_a_finished_run_says_so(tmp_path, capsys):
+    run = tmp_path / "run"
+    train(compose(tiny_overrides("trainer.iterations=1", f"output_dir={run}")), progress=False)
+    cfg, state = train_config([f"resume={run}"])
+    train(cfg, resume_state=state, progress=False)
+    assert "has finished its 1 iterations; nothing to train" in capsys.readouterr().out
