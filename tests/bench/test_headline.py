@@ -8,7 +8,7 @@ import math
 import pytest
 
 from escort_rl.bench.core.runner import make_backend
-from escort_rl.bench.headline.run import best_gain, mean_se, run_headline, trained_row
+from escort_rl.bench.headline.run import best_gain, mean_se, paired_difference, run_headline, trained_row
 from escort_rl.bench.headline.spec import HeadlineSpec
 
 
@@ -37,6 +37,17 @@ def test_a_trained_row_aggregates_across_seeds_not_episodes():
     assert row["per_seed"]["success"] == [1.0, 0.0] and row["train_minutes"] == pytest.approx(1.5)
 
 
+def test_the_comparison_with_the_controller_pairs_the_episodes_then_averages_the_seeds():
+    scripted = {"success": [1, 0, 1], "steps": [100, 500, 300], "episode_return": [-10, -50, -30]}
+    seeds = [{"success": [1, 1, 1], "steps": [90, 400, 310], "episode_return": [-9, -40, -31]},
+             {"success": [1, 0, 0], "steps": [100, 500, 500], "episode_return": [-10, -50, -50]}]
+    d = paired_difference(seeds, scripted)
+    assert d["success"][0] == pytest.approx((1 / 3 - 1 / 3) / 2)
+    assert d["steps"][0] == pytest.approx(((-10 - 100 + 10) / 3 + 200 / 3) / 2)  # per seed: -33.3, +66.7
+    assert d["steps"][1] == pytest.approx(mean_se([-100 / 3, 200 / 3])[1])
+    assert d["episode_return"][0] == pytest.approx(((1 + 10 - 1) / 3 + (-20) / 3) / 2)
+
+
 def test_the_table_has_its_rows_and_a_rerun_loads_the_finished_cells(tmp_path):
     spec = HeadlineSpec.quick(seeds=1, episodes=2, gains=(1.0, 3.0), output=tmp_path)
     result = run_headline(spec, make_backend("inprocess"))
@@ -48,6 +59,7 @@ def test_the_table_has_its_rows_and_a_rerun_loads_the_finished_cells(tmp_path):
         (f, g) for f in ("escort_train", "sir_rough") for g in (1.0, 3.0)}
     checkpoints = sorted(p.stat().st_mtime_ns for p in (tmp_path / "runs").rglob("manifest.json"))
     assert checkpoints  # every trained cell wrote its run
+    assert all(set(r["vs_scripted"]) == {"success", "steps", "episode_return"} for r in result["rows"][:2])
     again = run_headline(spec, make_backend("inprocess"))
     assert again["rows"] == result["rows"]
     assert sorted(p.stat().st_mtime_ns for p in (tmp_path / "runs").rglob("manifest.json")) == checkpoints

@@ -38,6 +38,17 @@ def headline_markdown(result: dict) -> str:
             f"{_cell(r['episode_return'], r['episode_return_se'], 1)} | {_cell(r['steps'], r['steps_se'], 0)} | "
             f"{r['frames'] if trained else '—'} | "
             f"{_cell(r['train_minutes'], r['train_minutes_se'], 1) if trained else '—'} |")
+    compared = [r for r in result["rows"] if r.get("vs_scripted")]
+    if compared:
+        scripted = {r["filter"]: r["policy"] for r in result["rows"] if r["kind"] == "scripted"}
+        lines += ["", "Each trained row against the scripted controller on its belief, episode by episode "
+                  "(trained − scripted on the same episodes; mean ± s.e. across training seeds of the per-seed "
+                  "mean difference). Positive success and return, negative steps: the learner is ahead.", "",
+                  "| policy | against | Δ success | Δ steps | Δ return |", "| --- | --- | --- | --- | --- |"]
+        for r in compared:
+            d = r["vs_scripted"]
+            lines.append(f"| {r['policy']} | {scripted.get(r['filter'], r['filter'])} on {r['filter']} | "
+                         f"{_cell(*d['success'], 3)} | {_cell(*d['steps'], 1)} | {_cell(*d['episode_return'], 1)} |")
     lines += ["", "Per-seed success of the trained rows:", ""]
     for r in result["rows"]:
         if r["kind"] == "trained":

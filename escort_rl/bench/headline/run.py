@@ -53,6 +53,22 @@ def trained_row(label: str, results: list[dict]) -> dict:
     return row
 
 
+PAIRED = ("success", "steps", "episode_return")
+"""The metrics a trained row is compared on with the scripted controller, episode by episode."""
+
+
+def paired_difference(results: list[dict], scripted: dict) -> dict:
+    """A trained row against the scripted controller on the same episodes and belief: per training seed,
+    the mean over episodes of ``trained − scripted`` (success, steps, return); then mean ± s.e. across
+    the seeds (``{"success": (mean, se), ...}``). Pairing by episode removes the episodes' own spread
+    (a far start takes longer for both), which is most of the spread of steps and return."""
+    out = {}
+    for key in PAIRED:
+        per_seed = [mean_se([t - c for t, c in zip(r[key], scripted[key])])[0] for r in results]
+        out[key] = mean_se(per_seed)
+    return out
+
+
 def fixed_row(label: str, result: dict, kind: str) -> dict:
     """A scripted or random row: each metric's mean ± s.e. over the episodes."""
     row = {"policy": label, "kind": kind, "filter": result["filter"], "gain": result["gain"]}
@@ -86,6 +102,10 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
     for cell, result in zip(trained, results[len(selection):]):
         by_row.setdefault(cell.label, []).append(result)
     rows = [trained_row(label, by_row[label]) for label, _ in spec.rows]
+    scripted_on = dict(zip(spec.scripted_filters, fixed))
+    for row in rows:
+        if row["filter"] in scripted_on:
+            row["vs_scripted"] = paired_difference(by_row[row["policy"]], scripted_on[row["filter"]])
     rows += [fixed_row(f"scripted controller (gain {chosen[f]:g})", r, "scripted")
              for f, r in zip(spec.scripted_filters, fixed)]
     rows.append(fixed_row("random", fixed[-1], "random"))
