@@ -21,7 +21,7 @@ class POMDPGymEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, model) -> None:
-        check_model(model)
+        check_model(model, densities=False)  # a simulator
         self.model = model
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(model.obs_dim,), dtype=np.float32)
         self.action_space = action_space(model)

@@ -45,7 +45,7 @@ class POMDPEnv(EnvBase):
 
     def __init__(self, model, batch_size=(1,), device=None, seed: int | None = None,
                  max_steps: int | None = None) -> None:
-        check_model(model)
+        check_model(model, densities=False)  # the env simulates; the filters' densities are not its concern
         given = batch_size
         try:
             batch_size = tuple(batch_size) if not isinstance(batch_size, int) else (batch_size,)

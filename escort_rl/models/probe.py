@@ -42,7 +42,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from escort_rl.models.protocol import action_shape, is_continuous
+from escort_rl.models.action_kinds import action_shape, is_continuous
 
 PROBE_BATCH = 3
 """States in the probe's batch."""
@@ -127,10 +127,12 @@ def _actions(model, shape: tuple[int, ...], device: torch.device, generator: tor
     return torch.randint(0, int(model.n_actions), shape, generator=generator, device=device)
 
 
-def probe_model(model) -> None:
+def probe_model(model, densities: bool = True) -> None:
     """Call every protocol method of ``model`` on a tiny batch and check what comes back (see the
     module docstring); raise :class:`ModelProbeError` naming the first method that breaks the protocol.
-    The caller has checked the attributes and that the methods exist
+    ``densities=False``: only what a simulator needs (``initial_state``, ``transition``,
+    ``transition_mean``, ``observe``, ``reward``, ``is_terminal``, ``distance_to_goal``), not what the
+    filters need. The caller has checked the attributes and that the methods exist
     (:func:`~escort_rl.models.check_model`)."""
     b, n, d, m = PROBE_BATCH, PROBE_PARTICLES, int(model.state_dim), int(model.obs_dim)
     device = torch.device(getattr(model, "device", None) or "cpu")
@@ -140,20 +142,11 @@ def probe_model(model) -> None:
 
     s = _tensor("initial_state", f"shape=({b},), generator", _call(
         "initial_state", f"shape=({b},), generator", lambda: model.initial_state((b,), g)), (b, d), state, f32)
-    x = _tensor("initial_belief", f"shape=({b},), n={n}, generator", _call(
-        "initial_belief", f"shape=({b},), n={n}, generator", lambda: model.initial_belief((b,), n, g)),
-        (b, n, d), f"n={n} particles per batch element: ({b}, n, state_dim)", f32)
     a = _actions(model, (b,), device, g)
     s1 = _tensor("transition", "s, a, generator", _call(
         "transition", "s, a, generator", lambda: model.transition(s, a, g)), (b, d), state, f32)
     _tensor("transition_mean", "s, a", _call("transition_mean", "s, a", lambda: model.transition_mean(s, a)),
             (b, d), state, f32)
-    scale = _tensor("transition_scale_tril", "", _call("transition_scale_tril", "", model.transition_scale_tril),
-                    (d, d), "the [state_dim, state_dim] Cholesky factor of the process noise covariance, not its "
-                    "diagonal", f32)
-    if not torch.equal(scale, torch.tril(scale)) or not bool((torch.diagonal(scale) >= 0).all()):
-        raise ModelProbeError("model.transition_scale_tril(): expected a lower-triangular matrix with a diagonal "
-                              ">= 0 (torch.linalg.cholesky of the covariance; 0 where a coordinate has no noise)")
     o = _tensor("observe", "s_next, a, generator", _call(
         "observe", "s_next, a, generator", lambda: model.observe(s1, a, g)), (b, m),
         f"one observation per batch element: ({b}, obs_dim={m})", f32)
@@ -163,6 +156,18 @@ def probe_model(model) -> None:
     if callable(getattr(model, "distance_to_goal", None)):
         _tensor("distance_to_goal", "s", _call("distance_to_goal", "s", lambda: model.distance_to_goal(s1)),
                 (b,), one)
+    if not densities:
+        return
+
+    x = _tensor("initial_belief", f"shape=({b},), n={n}, generator", _call(
+        "initial_belief", f"shape=({b},), n={n}, generator", lambda: model.initial_belief((b,), n, g)),
+        (b, n, d), f"n={n} particles per batch element: ({b}, n, state_dim)", f32)
+    scale = _tensor("transition_scale_tril", "", _call("transition_scale_tril", "", model.transition_scale_tril),
+                    (d, d), "the [state_dim, state_dim] Cholesky factor of the process noise covariance, not its "
+                    "diagonal", f32)
+    if not torch.equal(scale, torch.tril(scale)) or not bool((torch.diagonal(scale) >= 0).all()):
+        raise ModelProbeError("model.transition_scale_tril(): expected a lower-triangular matrix with a diagonal "
+                              ">= 0 (torch.linalg.cholesky of the covariance; 0 where a coordinate has no noise)")
 
     log_density = "one log-density per state: the states' leading dimensions"
     may_be_minus_inf = "finite or -inf (not NaN or +inf)"

@@ -18,6 +18,8 @@ from typing import Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from escort_rl.models.action_kinds import action_shape, is_continuous  # noqa: F401  (re-exported; apart for the probe)
+
 
 @runtime_checkable
 class POMDPModel(Protocol):
@@ -83,33 +85,35 @@ class POMDPModel(Protocol):
     def is_terminal(self, s: Tensor) -> Tensor: ...
 
 
-_PROBED: weakref.WeakSet = weakref.WeakSet()
-"""The models that passed :func:`~escort_rl.models.probe.probe_model` (checked once, then remembered:
-the filters call :func:`check_model` at every update)."""
+_PROBED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+"""The models that passed :func:`~escort_rl.models.probe.probe_model`, each with whether its densities
+were probed too (checked once, then remembered)."""
 
 
-def check_model(model: object) -> None:
+def check_model(model: object, densities: bool = True) -> None:
     """Raise ``TypeError`` naming the first problem if ``model`` is not a POMDPModel.
 
     It needs ``state_dim`` and ``obs_dim``, the methods, and either ``n_actions`` (discrete actions) or
     ``action_dim`` with ``action_low`` and ``action_high`` of shape ``[action_dim]`` (continuous). The
     first time it meets a model it also calls every method on a tiny batch and checks shapes, dtypes,
-    finiteness and the log-densities' gradients (:func:`~escort_rl.models.probe.probe_model`); a
-    class passed instead of an instance is named as such."""
+    finiteness and the log-densities' gradients (:func:`~escort_rl.models.probe.probe_model`);
+    ``densities=False`` probes only what a simulator needs (an env's own model, e.g. POPGym's
+    deterministic dynamics, which have no transition density). A class passed instead of an instance
+    is named as such."""
     if isinstance(model, type):
         raise TypeError(f"model: got the class {model.__name__}, not an instance of it; pass "
                         f"{model.__name__}(...) instead")
     check_model_structure(model)
     try:
-        if model in _PROBED:
+        if _PROBED.get(model, False) or (not densities and model in _PROBED):
             return
     except TypeError:  # not weakly referenceable or not hashable: probed every time
         pass
     from escort_rl.models.probe import probe_model
 
-    probe_model(model)
+    probe_model(model, densities=densities)
     try:
-        _PROBED.add(model)
+        _PROBED[model] = densities or _PROBED.get(model, False)
     except TypeError:
         pass
 
@@ -147,15 +151,6 @@ def check_model_structure(model: object) -> None:
                 "a model must follow escort_rl.models.POMDPModel"
             )
 
-
-def is_continuous(model) -> bool:
-    """Whether ``model``'s actions are real vectors: it declares ``action_dim`` and no ``n_actions``."""
-    return getattr(model, "n_actions", None) is None and getattr(model, "action_dim", None) is not None
-
-
-def action_shape(model) -> tuple[int, ...]:
-    """The shape of one action: ``()`` for an integer action, ``(action_dim,)`` for a real one."""
-    return (int(model.action_dim),) if is_continuous(model) else ()
 
 
 def check_action_box(model) -> tuple[Tensor, Tensor]:

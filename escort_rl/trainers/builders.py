@@ -43,11 +43,12 @@ def _prefixed(where: str, err: Exception) -> str:
     return line if line.startswith(where) else f"{where}: {line}"
 
 
-def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
+def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu", densities: bool = True):
     """The POMDP model of ``env.model._target_`` (configs saved without one: the model named by
     ``env.name``) with the other keys of ``env.model`` as keyword arguments, and ``device`` when
     the target takes it. The result is checked against the model protocol
-    (:func:`escort_rl.models.check_model`). ``env=popgym`` has no model: its task's spaces
+    (:func:`escort_rl.models.check_model`; ``densities=False``: as a simulator, for the envs' own model
+    where it differs from the filter's). ``env=popgym`` has no model: its task's spaces
     (:class:`~escort_rl.models.TaskSpaces`), all a model-free trainer reads."""
     from escort_rl.models import check_model
 
@@ -64,7 +65,7 @@ def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu"):
     extra = {"device": device} if _takes(target, "device") else {}
     try:
         model = _instantiate(target, _kwargs(model_cfg, exclude=("_target_",)), "env.model", **extra)
-        check_model(model)
+        check_model(model, densities=densities)
     except (TypeError, ValueError) as err:
         raise ConfigError(_prefixed("env.model", err)) from None
     return model
@@ -190,7 +191,7 @@ def build_pomdp_env(cfg: DictConfig, num_envs: int, seed: int | None = None, mod
     if overrides:
         env_cfg = OmegaConf.create(OmegaConf.to_container(cfg.env, resolve=True))
         env_cfg.model = OmegaConf.merge(env_cfg.model, overrides)
-        model = build_model(env_cfg, cfg.device)
+        model = build_model(env_cfg, cfg.device, densities=False)
     elif model is None:
         model = build_model(cfg.env, cfg.device)
     return POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)

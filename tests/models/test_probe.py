@@ -177,3 +177,18 @@ def test_check_model_from_the_shell(capsys):
     assert "passes the probe" in capsys.readouterr().out
     assert main(["check-model", f"{__name__}:DiagonalScale"]) == 2
     assert capsys.readouterr().err.startswith("error: model.transition_scale_tril(): expected shape (2, 2)")
+
+
+def test_an_env_probes_its_simulator_without_the_densities_a_filter_needs():
+    """An env only simulates (POPGym's deterministic dynamics have no transition density); a filter
+    built on the same model later still gets the full probe."""
+    from escort_rl.envs import POMDPEnv
+
+    class NoDensity(Drift):
+        def transition_log_prob(self, s_next, s, a):
+            raise ValueError("deterministic dynamics have no density")
+
+    model = NoDensity()
+    POMDPEnv(model, batch_size=(2,))
+    with pytest.raises(ModelProbeError, match=r"^model.transition_log_prob\(s_next, s, a\): raised ValueError"):
+        check_model(model)
