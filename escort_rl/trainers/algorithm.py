@@ -58,6 +58,13 @@ def trainer_params(params: type, trainer_cfg):
     return build_params(params, None, values, owner="trainer")
 
 
+def typed_trainer(cfg: DictConfig):
+    """``cfg.trainer`` as the ``Params`` dataclass of its trainer (``trainer.algorithm``), checked."""
+    from escort_rl.config import registry
+
+    return trainer_params(registry.params("trainer", str(cfg.trainer.algorithm)), cfg.trainer)
+
+
 class Algorithm(ABC):
     """A training algorithm of the scaffold (see the module docstring for the hooks).
 

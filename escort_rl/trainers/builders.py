@@ -200,10 +200,9 @@ def build_pomdp_env(cfg: DictConfig, num_envs: int, seed: int | None = None, mod
 def trained_action_repeat(cfg: DictConfig) -> int:
     """Env steps per decision of the policy trained by ``cfg``: its trainer's typed
     ``trainer.action_repeat`` (PPO), 1 for a trainer that decides at every step (REINFORCE)."""
-    from escort_rl.trainers.algorithm import trainer_params
+    from escort_rl.trainers.algorithm import typed_trainer
 
-    params = trainer_params(registry.params("trainer", str(cfg.trainer.algorithm)), cfg.trainer)
-    return int(getattr(params, "action_repeat", 1))
+    return int(getattr(typed_trainer(cfg), "action_repeat", 1))
 
 
 def belief_keys(cfg: DictConfig) -> tuple[str, str]:

@@ -13,6 +13,7 @@ from omegaconf.errors import OmegaConfBaseException
 from escort_rl.config import ConfigError
 from escort_rl.config.checking import check_config, describe_error, find_problem
 from escort_rl.config.schema import ENV_SCHEMAS
+from escort_rl.trainers.algorithm import typed_trainer
 
 
 def validate_train_config(cfg: DictConfig) -> None:
@@ -38,14 +39,6 @@ def validate_train_config(cfg: DictConfig) -> None:
     if cfg.logger.backend == "wandb" and importlib.util.find_spec("wandb") is None:
         raise ConfigError("logger.backend: 'wandb' needs the wandb package (pip install escort-rl[wandb]); "
                           "or use logger.backend=csv")
-
-
-def typed_trainer(cfg: DictConfig):
-    """``cfg.trainer`` as its trainer's ``Params`` dataclass (:mod:`escort_rl.trainers.params`), checked."""
-    from escort_rl.config import registry
-    from escort_rl.trainers.algorithm import trainer_params
-
-    return trainer_params(registry.params("trainer", str(cfg.trainer.algorithm)), cfg.trainer)
 
 
 def check_warm_start(cfg: DictConfig) -> None:
