@@ -303,14 +303,19 @@ class ESCORTFilter(HasParams, BeliefFilter):
         return torch.tensor([self.step_size / (1.0 + self.step_decay * k), 0.0 if k == 0 else self.adagrad_alpha,
                              lam_temp, *(self.schedule(k, k_total) if scheduled else ())], dtype=dtype, device=device)
 
+    def _rank_fn(self, n: int) -> Callable[[Tensor], Tensor] | None:
+        """The rank permutation the once-per-update ascents order projections of ``n`` points with: a
+        compiled :func:`permutation_ranks` (counting, which beats ``torch.sort`` for short rows) when
+        the filter compiles and ``n ≤`` :data:`RANK_COUNT_MAX`, else ``None`` (``torch.sort``)."""
+        return self._compiled(permutation_ranks) if self.compile and n <= RANK_COUNT_MAX else None
+
     def _temporal_reference(self, x: Tensor, reference: Tensor, generator) -> TemporalReference:
         """``F_temp``'s sorted reference: the directions ``θ_j`` refined toward the maximal projected
         W1 between ``x`` and ``reference`` (both ``[*B, N, d]``). Once per update, eager apart from its
         ranks: compiling the whole ascent cost about 10 s per shape and saved nothing, but a compiled
         filter ranks by counting, which beats ``torch.sort`` for short rows, here and in the iterations."""
         theta0 = random_directions(x, self.n_proj, generator)
-        counting = self.compile and x.shape[-2] <= RANK_COUNT_MAX
-        rank_fn = self._compiled(permutation_ranks) if counting else None
+        rank_fn = self._rank_fn(x.shape[-2])
         theta, theta_w = max_sliced_directions(x, reference, theta0, ascent_steps=self.temporal_ascent_steps,
                                                rank_fn=rank_fn)
         return TemporalReference(reference, theta, theta_w, rank_fn=rank_fn)
@@ -326,7 +331,9 @@ class ESCORTFilter(HasParams, BeliefFilter):
             refine = (self._compiled(correlation_projections) if self.projection_every < k_total
                       else correlation_projections)
             projections, proj_weights = refine(x, target_samples, target_log_weights, self.n_proj, self.proj_dim,
-                                               ascent_steps=self.projection_ascent_steps)
+                                               ascent_steps=self.projection_ascent_steps,
+                                               rank_fn=None if refine is not correlation_projections
+                                               else self._rank_fn(x.shape[-2]))
         else:
             projections = random_deflated_projections(x.shape[:-2], d, self.n_proj, self.proj_dim, generator,
                                                       x.device, x.dtype)
