@@ -48,6 +48,7 @@ MULTIRUN_HELP = ("a sweep, as Hydra's --multirun: comma-separated values (seed=0
 BENCHMARKS = (
     "escort_rl.bench.throughput",
     "escort_rl.bench.cost",
+    "escort_rl.bench.profile",
     "escort_rl.bench.synthetic",
     "escort_rl.bench.domains",
     "escort_rl.bench.curves",

@@ -14,6 +14,8 @@ overflowed. The checks cost one host synchronisation per update when all is fini
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import torch
 from torch import Tensor
@@ -21,6 +23,7 @@ from torch import Tensor
 from escort_rl.belief.checks import FiniteGuard
 from escort_rl.belief.denormals import flush_denormals
 from escort_rl.belief.particle_belief import ParticleBelief
+from escort_rl.belief.timing import PartTimer
 from escort_rl.models.protocol import (
     action_in_range,
     action_shape,
@@ -40,6 +43,40 @@ class BeliefFilter(ABC):
             check costs one host synchronisation per update; turn it off (``filt.check_finite =
             False``) only where the caller validates the beliefs and the model elsewhere.
     """
+
+    times_own_parts = False
+    """Whether :meth:`_update` marks its own parts (:mod:`escort_rl.belief.timing`); if not, the
+    whole of it is the part ``update``."""
+
+    @contextmanager
+    def timed_parts(self) -> Iterator[dict[str, float]]:
+        """Wall-clock seconds of each part of the updates made inside the block, summed over them:
+        ``checks`` (validation and the finiteness guard with its host sync), then the filter's own
+        parts (ESCORT and SVGD: ``predict``, ``bandwidth``, ``projections``, ``iterations``, ...; the
+        others: ``update``), as listed in :mod:`escort_rl.belief.timing`.
+
+        Example:
+            >>> import torch, escort_rl
+            >>> from escort_rl.models import LinearGaussian
+            >>> model, filt = LinearGaussian(state_dim=2, obs_dim=1), escort_rl.make_filter("svgd", num_steps=3)
+            >>> belief = filt.init(model, (4,), 20, torch.Generator().manual_seed(0))
+            >>> with filt.timed_parts() as parts:
+            ...     belief = filt.update(model, belief, torch.zeros(4, dtype=torch.long), torch.zeros(4, 1))
+            >>> sorted(parts)
+            ['bandwidth', 'checks', 'jitter', 'kernel', 'predict', 'score', 'step']
+        """
+        parts: dict[str, float] = {}
+        previous = self.__dict__.get("_part_times")
+        self._part_times = parts
+        try:
+            yield parts
+        finally:
+            self._part_times = previous
+
+    def part_timer(self, device: torch.device | str | None = None) -> PartTimer:
+        """The :class:`~escort_rl.belief.timing.PartTimer` of this filter's updates: it times into
+        the dict of an enclosing :meth:`timed_parts` block, if any."""
+        return PartTimer(self.__dict__.get("_part_times"), device)
 
     @property
     def check_finite(self) -> bool:
@@ -127,21 +164,31 @@ class BeliefFilter(ABC):
         because a model method returns the wrong shape or dtype, or fails on the belief's dtype, the
         ``ValueError`` names that method (see :func:`diagnose_model_outputs`).
         """
-        validate_update_inputs(model, belief, action, observation)
-        if observation.dtype != belief.particles.dtype:  # e.g. float64 observations of a float32 belief
-            observation = observation.to(belief.particles.dtype)
-        guard = FiniteGuard(type(self).__name__, belief.batch_shape, enabled=self.check_finite)
-        guard.input_belief(belief)
+        timer = self.part_timer(belief.particles.device)
+        with timer(f"{type(self).__name__}.update", timed=False):
+            return self._checked_update(timer, model, belief, action, observation, generator)
+
+    def _checked_update(self, timer: PartTimer, model, belief: ParticleBelief, action: Tensor, observation: Tensor,
+                        generator: torch.Generator | None) -> ParticleBelief:
+        """:meth:`update`'s checks around :meth:`_update`, each part scoped by ``timer``."""
+        with timer("checks"):
+            validate_update_inputs(model, belief, action, observation)
+            if observation.dtype != belief.particles.dtype:  # e.g. float64 observations of a float32 belief
+                observation = observation.to(belief.particles.dtype)
+            guard = FiniteGuard(type(self).__name__, belief.batch_shape, enabled=self.check_finite)
+            guard.input_belief(belief)
         try:  # a NaN that makes a factorisation fail is named, not a deep traceback
             with guard.diagnosing(), flush_denormals():  # subnormals: slow, and zero to the result
-                posterior = self._update(model, belief, action, observation, generator, guard=guard)
+                with timer(None if self.times_own_parts else "update"):
+                    posterior = self._update(model, belief, action, observation, generator, guard=guard)
         except (RuntimeError, TypeError, IndexError):  # a model output that does not fit, named
             message = diagnose_model_outputs(model, belief, action, observation)
             if message is None:
                 raise
             raise ValueError(message) from None
-        guard.result(posterior)
-        guard.verify()
+        with timer("checks"):
+            guard.result(posterior)
+            guard.verify()
         return posterior
 
     @staticmethod

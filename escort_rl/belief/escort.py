@@ -31,7 +31,7 @@ from escort_rl.belief.checks import (
     FiniteGuard,
 )
 from escort_rl.belief.denormals import flush_denormals
-from escort_rl.belief.evolution import PartTimer, belief_moments, evolution_step, jittered, moment_change
+from escort_rl.belief.evolution import belief_moments, evolution_step, jittered, moment_change
 from escort_rl.belief.importance import tempered_log_weights
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists
 from escort_rl.belief.particle_belief import ParticleBelief
@@ -344,7 +344,7 @@ class ESCORTFilter(HasParams, BeliefFilter):
     def evolve(self, x: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]], *,
                target_samples: Tensor | None = None, target_log_weights: Tensor | None = None,
                reference: Tensor | None = None, generator: torch.Generator | None = None,
-               num_steps: int | None = None, breakdown: dict | None = None) -> tuple[Tensor, Tensor | None]:
+               num_steps: int | None = None) -> tuple[Tensor, Tensor | None]:
         """Run the particle evolution from ``x`` ``[*B, N, d]``.
 
         ``score_fn(x)`` gives the target score ``[*B, N, d]`` and integer counts ``[*B, C]`` of the
@@ -355,16 +355,15 @@ class ESCORTFilter(HasParams, BeliefFilter):
 
         ``target_samples`` (with ``target_log_weights``) are weighted samples of the target used to
         build ``ΔC`` for the correlation projections; ``reference`` is the temporal reference set
-        (``None`` turns ``F_temp`` off). ``breakdown``, if given, accumulates seconds per part
-        (``kernel``/``score``/``correlation``/``temporal`` in eager mode; the fused compiled
-        iteration is timed as ``iteration``).
+        (``None`` turns ``F_temp`` off). Inside :meth:`timed_parts` its parts are timed (see
+        :mod:`escort_rl.belief.timing`).
         """
         k_total = self.num_steps if num_steps is None else num_steps
         d = x.shape[-1]
         use_corr = self.lambda_corr > 0 and target_samples is not None
         use_temp = self.lambda_temp > 0 and reference is not None
         repulsion = self.repulsion_scale(d)
-        timer = PartTimer(breakdown)
+        timer = self.part_timer(x.device)
         step = self._compiled(evolution_step)
         if self.compile and target_samples is x:
             target_samples = x.clone()  # a compiled function is specialised on argument aliasing
@@ -377,7 +376,7 @@ class ESCORTFilter(HasParams, BeliefFilter):
         full = dict(dtype=x.dtype, device=x.device)
         with torch.no_grad():
             if use_temp:
-                with timer("temporal"):
+                with timer("temporal_reference"):
                     temporal = self._temporal_reference(x, reference, generator)
             hist = torch.zeros_like(x)
             counts = None
@@ -387,13 +386,13 @@ class ESCORTFilter(HasParams, BeliefFilter):
             anchor = belief_moments(x) if stop else None
             for k in range(k_total):
                 if k % self.bandwidth_every == 0:
-                    with timer("kernel"):
+                    with timer("bandwidth"):
                         bandwidth = median_bandwidth(pairwise_sq_dists(x)) * self.bandwidth_scale
                 if use_corr and (proj is None or (self.projection == "learned" and k % self.projection_every == 0)):
-                    with timer("correlation"):
+                    with timer("projections"):
                         proj = self._correlation_projector(x, target_samples, target_log_weights, generator, k_total)
                 scalars = self.iteration_scalars(k, k_total, **full)
-                with timer("iteration" if fused else None):
+                with timer("iterations" if fused else None):
                     x, hist, bad = step(x, hist, score_fn, bandwidth, scalars, repulsion=repulsion, proj=proj,
                                         lambda_corr=self.lambda_corr, corr_form=self.corr_form, temporal=temporal,
                                         temp_clip=self.temp_clip, timer=None if fused else timer, active=active)
@@ -412,14 +411,16 @@ class ESCORTFilter(HasParams, BeliefFilter):
         return x, counts
 
     # ------------------------------------------------------------------ filter interface
-    def _update(self, model, belief, action, observation, generator, breakdown: dict | None = None, *, guard=None):
+    times_own_parts = True
+
+    def _update(self, model, belief, action, observation, generator, *, guard=None):
         guard = OFF if guard is None else guard
         x_t = belief.particles
         n, d = x_t.shape[-2], x_t.shape[-1]
         a = per_particle(model, action, x_t.shape[:-1])  # [*B, N] ([*B, N, action_dim])
-        timer = PartTimer(breakdown)
+        timer = self.part_timer(x_t.device)
         std = self.jitter_std(d)
-        with timer("score"):
+        with timer("predict"):
             x_pred = model.transition(x_t, a, generator)
             guard.model_values("model.transition", x_pred)
             if std > 0 and self.jitter_at == "start":
@@ -446,11 +447,11 @@ class ESCORTFilter(HasParams, BeliefFilter):
             pull[..., :m] = observation.unsqueeze(-2) - x_pred[..., :m]
             x_pred = x_pred + self.likelihood_pull * w.clamp(max=10.0) * pull
         x, counts = self.evolve(x_pred, score_fn, target_samples=x_pred, target_log_weights=log_lik,
-                                reference=means if self.lambda_temp > 0 else None, generator=generator,
-                                breakdown=breakdown)
+                                reference=means if self.lambda_temp > 0 else None, generator=generator)
         guard.counts(channels, counts, "during the particle evolution")
         if std > 0 and self.jitter_at == "end":
-            x = jittered(x, std, generator)
+            with timer("jitter"):
+                x = jittered(x, std, generator)
         return ParticleBelief.uniform(x.detach())
 
     def fit(self, log_prob: Callable[[Tensor], Tensor], particles: Tensor, num_steps: int | None = None,

@@ -1,5 +1,5 @@
 """One iteration of ESCORT's particle evolution (:func:`evolution_step`, the part ``torch.compile``
-fuses), the moments the adaptive stop watches, the jitter, and a timer of the parts."""
+fuses), the moments the adaptive stop watches, and the jitter."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from torch import Tensor
 from escort_rl.belief.kernels import svgd_direction
 from escort_rl.belief.projections import TemporalReference, correlation_force
 from escort_rl.belief.scores import clamp_non_finite
+from escort_rl.belief.timing import NO_TIMER, PartTimer
 
 
 def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[Tensor, Tensor | None]],
@@ -53,12 +54,14 @@ def evolution_step(x: Tensor, hist: Tensor, score_fn: Callable[[Tensor], tuple[T
     if temporal is not None:
         with timer("temporal"):
             velocity = velocity + temporal.force(x, lam_temp, temp_clip)
-    velocity = clamp_non_finite(velocity)
-    hist = alpha * hist + (1.0 - alpha) * velocity * velocity
-    move = eps * velocity / (hist.sqrt() + 1e-6)
-    if active is not None:
-        move = active[..., None, None] * move
-    return x + move, hist, bad
+    with timer("step"):
+        velocity = clamp_non_finite(velocity)
+        hist = alpha * hist + (1.0 - alpha) * velocity * velocity
+        move = eps * velocity / (hist.sqrt() + 1e-6)
+        if active is not None:
+            move = active[..., None, None] * move
+        x = x + move
+    return x, hist, bad
 
 
 def belief_moments(x: Tensor) -> tuple[Tensor, Tensor]:
@@ -79,34 +82,3 @@ def moment_change(before: tuple[Tensor, Tensor], after: tuple[Tensor, Tensor], e
 def jittered(x: Tensor, std: float, generator: torch.Generator | None) -> Tensor:
     """``x + std · ε``, ``ε ~ N(0, I)`` of ``x``'s shape, device and dtype."""
     return x + std * torch.randn(x.shape, generator=generator, device=x.device, dtype=x.dtype)
-
-
-class PartTimer:
-    """Accumulates wall-clock seconds per named part into a dict (no-op when the dict or the name
-    is None)."""
-
-    def __init__(self, store: dict | None) -> None:
-        self.store = store
-
-    def __call__(self, name: str | None):
-        return _PartScope(self.store if name is not None else None, name)
-
-
-class _PartScope:
-    def __init__(self, store, name):
-        self.store, self.name = store, name
-
-    def __enter__(self):
-        if self.store is not None:
-            import time
-
-            self.t0 = time.perf_counter()
-
-    def __exit__(self, *exc):
-        if self.store is not None:
-            import time
-
-            self.store[self.name] = self.store.get(self.name, 0.0) + time.perf_counter() - self.t0
-
-
-NO_TIMER = PartTimer(None)

@@ -37,12 +37,30 @@ def _sync(device) -> None:
         torch.cuda.synchronize()
 
 
-def svgd_flops(n: int, d: int, k: int, batch: int, corr: bool) -> float:
-    """Counted flops of the dominant dense work of one SVGD/ESCORT update:
-    per iteration ``6 N² d`` (pairwise distances, ``K·score`` and ``K·x``) and, with the
-    correlation term, ``2 N d²`` to apply ``Σ_k w_k A_k A_kᵀ``; times ``K`` iterations and ``B``."""
-    per_iter = 6.0 * n * n * d + (2.0 * n * d * d if corr else 0.0)
+def update_flops(n: int, d: int, k: int, batch: int, corr: bool, prior: bool = True) -> float:
+    """Counted flops of the dense work of one SVGD/ESCORT update, the arithmetic the update cannot do
+    without. Per iteration and belief:
+
+    - the kernel: ``6 N² d`` (the pairwise distances ``2 N² d``, ``K·[score, x]`` ``4 N² d``);
+    - the smoothed prior's score (``prior``): ``4 N² d + 2 N d²`` (the responsibilities' logits
+      ``xP·μᵀ`` and ``r·μP``, each ``2 N² d``; ``x·P``, ``2 N d²``);
+    - ``F_corr`` (``corr``): ``2 N d²`` (``(φ − φ̄)·Σ_k w_k A_k A_kᵀ``);
+
+    times ``K`` iterations and ``B`` beliefs. Elementwise work (the exponentials) is not counted.
+
+    Example:
+        >>> update_flops(100, 10, 15, 64, corr=True) / 1e9  # escort_train at B = 64: about 1 GFLOP
+        0.9984
+    """
+    per_iter = 6.0 * n * n * d + (4.0 * n * n * d + 2.0 * n * d * d if prior else 0.0) + (
+        2.0 * n * d * d if corr else 0.0)
     return batch * k * per_iter
+
+
+def arithmetic_bound_seconds(flops: float, matmul_gflops: float) -> float:
+    """The update's arithmetic lower bound: its counted flops (:func:`update_flops`) at the machine's
+    measured matmul rate (:func:`matmul_gflops`), in seconds."""
+    return flops / (matmul_gflops * 1e9)
 
 
 def cost_model(d: int, device: str = "cpu"):
@@ -54,8 +72,8 @@ def cost_model(d: int, device: str = "cpu"):
 
 def time_update(filt, model, batch: int, n: int, repeats: int = 5, warmup: int = 1, device: str = "cpu",
                 seed: int = 0) -> dict:
-    """Median seconds of one ``filt.update`` on ``batch`` beliefs of ``n`` particles, with the
-    ESCORT/SVGD breakdown (kernel / score / correlation / temporal) of the median run, and the
+    """Median seconds of one ``filt.update`` on ``batch`` beliefs of ``n`` particles, the seconds of
+    each part of one more update (:meth:`~escort_rl.belief.base.BeliefFilter.timed_parts`), and the
     seconds of the first warm-up update (which includes compiling, for ``compile=True``)."""
     g = torch.Generator(device=device).manual_seed(seed)
     belief = filt.init(model, (batch,), n, g)
@@ -64,21 +82,17 @@ def time_update(filt, model, batch: int, n: int, repeats: int = 5, warmup: int =
     o = model.observe(model.transition(s, a, g), a, g)
     runs, first = [], None
     for i in range(warmup + repeats):
-        breakdown: dict = {}
         _sync(device)
         t0 = time.perf_counter()
-        if hasattr(filt, "evolve"):
-            filt._update(model, belief, a, o, g, breakdown=breakdown)
-        else:
-            filt.update(model, belief, a, o, g)
+        filt.update(model, belief, a, o, g)
         _sync(device)
         if i >= warmup:
-            runs.append((time.perf_counter() - t0, breakdown))
+            runs.append(time.perf_counter() - t0)
         elif first is None:
             first = time.perf_counter() - t0
-    runs.sort(key=lambda r: r[0])
-    seconds, breakdown = runs[len(runs) // 2]
-    return {"seconds": seconds, "breakdown": breakdown, "first_seconds": first}
+    with filt.timed_parts() as breakdown:  # one more update, its parts timed (which syncs a GPU)
+        filt.update(model, belief, a, o, g)
+    return {"seconds": statistics.median(runs), "breakdown": breakdown, "first_seconds": first}
 
 
 def fit_exponent(ds: list[int], seconds: list[float]) -> float:
@@ -115,11 +129,12 @@ def run_cost_benchmark(dims=(10, 20, 50, 100, 200), particles=(100, 1000), batch
                     continue
                 for name, filt in filters.items():
                     r = time_update(filt, model, b, n, repeats=repeats, device=device)
-                    flops = (svgd_flops(n, d, num_steps, b, corr=name.startswith("escort")) if name != "sir"
+                    flops = (update_flops(n, d, num_steps, b, corr=name.startswith("escort")) if name != "sir"
                              else float("nan"))
                     row = {"filter": name, "d": d, "N": n, "B": b, "model": type(model).__name__,
                            "seconds": r["seconds"], "first_seconds": r["first_seconds"], "gflop": flops / 1e9,
                            "gflops_per_s": flops / r["seconds"] / 1e9 if name != "sir" else float("nan"),
+                           "bound_seconds": arithmetic_bound_seconds(flops, machine),
                            "breakdown": r["breakdown"]}
                     rows.append(row)
                     if progress is not None:
@@ -151,13 +166,14 @@ def update_cost_markdown(result: dict) -> str:
         "# Cost of one belief update",
         "",
         f"Device {result['device']}, {result['torch_threads']} torch threads, K = {result['num_steps']} "
-        f"iterations for ESCORT and SVGD. Machine float32 matmul: {result['matmul_gflops']:.1f} GFLOP/s. "
+        f"iterations for ESCORT and SVGD. Machine float32 matmul: {result['matmul_gflops']:.1f} GFLOP/s; "
+        "an update's arithmetic bound is its counted matmul flops at that rate (`update_flops`). "
         "Median of repeated runs after a warm-up. Models: Light-Dark 10D at d = 10, a linear-Gaussian "
         "model with obs_dim = d/2 otherwise.",
         "",
         "| d | N | B | ESCORT ms | SVGD ms | SIR ms | ESCORT/SVGD | ESCORT/SIR | ESCORT GFLOP/s | "
-        "ESCORT breakdown (kernel/score/corr/temp, ms) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "ESCORT bound ms | ESCORT × bound | ESCORT's parts (ms) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     rows = result["rows"]
     compiled = any(r["filter"] == "escort_compiled" for r in rows)
@@ -165,19 +181,18 @@ def update_cost_markdown(result: dict) -> str:
     for d, n, b in keys:
         by = {r["filter"]: r for r in rows if (r["d"], r["N"], r["B"]) == (d, n, b)}
         e, s, p = by["escort"], by["svgd"], by["sir"]
-        bd = e["breakdown"]
-        parts = "/".join(f"{1e3 * bd.get(k, 0.0):.0f}" for k in ("kernel", "score", "correlation", "temporal"))
         lines.append(
             f"| {d} | {n} | {b} | {1e3 * e['seconds']:.1f} | {1e3 * s['seconds']:.1f} | {1e3 * p['seconds']:.2f} | "
             f"{e['seconds'] / s['seconds']:.2f} | {e['seconds'] / p['seconds']:.0f} | {e['gflops_per_s']:.2f} | "
-            f"{parts} |"
+            f"{1e3 * e['bound_seconds']:.2f} | {e['seconds'] / e['bound_seconds']:.0f} | {describe_parts(e['breakdown'])} |"
         )
     if compiled:
         lines += ["", "With `compile=True` (each iteration through torch.compile; the first update of a shape "
                   "compiles, and its time is the last column):", "",
                   "| d | N | B | ESCORT ms | SVGD ms | ESCORT/SVGD | speed-up over eager (ESCORT, SVGD) | "
-                  "ESCORT GFLOP/s | first update incl. compile (ESCORT, SVGD, s) |",
-                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+                  "ESCORT GFLOP/s | ESCORT × bound | first update incl. compile (ESCORT, SVGD, s) | "
+                  "ESCORT's parts (ms) |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for d, n, b in keys:
             by = {r["filter"]: r for r in rows if (r["d"], r["N"], r["B"]) == (d, n, b)}
             e, s_, ec, sc = by["escort"], by["svgd"], by["escort_compiled"], by["svgd_compiled"]
@@ -185,13 +200,20 @@ def update_cost_markdown(result: dict) -> str:
                 f"| {d} | {n} | {b} | {1e3 * ec['seconds']:.1f} | {1e3 * sc['seconds']:.1f} | "
                 f"{ec['seconds'] / sc['seconds']:.2f} | {e['seconds'] / ec['seconds']:.1f}×, "
                 f"{s_['seconds'] / sc['seconds']:.1f}× | {ec['gflops_per_s']:.2f} | "
-                f"{ec['first_seconds']:.1f}, {sc['first_seconds']:.1f} |")
+                f"{ec['seconds'] / ec['bound_seconds']:.0f} | {ec['first_seconds']:.1f}, {sc['first_seconds']:.1f} | "
+                f"{describe_parts(ec['breakdown'])} |")
     if result.get("skipped"):
         lines += ["", f"Not run (B·N² > {result['max_pairs']:.0e}): "
                   + ", ".join(f"d={r['d']} N={r['N']} B={r['B']}" for r in result["skipped"])]
     lines += ["", "Fitted exponent of time in d (B = 1): "
               + ", ".join(f"{k} {v:.2f}" for k, v in result["exponents"].items()), ""]
     return "\n".join(lines)
+
+
+def describe_parts(parts: dict[str, float]) -> str:
+    """An update's parts (:mod:`escort_rl.belief.timing`), largest first, in ms: ``"iterations 41.2,
+    projections 5.9, ..."``."""
+    return ", ".join(f"{name} {1e3 * sec:.1f}" for name, sec in sorted(parts.items(), key=lambda kv: -kv[1]))
 
 
 def register(subparsers) -> None:

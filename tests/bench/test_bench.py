@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from escort_rl.bench.cost import fit_exponent, svgd_flops
+from escort_rl.bench.cost import arithmetic_bound_seconds, fit_exponent, update_flops
 from escort_rl.cli import main
 
 
@@ -15,9 +15,13 @@ def test_fit_exponent_recovers_a_power_law():
     assert abs(fit_exponent(ds, [3.0 * d**1.7 for d in ds]) - 1.7) < 1e-9
 
 
-def test_svgd_flops_formula():
-    assert svgd_flops(100, 10, 50, 1, corr=False) == 50 * 6 * 100 * 100 * 10
-    assert svgd_flops(100, 10, 50, 2, corr=True) == 2 * 50 * (6 * 100 * 100 * 10 + 2 * 100 * 10 * 10)
+def test_update_flops_formula():
+    assert update_flops(100, 10, 50, 1, corr=False, prior=False) == 50 * 6 * 100 * 100 * 10
+    assert update_flops(100, 10, 50, 2, corr=True, prior=False) == 2 * 50 * (6 * 100 * 100 * 10 + 2 * 100 * 10 * 10)
+    prior = 4 * 100 * 100 * 10 + 2 * 100 * 10 * 10
+    assert update_flops(100, 10, 50, 1, corr=False) == 50 * (6 * 100 * 100 * 10 + prior)
+    # 1 GFLOP at 200 GFLOP/s: 5 ms
+    assert arithmetic_bound_seconds(1e9, 200.0) == 0.005
 
 
 def test_bench_cost_quick(tmp_path, capsys):
