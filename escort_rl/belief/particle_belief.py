@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -25,8 +26,7 @@ class ParticleBelief:
     def uniform(cls, particles: Tensor) -> ParticleBelief:
         """Equal weights for ``particles`` ``[*B, N, d]``."""
         n = particles.shape[-2]
-        log_w = torch.full(particles.shape[:-1], -torch.log(torch.tensor(float(n))).item(),
-                           dtype=particles.dtype, device=particles.device)
+        log_w = torch.full(particles.shape[:-1], -math.log(n), dtype=particles.dtype, device=particles.device)
         return cls(particles, log_w)
 
     @property

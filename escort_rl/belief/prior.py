@@ -87,7 +87,11 @@ class SmoothedPrior:
             means = a * means + (1.0 - a) * centre
         cov = cov + ridge * torch.eye(d, dtype=means.dtype, device=means.device)
         self.scale_tril = robust_cholesky(cov)  # [*B, d, d]
-        self.precision = torch.cholesky_inverse(self.scale_tril)  # [*B, d, d], symmetric
+        # P = L⁻ᵀ L⁻¹ by a triangular solve (cholesky_inverse checks its input on the host: a sync)
+        inv_tril = torch.linalg.solve_triangular(
+            self.scale_tril, torch.eye(d, dtype=means.dtype, device=means.device).expand_as(self.scale_tril),
+            upper=False)
+        self.precision = inv_tril.transpose(-1, -2) @ inv_tril  # [*B, d, d], symmetric
         self.means = means
         self.means_p = means @ self.precision  # μ_j P  [*B, N, d]
         if log_weights is None:

@@ -184,7 +184,8 @@ def update_cost_markdown(result: dict) -> str:
         lines.append(
             f"| {d} | {n} | {b} | {1e3 * e['seconds']:.1f} | {1e3 * s['seconds']:.1f} | {1e3 * p['seconds']:.2f} | "
             f"{e['seconds'] / s['seconds']:.2f} | {e['seconds'] / p['seconds']:.0f} | {e['gflops_per_s']:.2f} | "
-            f"{1e3 * e['bound_seconds']:.2f} | {e['seconds'] / e['bound_seconds']:.0f} | {describe_parts(e['breakdown'])} |"
+            f"{1e3 * e['bound_seconds']:.2f} | {e['seconds'] / e['bound_seconds']:.0f} | "
+            f"{describe_parts(e['breakdown'])} |"
         )
     if compiled:
         lines += ["", "With `compile=True` (each iteration through torch.compile; the first update of a shape "

@@ -35,7 +35,6 @@ run (:func:`~escort_rl.bench.cost.matmul_gflops`), and the ratio of the two.
 
 from __future__ import annotations
 
-import statistics
 import time
 from collections import defaultdict
 
@@ -220,8 +219,9 @@ QUICK = dict(num_envs=4, steps=3, warmup=2)
 def register(subparsers) -> None:
     """Add ``bench profile`` to the ``bench`` subparsers."""
     prof = subparsers.add_parser("profile", help="where a belief update's time goes, inside a training rollout",
-                                 description="Profiles the belief updates of a training rollout (filter=escort_train on "
-                                 "Light-Dark 10D unless overridden; DeepSets policy) with torch.profiler: the "
+                                 description="Profiles the belief updates of a training rollout "
+                                 "(filter=escort_train on Light-Dark 10D unless overridden; DeepSets policy) with "
+                                 "torch.profiler: the "
                                  "filter's parts, matmuls against fused kernels, sorts, guards, host syncs, "
                                  "recompiles and Python overhead, beside the update's arithmetic bound.")
     options.add_overrides_argument(prof, "Hydra overrides of the training config, e.g. filter=svgd num_particles=200")
