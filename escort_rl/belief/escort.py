@@ -30,8 +30,9 @@ from escort_rl.belief.checks import (
     OFF,
     FiniteGuard,
 )
+from escort_rl.belief.compiling import CompiledFunctions, unaliased
 from escort_rl.belief.denormals import flush_denormals
-from escort_rl.belief.evolution import belief_moments, evolution_step, jittered, moment_change
+from escort_rl.belief.evolution import AdaptiveStop, IterationScalars, evolution_step, jittered
 from escort_rl.belief.importance import tempered_log_weights
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists
 from escort_rl.belief.particle_belief import ParticleBelief
@@ -60,7 +61,7 @@ from escort_rl.belief.scores import (
 from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.protocol import action_shape, per_particle
 
-COMPILE_CACHE_ENTRIES = 64  # compiled variants kept per function (see ESCORTFilter._compiled)
+
 @dataclass(frozen=True)
 class SVGDParams:
     """:class:`SVGDFilter`'s parameters, shared by :class:`ESCORTParams`.
@@ -208,7 +209,7 @@ class ESCORTFilter(HasParams, BeliefFilter):
                           "of weight w_k > 1/(2 lambda_corr) reverses SVGD's velocity along it and the particles can "
                           "diverge (docs/DESIGN.md, the correlation term's fixed points); keep lambda_corr < 0.5",
                           stacklevel=2)
-        self._compiled_fns: dict[str, Callable] = {}
+        self._compiled = CompiledFunctions(self.compile)
         self._iterations_used = [0.0, 0]  # Σ over updated beliefs of the iterations they ran, and their count
 
     def mean_iterations(self) -> float:
@@ -220,10 +221,6 @@ class ESCORTFilter(HasParams, BeliefFilter):
     def _record_iterations(self, used: Tensor | int, beliefs: int) -> None:
         total = float(used.sum()) if isinstance(used, Tensor) else float(used) * beliefs
         self._iterations_used = [self._iterations_used[0] + total, self._iterations_used[1] + beliefs]
-
-    def __getstate__(self) -> dict:
-        # compiled functions do not pickle (filters travel to ParallelEnv/collector workers)
-        return {**self.__dict__, "_compiled_fns": {}}
 
     def __repr__(self) -> str:
         keys = ("num_steps", "step_size", "repulsion", "lambda_corr", "lambda_temp", "n_proj", "projection",
@@ -282,26 +279,16 @@ class ESCORTFilter(HasParams, BeliefFilter):
                                  "wherever the particles move")
 
     # ------------------------------------------------------------------ evolution
-    def _compiled(self, fn: Callable) -> Callable:
-        """``fn`` itself, or ``torch.compile(fn)`` (once per filter) when ``compile=True``."""
-        if not self.compile:
-            return fn
-        if fn.__name__ not in self._compiled_fns:
-            # Dynamo keeps one cache per function, shared by every filter: each model, shape and
-            # variant (F_corr/F_temp on or off) is an entry. Past the default limit of 8 it would
-            # silently run eager, so allow more.
-            torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, COMPILE_CACHE_ENTRIES)
-            self._compiled_fns[fn.__name__] = torch.compile(fn, dynamic=False)
-        return self._compiled_fns[fn.__name__]
-
-    def iteration_scalars(self, k: int, k_total: int, dtype=None, device=None) -> Tensor:
-        """``[ε_k, α_k, λ_temp,k]`` of iteration ``k`` of ``k_total``, then ``(γ_k, b_k)`` of
-        :meth:`schedule` when a schedule is on: ``[3]`` or ``[5]``. They travel as one tensor, so a
-        compiled step is not re-specialised per iteration."""
+    def iteration_scalars(self, k: int, k_total: int, like: Tensor) -> IterationScalars:
+        """The numbers of iteration ``k`` of ``k_total`` (:class:`~escort_rl.belief.evolution.IterationScalars`):
+        ``ε_k``, ``α_k``, ``λ_temp,k`` and the schedule ``(γ_k, b_k)`` of :meth:`schedule`, as one
+        tensor of ``like``'s dtype and device."""
         lam_temp = self.lambda_temp * (1.0 - k / k_total) if self.temp_schedule == "anneal" else self.lambda_temp
         scheduled = self.anneal_cycles > 0 or self.bandwidth_start != 1.0
-        return torch.tensor([self.step_size / (1.0 + self.step_decay * k), 0.0 if k == 0 else self.adagrad_alpha,
-                             lam_temp, *(self.schedule(k, k_total) if scheduled else ())], dtype=dtype, device=device)
+        values = torch.tensor([self.step_size / (1.0 + self.step_decay * k), 0.0 if k == 0 else self.adagrad_alpha,
+                               lam_temp, *(self.schedule(k, k_total) if scheduled else (1.0, 1.0))],
+                              dtype=like.dtype, device=like.device)
+        return IterationScalars(values, scheduled)
 
     def _rank_fn(self, n: int) -> Callable[[Tensor], Tensor] | None:
         """The rank permutation the once-per-update ascents order projections of ``n`` points with: a
@@ -359,31 +346,23 @@ class ESCORTFilter(HasParams, BeliefFilter):
         :mod:`escort_rl.belief.timing`).
         """
         k_total = self.num_steps if num_steps is None else num_steps
-        d = x.shape[-1]
-        use_corr = self.lambda_corr > 0 and target_samples is not None
-        use_temp = self.lambda_temp > 0 and reference is not None
-        repulsion = self.repulsion_scale(d)
         timer = self.part_timer(x.device)
         step = self._compiled(evolution_step)
-        if self.compile and target_samples is x:
-            target_samples = x.clone()  # a compiled function is specialised on argument aliasing
-        fused = self.compile
-        proj = temporal = None
+        fused = self.compile  # a compiled iteration is one graph: timed whole, its parts not separable
+        use_corr = self.lambda_corr > 0 and target_samples is not None
         if use_corr and self.projection == "learned":
             # the target samples' self-normalised weights, tempered where their ESS is below the floor
             target_log_weights, beta, ess = tempered_log_weights(target_log_weights.detach(), self.ess_floor)
             self._record_importance(ess / target_log_weights.shape[-1], beta)
-        full = dict(dtype=x.dtype, device=x.device)
+        if self.compile:
+            target_samples = unaliased(x, target_samples)
         with torch.no_grad():
-            if use_temp:
+            temporal = None
+            if self.lambda_temp > 0 and reference is not None:
                 with timer("temporal_reference"):
                     temporal = self._temporal_reference(x, reference, generator)
-            hist = torch.zeros_like(x)
-            counts = None
-            stop = self.stop_tolerance > 0
-            active = torch.ones(x.shape[:-2], **full) if stop else None  # [*B]: 1 while a belief moves
-            used = torch.zeros(x.shape[:-2], **full) if stop else None
-            anchor = belief_moments(x) if stop else None
+            hist, proj, counts = torch.zeros_like(x), None, None
+            stop = AdaptiveStop(x, self.stop_tolerance, self.stop_window)
             for k in range(k_total):
                 if k % self.bandwidth_every == 0:
                     with timer("bandwidth"):
@@ -391,23 +370,17 @@ class ESCORTFilter(HasParams, BeliefFilter):
                 if use_corr and (proj is None or (self.projection == "learned" and k % self.projection_every == 0)):
                     with timer("projections"):
                         proj = self._correlation_projector(x, target_samples, target_log_weights, generator, k_total)
-                scalars = self.iteration_scalars(k, k_total, **full)
                 with timer("iterations" if fused else None):
-                    x, hist, bad = step(x, hist, score_fn, bandwidth, scalars, repulsion=repulsion, proj=proj,
-                                        lambda_corr=self.lambda_corr, corr_form=self.corr_form, temporal=temporal,
-                                        temp_clip=self.temp_clip, timer=None if fused else timer, active=active)
-                if bad is not None:
-                    counts = bad if counts is None else torch.maximum(counts, bad)
-                if stop:
-                    used = used + active
-                    if (k + 1) % self.stop_window == 0 and k + 1 < k_total:
-                        moments = belief_moments(x)
-                        active = active * (moment_change(anchor, moments) >= self.stop_tolerance)
-                        anchor = moments
-                        if not bool(active.any()):  # the one host sync per window
-                            break
-        beliefs = math.prod(x.shape[:-2])
-        self._record_iterations(used if stop else k_total, beliefs)
+                    x, hist, flagged = step(x, hist, score_fn, bandwidth, self.iteration_scalars(k, k_total, x),
+                                            repulsion=self.repulsion_scale(x.shape[-1]), proj=proj,
+                                            lambda_corr=self.lambda_corr, corr_form=self.corr_form,
+                                            temporal=temporal, temp_clip=self.temp_clip,
+                                            timer=None if fused else timer, active=stop.active)
+                if flagged is not None:
+                    counts = flagged if counts is None else torch.maximum(counts, flagged)
+                if stop.after(k, k_total, x):
+                    break
+        self._record_iterations(stop.iterations(k_total), math.prod(x.shape[:-2]))
         return x, counts
 
     # ------------------------------------------------------------------ filter interface
