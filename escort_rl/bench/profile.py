@@ -127,13 +127,17 @@ def profile_rollout(cfg: DictConfig, num_envs: int, steps: int, warmup: int) -> 
     belief = env.transform  # make_env's BeliefTransform (no action repeat here)
     filt = belief.filter
     _, policy = build_policy(cfg, build_model(cfg.env, cfg.device))
+    policy = policy.to(cfg.device)
     _rollout(env, policy, warmup)  # compiles
     t0 = time.perf_counter()
     with filt.timed_parts() as parts:
         _rollout(env, policy, steps)
     step_seconds = (time.perf_counter() - t0) / steps
     frames_compiled = sum(dynamo_utils.counters["frames"].values())
-    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if torch.device(cfg.device).type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    with torch.profiler.profile(activities=activities) as prof:
         _rollout(env, policy, steps)
     compiled_during = sum(dynamo_utils.counters["frames"].values()) - frames_compiled
     update_scope = f"filter::{type(filt).__name__}.update"
@@ -141,7 +145,7 @@ def profile_rollout(cfg: DictConfig, num_envs: int, steps: int, warmup: int) -> 
     split = split_update_events(roots)
     params = getattr(filt, "params", None)
     d, n = int(belief.model.state_dim), int(cfg.num_particles)
-    machine = matmul_gflops()
+    machine = matmul_gflops(device=str(cfg.device))
     flops = bound = None
     if params is not None and hasattr(params, "num_steps"):
         flops = update_flops(n, d, params.num_steps, num_envs, corr=getattr(params, "lambda_corr", 0) > 0,
@@ -150,7 +154,8 @@ def profile_rollout(cfg: DictConfig, num_envs: int, steps: int, warmup: int) -> 
     update_seconds = sum(parts.values()) / steps
     env.close()
     return {
-        "filter": str(cfg.filter.name), "env": str(cfg.env.name), "B": num_envs, "N": n, "d": d,
+        "filter": str(cfg.filter.name), "env": str(cfg.env.name), "device": str(cfg.device),
+        "B": num_envs, "N": n, "d": d,
         "steps": steps, "torch_threads": torch.get_num_threads(), "matmul_gflops": machine,
         "step_seconds": step_seconds, "update_seconds": update_seconds,
         "parts_seconds": {k: v / steps for k, v in sorted(parts.items(), key=lambda kv: -kv[1])},
@@ -172,8 +177,11 @@ def profile_markdown(r: dict) -> str:
         "# Where a belief update's time goes, inside a training rollout",
         "",
         f"`filter={r['filter']}` on `env={r['env']}`: B = {r['B']} envs, N = {r['N']} particles, d = {r['d']}, "
-        f"the DeepSets policy sampling actions; {r['steps']} env steps timed after the compile, "
-        f"{r['torch_threads']} torch threads. Machine float32 matmul: {r['matmul_gflops']:.1f} GFLOP/s.",
+        f"the DeepSets policy sampling actions; {r['steps']} env steps timed after the compile, on "
+        f"{r.get('device', 'cpu')}, {r['torch_threads']} torch threads. Machine float32 matmul: "
+        f"{r['matmul_gflops']:.1f} GFLOP/s." + (" On a GPU the parts are timed with the device synchronised at "
+        "their ends, and the profiled split below is the host's time (launches and Python), not the device's."
+        if r.get("device", "cpu").startswith("cuda") else ""),
         "",
         f"- env step: {ms(r['step_seconds'])} ms ({r['B'] / r['step_seconds']:.0f} frames/s), of which the "
         f"belief update {ms(r['update_seconds'])} ms ({100 * r['update_seconds'] / r['step_seconds']:.0f}%).",

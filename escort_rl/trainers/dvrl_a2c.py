@@ -45,6 +45,7 @@ from escort_rl.trainers.algorithm import Algorithm
 from escort_rl.trainers.builders import build_model, build_pomdp_env, input_scaling
 from escort_rl.trainers.checkpointing import load_checkpoint
 from escort_rl.trainers.params import DVRLA2CParams
+from escort_rl.trainers.resume import run_config
 from escort_rl.trainers.scaffold import episode_stats
 from escort_rl.trainers.validation import validate_train_config
 
@@ -208,7 +209,7 @@ def load_dvrl_policy(checkpoint: str | Path) -> tuple[DictConfig, DVRLPolicy]:
     from escort_rl.trainers.checkpointing import resolve_checkpoint
 
     path = resolve_checkpoint(checkpoint)
-    cfg = OmegaConf.create(load_checkpoint(path)["config"])
+    cfg = run_config(load_checkpoint(path))
     policy = build_dvrl_policy(cfg, build_model(cfg.env, cfg.device))
     load_checkpoint(path, actor=policy)
     policy.eval()

@@ -21,6 +21,7 @@ from escort_rl.reporting.paths import display_path
 from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
 from escort_rl.trainers.builders import belief_keys, build_model, build_policy, make_env, trained_action_repeat
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
+from escort_rl.trainers.resume import run_config
 from escort_rl.trainers.training import algorithm
 from escort_rl.transforms import action_repeat_of
 
@@ -225,7 +226,7 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     """
     ckpt_path = resolve_checkpoint(checkpoint)
     meta = load_checkpoint(ckpt_path)  # reads config and history without restoring modules
-    cfg = OmegaConf.create(meta["config"])
+    cfg = run_config(meta)
     model = build_model(cfg.env, cfg.device)
     policy, make, estimates = trained_policy(cfg, ckpt_path)
     episodes = int(episodes if episodes is not None else cfg.evaluate.episodes)

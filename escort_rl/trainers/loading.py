@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
+from escort_rl.trainers.resume import run_config
 
 
 def load_policy(run: str | Path):
@@ -28,5 +27,5 @@ def load_policy(run: str | Path):
     from escort_rl.trainers.evaluate import trained_policy
 
     checkpoint = resolve_checkpoint(run)
-    cfg = OmegaConf.create(load_checkpoint(checkpoint)["config"])
+    cfg = run_config(load_checkpoint(checkpoint))
     return trained_policy(cfg, checkpoint)[0]

@@ -77,6 +77,7 @@ def train_config(overrides: list[str]) -> tuple[DictConfig, dict | None]:
     cfg = recompose(saved["config"], rest)
     if not any(_override_key(o) == "output_dir" for o in rest):
         _write_into(cfg, run_dir)  # the run may have been moved or copied: write into it, not the original
+    follow_saved_model(cfg, run_dir)
     check_output_dir(cfg.output_dir, run_dir)
     cfg.resume = saved["path"]
     drift = saved_config_drift(saved["config"])
@@ -103,6 +104,35 @@ def _write_into(cfg: DictConfig, run_dir: Path) -> None:
         new = f"output_dir={quoted_override(str(run_dir))}"
         out = [new if _override_key(o) == "output_dir" else o for o in cfg.overrides]
         cfg.overrides = out if new in out else [*out, new]
+
+
+SAVED_MODEL = "escort_rl.models.saved.load_saved_model"
+"""``env.model._target_`` of a run trained with a model object (``model.pt`` in its run directory)."""
+
+
+def follow_saved_model(cfg: DictConfig, run_dir: str | Path) -> None:
+    """Point a saved model's ``env.model.path`` (and its recorded override) at ``<run_dir>/model.pt``.
+    A model object is saved in its run directory, so a moved or copied run reads its own copy; its
+    SHA-256 must still match the one recorded. Nothing happens for any other model."""
+    env = cfg.get("env")
+    model = env.get("model") if env is not None else None
+    if model is None or model.get("_target_") != SAVED_MODEL:
+        return
+    path = str(Path(run_dir).resolve() / "model.pt")
+    if model.get("path") == path:
+        return
+    model.path = path
+    if cfg.get("overrides") is not None:
+        cfg.overrides = [f"+env.model.path={quoted_override(path)}" if o.startswith("+env.model.path=") else o
+                         for o in cfg.overrides]
+
+
+def run_config(meta: dict) -> DictConfig:
+    """The config of the run a checkpoint belongs to, from :func:`load_checkpoint`'s result, with the
+    run's own files read from where the run is now (:func:`follow_saved_model`)."""
+    cfg = OmegaConf.create(meta["config"])
+    follow_saved_model(cfg, run_dir_of(meta["path"]))
+    return cfg
 
 
 def quoted_override(value: str) -> str:

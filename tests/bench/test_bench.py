@@ -311,3 +311,18 @@ def test_bench_ablation_pairs_rows_across_runs(tmp_path):
     from escort_rl.bench.ablation import parse_run
 
     assert parse_run("x=1=dir/y:svgd") == ("x=1", "dir/y", "svgd") and parse_run("dir")[2] == "escort"
+
+
+def test_bench_profile_quick(tmp_path):
+    """``bench profile --quick``: the update's parts inside a rollout, the profiled split and the bound."""
+    assert main(["bench", "profile", "--quick", "--output", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "profile.json").read_text())
+    assert result["filter"] == "escort_train" and result["B"] == 4
+    assert {"iterations", "predict", "checks"} <= set(result["parts_seconds"])
+    assert 0 < result["update_seconds"] < result["step_seconds"]
+    assert result["profiled_update_seconds"] > 0  # the filter::<class>.update scopes were found
+    assert abs(sum(result["profiled_categories_seconds"].values()) - result["profiled_update_seconds"]) < 1e-6
+    assert result["host_syncs_per_update"] >= 1  # at least the finiteness guard's
+    assert result["graphs_compiled_while_profiling"] == 0  # no recompiles after the warm-up
+    assert result["bound_seconds"] > 0
+    assert "its bound" in (tmp_path / "profile.md").read_text()

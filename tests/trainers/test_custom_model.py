@@ -71,6 +71,23 @@ def test_a_model_object_trains_and_is_rebuilt_from_its_run(tmp_path):
         build_model(saved.env)
 
 
+def test_a_run_with_a_model_object_moves_with_its_folder(tmp_path):
+    """The run reads its own model.pt where the run is now: moved, it loads, evaluates and resumes."""
+    import shutil
+
+    first = tmp_path / "first"
+    escort_rl.train(tiny_overrides(*TINY_PPO, f"output_dir={first}"), model=LinearGaussian(state_dim=3, obs_std=0.3),
+                    progress=False)
+    moved = tmp_path / "moved"
+    shutil.move(first, moved)
+    assert not first.exists()
+    policy = escort_rl.load_policy(moved)
+    assert policy(policy_input(LinearGaussian(state_dim=3)))["action"].shape == (5,)
+    assert escort_rl.evaluate(moved, episodes=2)["trained"]["episode_return"] is not None
+    resumed = escort_rl.train([f"resume={moved}", "trainer.iterations=3"], progress=False)
+    assert resumed == moved and not first.exists()
+
+
 def policy_input(model):
     from tensordict import TensorDict
 
