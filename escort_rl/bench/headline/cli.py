@@ -28,8 +28,9 @@ def register(subparsers) -> None:
                    help="the scripted controller's velocity gains searched (default: "
                    f"{' '.join(f'{g:g}' for g in full.gains)})")
     p.add_argument("--rows", choices=sorted(ROW_SETS), default="headline",
-                   help="the trained rows: headline (the default job and PPO on SIR beliefs) or ablation (the "
-                   "learner's changes one at a time)")
+                   help="the trained rows: headline (the default job and PPO on SIR beliefs), ablation (the "
+                   "learner's changes one at a time) or starts (the default job with half its training starts "
+                   "in the evaluation's box)")
     options.add_quick_option(p, f"{quick.seeds} seeds of a 2-iteration job, {quick.episodes} episodes of 20 steps")
     options.add_output_option(p, DEFAULT_OUTPUT, "headline.md, headline.json, headline.png, cells/ and runs/")
     options.add_runner_options(p, seeds_per_cell=False)

@@ -30,7 +30,15 @@ shift) and on the default job (SIR warm start, then ESCORT). PPO on SIR beliefs 
 throughout (no warm start), the default job 4 in its warm start: the second default-job row removes that
 difference."""
 
-ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS}
+START_ROWS = (
+    ("default job (as shipped)", ()),
+    ("default job, half the training starts in the evaluation's box", ("env.exploring_starts.paper_start_share=0.5",)),
+)
+"""``--rows starts``: the default job's exploring starts (uniform in ``[0, 10]^5``, on average half as far
+from the goal as the evaluation's ``[0, 2]^5``) against the same with half the training episodes
+starting in the evaluation's box."""
+
+ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS, "starts": START_ROWS}
 """The trained rows ``--rows`` picks by name."""
 
 SCRIPTED_FILTERS = ("escort_train", "sir_rough")
