@@ -3,14 +3,22 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN     = $(VENV)/bin
 
-.PHONY: setup run test clean
+.PHONY: setup setup-test run test clean
 
-setup: $(VENV)/.installed
+# The core (what the main job needs), and on top of it what the tests need: each command installs
+# only what it uses.
+setup: $(VENV)/.installed-core
 
-$(VENV)/.installed: pyproject.toml
+setup-test: $(VENV)/.installed-test
+
+$(VENV)/.installed-core: pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "Python >= 3.11 is required (set PYTHON=...)")'
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e .
+	touch $@
+
+$(VENV)/.installed-test: $(VENV)/.installed-core
 	$(BIN)/python -m pip install -q -e ".[dev,atari,minatar,popgym,ray,wandb]"
 	touch $@
 
@@ -19,7 +27,7 @@ $(VENV)/.installed: pyproject.toml
 run: setup
 	$(BIN)/escort-rl run $(ARGS)
 
-test: setup
+test: setup-test
 	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
 
 clean:
