@@ -27,17 +27,30 @@ def plot_learning_curve(history: list[dict], path: Path) -> Path:
     return path
 
 
+def snapshot_steps(length: int, snapshots: int) -> list[int]:
+    """``snapshots`` evenly spaced steps of an episode of ``length`` steps, its first and its last
+    among them (every step of a shorter episode).
+
+    Example:
+        >>> snapshot_steps(500, 5), snapshot_steps(3, 8)
+        ([0, 125, 250, 374, 499], [0, 1, 2])
+    """
+    last = length - 1
+    return sorted({round(k * last / max(snapshots - 1, 1)) for k in range(snapshots)})
+
+
 def plot_belief_projection(particles: torch.Tensor, true_positions: torch.Tensor, path: Path,
-                           dims: tuple[int, int] = (0, 1), every: int = 50,
+                           dims: tuple[int, int] = (0, 1), snapshots: int = 8,
                            position_error: torch.Tensor | None = None) -> Path:
-    """Belief particles against the true state over one episode, projected on two position dims.
+    """Belief particles against the true state over one episode, projected on two position dims:
+    ``snapshots`` evenly spaced steps from the first to the last (every step of a shorter episode).
 
     ``particles``: ``[T, N, d]``, ``true_positions``: ``[T, p]``, ``position_error``: ``[T]``.
     """
     ncols = 2 if position_error is not None else 1
     fig, axes = plt.subplots(1, ncols, figsize=(5.5 * ncols, 4.5), squeeze=False)
     ax = axes[0, 0]
-    steps = list(range(0, particles.shape[0], every))
+    steps = snapshot_steps(particles.shape[0], snapshots)
     cmap = plt.get_cmap("viridis")
     for k, t in enumerate(steps):
         color = cmap(k / max(len(steps) - 1, 1))

@@ -272,8 +272,11 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
         plot_learning_curve(history, out / "learning_curve.png")
     pos = (list(position_dims(model)) + list(velocity_dims(model)) + list(range(model.state_dim)))[:2]
     if "particles" in trained["next"].keys() and "true_state" in trained["next"].keys() and len(set(pos)) == 2:
-        plot_belief_projection(trained["next", "particles"][0][..., pos], trained["next", "true_state"][0, :, pos],
-                               out / "belief_projection.png",
+        # the first episode alone: after it ends the env resets and the next one starts elsewhere
+        done = trained["next", "done"][0].reshape(-1)
+        length = int(done.float().argmax()) + 1 if bool(done.any()) else done.numel()
+        plot_belief_projection(trained["next", "particles"][0, :length][..., pos],
+                               trained["next", "true_state"][0, :length, pos], out / "belief_projection.png",
                                position_error=trained_error)
     (out / "summary.md").write_text(_markdown(result))
     return result

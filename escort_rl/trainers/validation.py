@@ -34,8 +34,8 @@ def validate_train_config(cfg: DictConfig) -> None:
     check_exploring_starts(cfg, "simulator")
     check_popgym_task(cfg)
     if cfg.logger.backend == "tensorboard" and importlib.util.find_spec("tensorboard") is None:
-        raise ConfigError("logger.backend: 'tensorboard' needs the tensorboard package (pip install escort-rl[tensorboard]); "
-                          "or use logger.backend=csv")
+        raise ConfigError("logger.backend: 'tensorboard' needs the tensorboard package "
+                          "(pip install escort-rl[tensorboard]); or use logger.backend=csv")
     if cfg.logger.backend == "wandb" and importlib.util.find_spec("wandb") is None:
         raise ConfigError("logger.backend: 'wandb' needs the wandb package (pip install escort-rl[wandb]); "
                           "or use logger.backend=csv")
