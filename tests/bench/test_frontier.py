@@ -78,8 +78,24 @@ def test_bench_frontier_on_the_linear_gaussian_family(tmp_path):
     assert result["reference"] == "exact" and result["state_dim"] == 3
     assert {r["method"] for r in result["rows"]} == {"sir", "enkf", "svgd", "escort"}
     assert result["front"] and all(r["ms_per_update"] > 0 for r in result["rows"])
-    assert (out / "frontier.png").exists() and "per update, use" in (out / "frontier.md").read_text()
+    text = (out / "frontier.md").read_text()
+    assert (out / "frontier.png").exists() and "per update, use" in text
+    # the advice ends with the command that trains on the filter it names, and that command composes
+    command = text.split("Train on it: `")[1].split("`")[0]
+    assert command.startswith("escort-rl train env=linear_gaussian env.model.state_dim=3 env.model.obs_std=0.2 filter=")
+    from escort_rl.config import compose
+
+    cfg = compose(command.split()[2:])
+    assert cfg.env.model.state_dim == 3 and cfg.filter.name in {"sir", "enkf", "svgd", "escort"}
     assert main(argv) == 0  # a rerun loads every cell
+
+
+def test_a_degenerate_reference_gives_no_advice():
+    from escort_rl.bench.frontier.report import advice
+
+    result = {"reference_ess": {"median": 1.0, "min": 1.0, "fraction": 0.0005}, "budgets": [], "rows": [],
+              "metric": "w1"}
+    assert advice(result).startswith("No advice: the reference (an SIR filter) kept a median ESS of 1 particles")
 
 
 def test_a_variant_is_a_row_of_its_own_and_leaves_the_filters_cells_alone(tmp_path, capsys):

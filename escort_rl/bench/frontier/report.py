@@ -3,25 +3,62 @@ one line of advice."""
 
 from __future__ import annotations
 
+from escort_rl.bench.frontier.cells import ITERATIVE
 from escort_rl.bench.frontier.run import label
 from escort_rl.reporting.stats import format_importance, format_mean_se, mean_se
 
 METRIC_NAMES = {"w1": "sliced W1", "mean": "‖mean − mean_ref‖₂", "cov": "‖cov − cov_ref‖_F", "mmd2": "MMD²"}
 
 
+def train_command(result: dict, row: dict) -> str:
+    """The ``escort-rl train`` command that trains on ``row``'s filter and settings on the frontier's
+    model: ``env=NAME`` with its overrides for a package env, ``env=custom`` with the class and its
+    keyword arguments for one's own.
+
+    Example:
+        >>> train_command({"model": "class:my_pkg.models:Ring", "model_args": ["n=4"], "compile": False},
+        ...               {"base": "escort", "settings": ["lambda_corr=0.3"], "particles": 100, "num_steps": 15})
+        ... # doctest: +NORMALIZE_WHITESPACE
+        'escort-rl train env=custom env.model._target_=my_pkg.models.Ring +env.model.n=4
+         filter=escort num_particles=100 filter.num_steps=15 filter.lambda_corr=0.3'
+    """
+    kind, _, name = result["model"].partition(":")
+    if kind == "env":
+        model = [f"env={name}", *(f"env.{arg}" for arg in result["model_args"])]  # stored relative to env
+    else:
+        model = ["env=custom", f"env.model._target_={name.replace(':', '.')}",
+                 *(f"+env.model.{arg}" for arg in result["model_args"])]
+    base = row["base"] if "base" in row else row["method"]
+    filt = [f"filter={base}", f"num_particles={row['particles']}"]
+    if base in ITERATIVE:
+        filt.append(f"filter.num_steps={row['num_steps']}")
+        if result.get("compile"):
+            filt.append("filter.compile=true")
+    filt += [f"filter.{setting}" for setting in row.get("settings", [])]
+    return " ".join(["escort-rl train", *model, *filt])
+
+
 def advice(result: dict, budget_ms: float = 10.0) -> str:
-    """"At 10 ms per update, use …": the closest filter within the budget, or the cheapest row."""
+    """"At 10 ms per update, use …; train on it with `escort-rl train ...`": the closest filter within
+    the budget, or the cheapest row. A SIR reference whose ESS is below 1% of its particles cannot
+    rank filters: then the advice says so and how to get one that can."""
+    ess = result.get("reference_ess")
+    if ess and ess["fraction"] < 0.01:
+        return (f"No advice: the reference (an SIR filter) kept a median ESS of {ess['median']:.0f} particles, too few "
+                "to rank the filters; rerun with more --reference-particles, or on a model with fewer steps.")
     fits = [b for b in result["budgets"] if b["ms"] <= budget_ms and b["best"] is not None]
+    rows = [r for r in result["rows"] if r["error"] == r["error"]]
     if fits:
         best = fits[-1]
+        row = next((r for r in rows if label(r) == best["best"]), None)
+        command = "" if row is None else f" Train on it: `{train_command(result, row)}`"
         return (f"At {budget_ms:g} ms per update, use {best['best']} ({METRIC_NAMES[result['metric']]} "
-                f"{best['error']:.3g} to the reference).")
-    rows = [r for r in result["rows"] if r["error"] == r["error"]]
+                f"{best['error']:.3g} to the reference).{command}")
     if not rows:
         return "No filter kept a finite belief."
     cheapest = min(rows, key=lambda r: r["ms_per_update"])
     return (f"No filter fits {budget_ms:g} ms per update here; the cheapest is {label(cheapest)} at "
-            f"{cheapest['ms_per_update']:.3g} ms.")
+            f"{cheapest['ms_per_update']:.3g} ms: `{train_command(result, cheapest)}`.")
 
 
 def paired_lines(result: dict, a: str = "escort", b: str = "svgd") -> list[str]:
