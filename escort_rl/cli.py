@@ -210,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     _quiet_compiler_notices()
     from escort_rl.bench.methods import check_at_least_one
     from escort_rl.config import ConfigError
+    from escort_rl.config.errors import MissingExtra
     from escort_rl.trainers.checkpointing import CheckpointLoadError
     from escort_rl.trainers.scaffold import CollectorWorkerDied
 
@@ -265,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
             _ = result
             print((out / "summary.md").read_text())
             print(f"results: {out.resolve()}")
-    except (ConfigError, CheckpointLoadError, CollectorWorkerDied, FloatingPointError) as err:
+    except (ConfigError, CheckpointLoadError, CollectorWorkerDied, FloatingPointError, MissingExtra) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as err:  # Ctrl-C: one line, no traceback, the shell's exit status for SIGINT

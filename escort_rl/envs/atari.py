@@ -28,6 +28,7 @@ import gymnasium as gym
 import numpy as np
 
 from escort_rl.config import ConfigError
+from escort_rl.config.errors import MissingExtra
 
 # short name -> (ALE game id, gymnasium id)
 GAMES = {
@@ -55,7 +56,7 @@ def _import_ale():
     try:
         import ale_py
     except ImportError:
-        raise ImportError(MISSING_ALE) from None
+        raise MissingExtra(MISSING_ALE) from None
     return ale_py
 
 

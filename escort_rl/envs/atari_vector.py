@@ -49,6 +49,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from escort_rl.config import ConfigError
+from escort_rl.config.errors import MissingExtra
 from escort_rl.envs.atari import (
     FLICKER_STREAM,
     FRAME_SIZE,
@@ -68,7 +69,7 @@ def _import_vector_env():
     try:
         from ale_py.vector_env import AtariVectorEnv
     except ImportError:
-        raise ImportError(MISSING_ALE) from None
+        raise MissingExtra(MISSING_ALE) from None
     return AtariVectorEnv
 
 

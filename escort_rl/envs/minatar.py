@@ -25,6 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from escort_rl.config import ConfigError
+from escort_rl.config.errors import MissingExtra
 from escort_rl.envs.atari import P_BLANK, Flicker
 
 # short name -> (minatar's game module, gymnasium id)
@@ -55,7 +56,7 @@ def _import_minatar():
     try:
         import minatar
     except ImportError:
-        raise ImportError(MISSING_MINATAR) from None
+        raise MissingExtra(MISSING_MINATAR) from None
     return minatar
 
 

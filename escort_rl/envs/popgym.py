@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import functools
 
+from escort_rl.config.errors import MissingExtra
+
 POPGYM_CONTROL = {
     f"{noisy}PositionOnly{system}{level}": f"popgym-{noisy}PositionOnly{system}{level}-v0"
     for noisy in ("", "Noisy") for system in ("CartPole", "Pendulum") for level in ("Easy", "Medium", "Hard")
@@ -42,7 +44,7 @@ def import_popgym():
     try:
         import popgym
     except ImportError:
-        raise ImportError(MISSING_POPGYM) from None
+        raise MissingExtra(MISSING_POPGYM) from None
     return popgym
 
 

@@ -129,6 +129,15 @@ def test_unknown_game_and_missing_ale_name_the_fix(monkeypatch):
         make_flickering_atari("pong")
 
 
+def test_a_bench_without_its_extra_is_one_line_naming_the_install(monkeypatch, capsys):
+    from escort_rl.cli import main
+
+    monkeypatch.setitem(sys.modules, "ale_py", None)
+    assert main(["bench", "atari", "--quick", "--games", "pong", "--agents", "random"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == "error: Flickering Atari needs the ale-py package: install with pip install escort-rl[atari]"
+
+
 def test_torchrl_env_specs_and_actions():
     env = make_atari_torchrl_env("asteroids", seed=2)
     check_env_specs(env)
