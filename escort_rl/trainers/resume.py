@@ -80,6 +80,10 @@ def train_config(overrides: list[str]) -> tuple[DictConfig, dict | None]:
     follow_saved_model(cfg, run_dir)
     check_output_dir(cfg.output_dir, run_dir)
     cfg.resume = saved["path"]
+    changes = config_changes(saved["config"], cfg)
+    if changes:  # before any weight is loaded: a change that does not fit them is named here first
+        print(f"resuming with {len(changes)} change{'s' if len(changes) > 1 else ''} to the run's config: "
+              + "; ".join(changes), file=sys.stderr)
     drift = saved_config_drift(saved["config"])
     if drift:
         print(f"note: the yaml changed since this run started; resuming with today's values of "
@@ -229,6 +233,30 @@ def saved_config_drift(saved: Mapping) -> list[str]:
         return ["(the saved overrides no longer compose)"]
     before = OmegaConf.to_container(OmegaConf.create(dict(saved)), resolve=True)
     return [k for k in _diff(before, now, "") if k.split(".")[0] not in ("resume", "overrides")]
+
+
+BOOKKEEPING = ("resume", "overrides", "output_dir")
+"""Keys a resume changes by itself: not changes to the run."""
+
+
+def config_changes(saved: Mapping, cfg: DictConfig) -> list[str]:
+    """Every key whose value in ``cfg`` (a resume's config) differs from the run's ``saved`` config, as
+    ``"key: old → new"``, apart from :data:`BOOKKEEPING` and a saved model's path (which follows the run)."""
+    before = OmegaConf.to_container(OmegaConf.create(dict(saved)), resolve=True)
+    after = OmegaConf.to_container(cfg, resolve=True)
+    out = []
+    for key in _diff(before, after, ""):
+        if key.split(".")[0] in BOOKKEEPING or key == "env.model.path":
+            continue
+        old, new = _lookup(before, key), _lookup(after, key)
+        out.append(f"{key}: {old} → {new}")
+    return out
+
+
+def _lookup(tree, key: str):
+    for part in key.split("."):
+        tree = tree.get(part, "<absent>") if isinstance(tree, dict) else "<absent>"
+    return tree
 
 
 def _diff(a, b, path: str) -> list[str]:

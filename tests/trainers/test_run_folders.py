@@ -63,3 +63,21 @@ def test_a_resume_of_a_finished_run_says_so(tmp_path, capsys):
     cfg, state = train_config([f"resume={run}"])
     train(cfg, resume_state=state, progress=False)
     assert "has finished its 1 iterations; nothing to train" in capsys.readouterr().out
+
+
+def test_a_resume_names_every_key_it_changes_before_loading_weights(tmp_path, capsys):
+    from escort_rl.cli import main
+
+    run = tmp_path / "run"
+    train(compose(tiny_overrides("trainer.iterations=1", f"output_dir={run}")), progress=False)
+    capsys.readouterr()
+    train_config([f"resume={run}", "trainer.iterations=2", "trainer.minibatch_size=32"])
+    err = capsys.readouterr().err
+    assert ("resuming with 2 changes to the run's config: trainer.iterations: 1 → 2; "
+            "trainer.minibatch_size: 64 → 32") in err
+    train_config([f"resume={run}"])
+    assert "resuming with" not in capsys.readouterr().err  # nothing changed, nothing said
+    # a change the weights cannot take is named before the checkpoint refuses it
+    assert main(["train", "--quiet", f"resume={run}", "trainer.iterations=2", "actor.hidden=32"]) == 2
+    err = capsys.readouterr().err
+    assert err.index("actor.hidden: 16 → 32") < err.index("error: checkpoint: actor:")
