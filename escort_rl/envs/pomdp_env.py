@@ -20,13 +20,16 @@ from escort_rl.models.protocol import (
 class POMDPEnv(EnvBase):
     """Runs a POMDP model on a batch of environments.
 
-    The true state is held by the env (a stateful env, like a simulator) and written under
-    ``"true_state"`` for evaluation only; policies read the observation or a belief.
+    The true state is held by the env (a stateful env, like a simulator). It is not an observation:
+    only with ``expose_state=True`` (what training and evaluation use, for the asymmetric critic, the
+    metrics and a prior placed around the start) is it written under ``"true_state"``, a key no policy
+    module of this package reads; an env composed without it cannot leak the hidden state to a
+    generic actor that reads every observation.
 
     Keys (``B`` = ``batch_size``):
         - ``"observation"``: ``[*B, obs_dim]``. At reset it is an observation of the start state
           (``model.observe(s_0, a=0)``); after a step, of the next state.
-        - ``"true_state"``: ``[*B, d]``, the hidden state (for evaluation; not for policies).
+        - ``"true_state"``: ``[*B, d]``, the hidden state, with ``expose_state=True`` only.
         - ``"step_count"``: ``[*B, 1]`` int64, steps since the last reset.
         - ``"action"``: ``[*B]`` int64 in ``[0, n_actions)`` (a ``Categorical`` spec); for a model with
           continuous actions, ``[*B, action_dim]`` float32 in ``[action_low, action_high]`` (``Bounded``).
@@ -41,10 +44,11 @@ class POMDPEnv(EnvBase):
         device: where tensors live; defaults to CPU.
         seed: seeds the env's generator (also via :meth:`set_seed`).
         max_steps: episode length before truncation (``None``: never truncate).
+        expose_state: write the hidden state under ``"true_state"`` (default False).
     """
 
     def __init__(self, model, batch_size=(1,), device=None, seed: int | None = None,
-                 max_steps: int | None = None) -> None:
+                 max_steps: int | None = None, expose_state: bool = False) -> None:
         check_model(model, densities=False)  # the env simulates; the filters' densities are not its concern
         given = batch_size
         try:
@@ -60,17 +64,22 @@ class POMDPEnv(EnvBase):
             raise ValueError(f"POMDPEnv.seed: must be an int or None, got {seed!r}")
         device = check_device(device)
         super().__init__(device=device, batch_size=batch_size)
+        if not isinstance(expose_state, bool):
+            raise ValueError(f"POMDPEnv.expose_state: must be True or False, got {expose_state!r}")
         self.model = model
         self.max_steps = max_steps
+        self.expose_state = expose_state
         self.generator = torch.Generator(device=self.device)
         if seed is not None:
             self.generator.manual_seed(seed)
         else:
             self.generator.seed()
         b = tuple(batch_size)
+        state = ({"true_state": Unbounded(shape=(*b, model.state_dim), dtype=torch.float32, device=self.device)}
+                 if expose_state else {})
         self.observation_spec = Composite(
             observation=Unbounded(shape=(*b, model.obs_dim), dtype=torch.float32, device=self.device),
-            true_state=Unbounded(shape=(*b, model.state_dim), dtype=torch.float32, device=self.device),
+            **state,
             step_count=Bounded(low=0, high=torch.iinfo(torch.int64).max, shape=(*b, 1),
                                dtype=torch.int64, device=self.device),
             shape=batch_size,
@@ -115,10 +124,9 @@ class POMDPEnv(EnvBase):
             self._obs[rows] = self.model.observe(s0, a0, self.generator).to(self.device)
             self._steps[rows] = 0
         done = torch.zeros(*self.batch_size, 1, dtype=torch.bool, device=self.device)
-        return TensorDict(
+        out = TensorDict(
             {
                 "observation": self._obs.clone(),
-                "true_state": self._state.clone(),
                 "step_count": self._steps.clone(),
                 "done": done,
                 "terminated": done.clone(),
@@ -127,6 +135,9 @@ class POMDPEnv(EnvBase):
             batch_size=self.batch_size,
             device=self.device,
         )
+        if self.expose_state:
+            out.set("true_state", self._state.clone())
+        return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = check_action(tensordict.get("action"), self.batch_size, self.model)
@@ -141,10 +152,9 @@ class POMDPEnv(EnvBase):
         else:
             truncated = torch.zeros_like(terminated)
         self._state, self._obs = s_next, obs
-        return TensorDict(
+        out = TensorDict(
             {
                 "observation": obs.clone(),
-                "true_state": s_next.clone(),
                 "step_count": self._steps.clone(),
                 "reward": reward.to(torch.float32),
                 "done": terminated | truncated,
@@ -154,6 +164,9 @@ class POMDPEnv(EnvBase):
             batch_size=self.batch_size,
             device=self.device,
         )
+        if self.expose_state:
+            out.set("true_state", s_next.clone())
+        return out
 
 
 def check_device(device) -> torch.device:

@@ -194,7 +194,8 @@ def build_pomdp_env(cfg: DictConfig, num_envs: int, seed: int | None = None, mod
         model = build_model(env_cfg, cfg.device, densities=False)
     elif model is None:
         model = build_model(cfg.env, cfg.device)
-    return POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps)
+    return POMDPEnv(model, batch_size=(num_envs,), device=cfg.device, seed=seed, max_steps=cfg.env.max_steps,
+                    expose_state=True)  # for the state critic, the metrics and a prior around the start
 
 
 def trained_action_repeat(cfg: DictConfig) -> int:

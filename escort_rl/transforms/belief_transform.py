@@ -238,6 +238,10 @@ class BeliefTransform(Transform):
             # the env's start state places the prior only where the model asks for it (exploring
             # starts with model.prior_width); the filter never sees it otherwise
             start = tensordict_reset.get("true_state", None)
+            if start is None and getattr(self.model, "prior_width", None) is not None:
+                raise ValueError("BeliefTransform: the model places its prior around each episode's start "
+                                 f"(prior_width={self.model.prior_width}), but the env writes no 'true_state'; "
+                                 "build the env with POMDPEnv(..., expose_state=True)")
             prior = self.filter.init(self.model, (k,), n, self._get_generator(device),
                                      start_state=None if start is None else start[rows])
             particles[rows] = prior.particles.to(device, torch.float32)

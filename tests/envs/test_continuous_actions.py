@@ -37,7 +37,7 @@ N = 16
 def make_belief_env(env_seed: int, filter_seed: int | None = None, batch: int = 2, num_particles: int = N,
                     max_steps: int | None = 6) -> TransformedEnv:
     model = LightDark10DContinuous()
-    return TransformedEnv(POMDPEnv(model, batch_size=(batch,), seed=env_seed, max_steps=max_steps),
+    return TransformedEnv(POMDPEnv(model, batch_size=(batch,), seed=env_seed, max_steps=max_steps, expose_state=True),
                           BeliefTransform(model, SIRFilter(), num_particles, seed=filter_seed))
 
 
@@ -60,7 +60,7 @@ def tanh_normal_policy(model, hidden: int = 16, seed: int = 0):
 @pytest.mark.parametrize("batch", [(3,), (2, 2)])
 def test_action_spec_is_bounded_and_the_env_passes_check_env_specs(batch):
     model = LightDark10DContinuous()
-    env = POMDPEnv(model, batch_size=batch, seed=0, max_steps=5)
+    env = POMDPEnv(model, batch_size=batch, seed=0, max_steps=5, expose_state=True)
     spec = env.action_spec
     assert isinstance(spec, Bounded)
     assert spec.shape == (*batch, 5) and spec.dtype == torch.float32
@@ -76,7 +76,7 @@ def test_action_spec_is_bounded_and_the_env_passes_check_env_specs(batch):
 
 def test_a_step_follows_the_continuous_dynamics():
     model = LightDark10DContinuous()
-    env = POMDPEnv(model, batch_size=(4,), seed=3)
+    env = POMDPEnv(model, batch_size=(4,), seed=3, expose_state=True)
     td = env.reset()
     s0 = td["true_state"]
     a = torch.tensor([[0.1, -0.1, 0.0, 0.05, -0.02]] * 4)
@@ -105,7 +105,7 @@ def test_a_step_follows_the_continuous_dynamics():
 )
 def test_bad_actions_raise_naming_the_action(action):
     model = LightDark10DContinuous()
-    env = POMDPEnv(model, batch_size=(4,), seed=0)
+    env = POMDPEnv(model, batch_size=(4,), seed=0, expose_state=True)
     td = env.reset()
     state = env.state.clone()
     bad = td.clone()
@@ -150,7 +150,7 @@ FILTERS = {
 @pytest.mark.parametrize("name", list(FILTERS))
 def test_belief_env_with_every_filter_rolls_out_with_random_actions(name):
     model = LightDark10DContinuous()
-    env = TransformedEnv(POMDPEnv(model, batch_size=(3,), seed=1, max_steps=4),
+    env = TransformedEnv(POMDPEnv(model, batch_size=(3,), seed=1, max_steps=4, expose_state=True),
                          BeliefTransform(model, FILTERS[name](), N, seed=2))
     check_env_specs(env)
     torch.manual_seed(0)
@@ -172,7 +172,7 @@ def test_the_filter_sees_the_real_action():
     model = LightDark10DContinuous()
 
     def first_step(action):
-        env = TransformedEnv(POMDPEnv(model, batch_size=(2,), seed=5),
+        env = TransformedEnv(POMDPEnv(model, batch_size=(2,), seed=5, expose_state=True),
                              BeliefTransform(model, SIRFilter(resample_threshold=0.0), N, seed=6))
         td = env.reset()
         td["action"] = action
@@ -187,10 +187,10 @@ def test_the_filter_sees_the_real_action():
 
 def test_belief_transform_refuses_a_model_of_the_other_kind():
     with pytest.raises(ValueError, match=r"^BeliefTransform\.model:"):
-        TransformedEnv(POMDPEnv(LightDark10DContinuous(), (2,), seed=0),
+        TransformedEnv(POMDPEnv(LightDark10DContinuous(), (2,), seed=0, expose_state=True),
                        BeliefTransform(LightDark10D(), SIRFilter(), 8)).reset()
     with pytest.raises(ValueError, match=r"^BeliefTransform\.model:"):
-        TransformedEnv(POMDPEnv(LightDark10D(), (2,), seed=0),
+        TransformedEnv(POMDPEnv(LightDark10D(), (2,), seed=0, expose_state=True),
                        BeliefTransform(LightDark10DContinuous(), SIRFilter(), 8)).reset()
 
 

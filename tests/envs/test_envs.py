@@ -31,7 +31,7 @@ def cyclic_policy(n_actions: int = 10, offset: int = 0) -> TensorDictModule:
 
 
 def make_env(seed: int = 0, batch: int = 4, max_steps: int | None = 20) -> POMDPEnv:
-    return POMDPEnv(LightDark10D(), batch_size=(batch,), seed=seed, max_steps=max_steps)
+    return POMDPEnv(LightDark10D(), batch_size=(batch,), seed=seed, max_steps=max_steps, expose_state=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -50,7 +50,7 @@ def test_check_env_specs():
 
 
 def test_check_env_specs_other_model():
-    env = POMDPEnv(LinearGaussian(state_dim=3, obs_dim=2), batch_size=(2, 3), seed=1, max_steps=5)
+    env = POMDPEnv(LinearGaussian(state_dim=3, obs_dim=2), batch_size=(2, 3), seed=1, max_steps=5, expose_state=True)
     check_env_specs(env)
     td = env.rollout(3, cyclic_policy(6))
     assert td["next", "observation"].shape == (2, 3, 3, 2)
@@ -222,9 +222,9 @@ def test_check_action_directly():
 
 def test_env_rejects_bad_construction():
     with pytest.raises(ValueError, match="max_steps"):
-        POMDPEnv(LightDark10D(), batch_size=(2,), max_steps=0)
+        POMDPEnv(LightDark10D(), batch_size=(2,), max_steps=0, expose_state=True)
     with pytest.raises(TypeError, match="model"):
-        POMDPEnv(object(), batch_size=(2,))
+        POMDPEnv(object(), batch_size=(2,), expose_state=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -314,7 +314,7 @@ def test_every_domain_passes_torchrl_check_env_specs(domain):
     from escort_rl.models import DOMAINS
 
     model = DOMAINS[domain]()
-    env = POMDPEnv(model, batch_size=(3,), seed=0, max_steps=6)
+    env = POMDPEnv(model, batch_size=(3,), seed=0, max_steps=6, expose_state=True)
     check_env_specs(env)
     td = env.rollout(6, cyclic_policy(model.n_actions))
     assert td["next", "observation"].shape == (3, 6, model.obs_dim)
@@ -327,4 +327,30 @@ def test_empty_or_negative_batch_sizes_get_one_line(batch_size):
     from escort_rl.models import LightDark10D
 
     with pytest.raises(ValueError, match=r"^POMDPEnv.batch_size: every size must be a positive int"):
-        POMDPEnv(LightDark10D(), batch_size=batch_size)
+        POMDPEnv(LightDark10D(), batch_size=batch_size, expose_state=True)
+
+
+def test_the_hidden_state_is_not_an_observation_unless_asked_for():
+    """A composed env holds no ``true_state`` (a generic actor reading every observation cannot see the
+    hidden state); ``expose_state=True``, as training and evaluation build it, writes it."""
+    env = POMDPEnv(LightDark10D(), batch_size=(2,), seed=0, max_steps=3)
+    assert "true_state" not in env.observation_spec.keys()
+    td = env.rollout(2)
+    assert "true_state" not in td.keys() and "true_state" not in td["next"].keys()
+    check_env_specs(env)
+    shown = POMDPEnv(LightDark10D(), batch_size=(2,), seed=0, max_steps=3, expose_state=True)
+    assert shown.rollout(2)["next", "true_state"].shape == (2, 2, 10)
+    with pytest.raises(ValueError, match=r"^POMDPEnv.expose_state: must be True or False, got 1$"):
+        POMDPEnv(LightDark10D(), batch_size=(2,), expose_state=1)
+
+
+def test_a_prior_placed_around_the_start_needs_the_start():
+    from torchrl.envs import TransformedEnv
+
+    from escort_rl.belief import SIRFilter
+    from escort_rl.transforms import BeliefTransform
+
+    model = LightDark10D(start_low=0.0, start_high=10.0, prior_width=2.0)
+    env = TransformedEnv(POMDPEnv(model, batch_size=(2,), seed=0), BeliefTransform(model, SIRFilter(), 8))
+    with pytest.raises(ValueError, match=r"expose_state=True"):
+        env.reset()

@@ -179,7 +179,7 @@ def first_episode_success(rollout) -> torch.Tensor:
 
 
 def true_state_success(model, seed: int, max_steps: int, batch: int = 32) -> torch.Tensor:
-    env = POMDPEnv(model, batch_size=(batch,), seed=seed, max_steps=max_steps)
+    env = POMDPEnv(model, batch_size=(batch,), seed=seed, max_steps=max_steps, expose_state=True)
     with torch.no_grad():
         rollout = env.rollout(max_steps, TrueStateController(model), break_when_any_done=False)
     assert rollout.batch_size == (batch, max_steps)
@@ -287,7 +287,7 @@ def test_belief_controller_rejects_bad_input(light_dark):
 def test_belief_controller_in_rollout_with_sir(domain, request):
     model = request.getfixturevalue(domain)
     batch, n, steps = 3, 20, 6
-    env = TransformedEnv(POMDPEnv(model, batch_size=(batch,), seed=0, max_steps=50),
+    env = TransformedEnv(POMDPEnv(model, batch_size=(batch,), seed=0, max_steps=50, expose_state=True),
                          BeliefTransform(model, SIRFilter(), num_particles=n))
     policy = ScriptedBeliefController(model)
     rollout = env.rollout(steps, policy)
@@ -301,14 +301,14 @@ def test_belief_controller_in_rollout_with_sir(domain, request):
 
 
 def test_true_state_controller_in_rollout(light_dark):
-    env = POMDPEnv(light_dark, batch_size=(4,), seed=1, max_steps=50)
+    env = POMDPEnv(light_dark, batch_size=(4,), seed=1, max_steps=50, expose_state=True)
     rollout = env.rollout(10, TrueStateController(light_dark))
     s = rollout["true_state"]
     assert torch.equal(rollout["action"], pd_action(s[..., :5], s[..., 5:], light_dark.goal))
 
 
 def test_belief_controller_in_collector(light_dark):
-    env = TransformedEnv(POMDPEnv(light_dark, batch_size=(2,), seed=3, max_steps=50),
+    env = TransformedEnv(POMDPEnv(light_dark, batch_size=(2,), seed=3, max_steps=50, expose_state=True),
                          BeliefTransform(light_dark, SIRFilter(), num_particles=10))
     collector = Collector(env, ScriptedBeliefController(light_dark), frames_per_batch=8, total_frames=16,
                           auto_register_policy_transforms=False)

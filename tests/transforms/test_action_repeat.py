@@ -17,7 +17,7 @@ from escort_rl.transforms import ActionRepeat, BeliefTransform, action_repeat_of
 def _env(repeat: int, max_steps: int = 50, envs: int = 3, seed: int = 0) -> TransformedEnv:
     model = LightDark10D()
     belief = BeliefTransform(model, SIRFilter(), 16)
-    env = TransformedEnv(POMDPEnv(model, batch_size=(envs,), seed=seed, max_steps=max_steps),
+    env = TransformedEnv(POMDPEnv(model, batch_size=(envs,), seed=seed, max_steps=max_steps, expose_state=True),
                          Compose(belief, ActionRepeat(repeat)) if repeat > 1 else belief)
     env.set_seed(seed)
     return env

@@ -34,7 +34,7 @@ def make_belief_env(
 ) -> TransformedEnv:
     model = LightDark10D()
     return TransformedEnv(
-        POMDPEnv(model, batch_size=(batch,), seed=env_seed, max_steps=max_steps),
+        POMDPEnv(model, batch_size=(batch,), seed=env_seed, max_steps=max_steps, expose_state=True),
         BeliefTransform(model, SIRFilter(resample_threshold=resample_threshold), num_particles, seed=filter_seed),
     )
 
@@ -77,7 +77,7 @@ FACTORIES = [functools.partial(make_belief_env, e, f) for e, f in ENV_SEEDS]
 
 def make_base_env(env_seed: int, batch: int = 2, max_steps: int | None = 8) -> POMDPEnv:
     """A bare POMDPEnv: the sub-env of a batched env with the BeliefTransform on top."""
-    return POMDPEnv(LightDark10D(), batch_size=(batch,), seed=env_seed, max_steps=max_steps)
+    return POMDPEnv(LightDark10D(), batch_size=(batch,), seed=env_seed, max_steps=max_steps, expose_state=True)
 
 
 BASE_FACTORIES = [functools.partial(make_base_env, 11), functools.partial(make_base_env, 12)]
@@ -115,14 +115,15 @@ def test_check_env_specs_and_spec_contents():
 
 def test_check_env_specs_linear_gaussian():
     model = LinearGaussian(state_dim=4, obs_dim=2)
-    env = TransformedEnv(POMDPEnv(model, (2,), seed=0, max_steps=5), BeliefTransform(model, SIRFilter(), 8, seed=0))
+    env = TransformedEnv(POMDPEnv(model, (2,), seed=0, max_steps=5, expose_state=True),
+                         BeliefTransform(model, SIRFilter(), 8, seed=0))
     check_env_specs(env)
 
 
 @pytest.mark.parametrize("batch_size", [(), (2, 3)], ids=["unbatched", "2d"])
 def test_other_batch_shapes(batch_size):
     model = LightDark10D()
-    env = TransformedEnv(POMDPEnv(model, batch_size, seed=0, max_steps=3),
+    env = TransformedEnv(POMDPEnv(model, batch_size, seed=0, max_steps=3, expose_state=True),
                          BeliefTransform(model, SIRFilter(), 7, seed=1))
     check_env_specs(env)
     roll = env.rollout(5, break_when_any_done=False)
@@ -197,7 +198,7 @@ def test_reset_places_the_prior_around_each_start_under_exploring_starts():
     """With a model whose prior is placed around the start (``prior_width``), every reset row's
     particles lie within ``prior_width`` of that row's start, partial resets included."""
     model = LightDark10D(start_low=0.0, start_high=10.0, prior_width=0.5)
-    env = TransformedEnv(POMDPEnv(model, batch_size=(6,), seed=1, max_steps=None),
+    env = TransformedEnv(POMDPEnv(model, batch_size=(6,), seed=1, max_steps=None, expose_state=True),
                          BeliefTransform(model, SIRFilter(), 16, seed=2))
     td = env.reset()
 
@@ -249,13 +250,13 @@ def test_auto_partial_reset_in_rollout_keeps_the_other_rows():
 
 def test_wrong_model_dimensions_are_rejected():
     env_model = LightDark10D()
-    base = POMDPEnv(env_model, (2,), seed=0, max_steps=5)
+    base = POMDPEnv(env_model, (2,), seed=0, max_steps=5, expose_state=True)
     with pytest.raises(ValueError, match="BeliefTransform.model") as info:
         env = TransformedEnv(base, BeliefTransform(LinearGaussian(state_dim=3), SIRFilter(), 10, seed=0))
         env.observation_spec  # specs are transformed lazily in some torchrl versions
     assert "obs_dim" in str(info.value)
     # the same obs_dim but another state_dim
-    base = POMDPEnv(env_model, (2,), seed=0, max_steps=5)
+    base = POMDPEnv(env_model, (2,), seed=0, max_steps=5, expose_state=True)
     with pytest.raises(ValueError, match="BeliefTransform.model") as info:
         env = TransformedEnv(base, BeliefTransform(LinearGaussian(state_dim=3, obs_dim=5), SIRFilter(), 10))
         env.observation_spec
@@ -275,7 +276,7 @@ class NaNObservationModel(LightDark10D):
 
 def test_nan_observation_reaching_the_filter_is_rejected():
     env = TransformedEnv(
-        POMDPEnv(NaNObservationModel(), (2,), seed=0, max_steps=5),
+        POMDPEnv(NaNObservationModel(), (2,), seed=0, max_steps=5, expose_state=True),
         BeliefTransform(LightDark10D(), SIRFilter(), 10, seed=0),
     )
     td = env.reset()
@@ -400,7 +401,7 @@ def test_belief_seed_differs_from_the_env_seed():
 def test_env_set_seed_reaches_a_transform_inside_a_compose(placement):
     model = LightDark10D()
     transform = BeliefTransform(model, SIRFilter(), 12, seed=5)
-    base = POMDPEnv(model, batch_size=(2,), seed=0, max_steps=8)
+    base = POMDPEnv(model, batch_size=(2,), seed=0, max_steps=8, expose_state=True)
     if placement == "compose":
         env = TransformedEnv(base, Compose(StepCounter(), transform))
     else:
@@ -633,4 +634,5 @@ def test_a_model_with_other_actions_is_refused_when_the_transform_joins_the_env(
         n_actions = 4
 
     with pytest.raises(ValueError, match=r"^BeliefTransform.model: model.n_actions is 4 but the env's 'action' has 10"):
-        TransformedEnv(POMDPEnv(LightDark10D(), batch_size=(2,)), BeliefTransform(FourActions(), SIRFilter(), 8))
+        TransformedEnv(POMDPEnv(LightDark10D(), batch_size=(2,), expose_state=True),
+                       BeliefTransform(FourActions(), SIRFilter(), 8))
