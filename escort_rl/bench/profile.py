@@ -238,7 +238,7 @@ def register(subparsers) -> None:
     prof.add_argument("--warmup", type=int, default=None, help="env steps before timing (default: 3)")
     options.add_quick_option(prof, "4 envs, 3 steps after 2")
     options.add_threads_option(prof)
-    options.add_output_option(prof, "outputs/bench/profile", "profile.md and profile.json")
+    options.add_output_option(prof, "outputs/bench/profile", "the report (profile.md and profile.json)")
     prof.set_defaults(handler=main)
 
 

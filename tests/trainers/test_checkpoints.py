@@ -332,7 +332,10 @@ def test_incompatible_actor_size_names_the_key(tmp_path, capsys):
     _cli_train("trainer.iterations=1", f"output_dir={run}")
     capsys.readouterr()
     assert main(["train", "--quiet", f"resume={run}", "actor.hidden=32", "trainer.iterations=2"]) == 2
-    assert _one_line(capsys.readouterr().err) == (
+    changes, *error = capsys.readouterr().err.strip().splitlines()
+    # the changed keys first, named before any weight is loaded, then the checkpoint's one-line refusal
+    assert changes == "resuming with 2 changes to the run's config: actor.hidden: 16 → 32; trainer.iterations: 1 → 2"
+    assert _one_line("\n".join(error)) == (
         "error: checkpoint: actor: 'phi.0.weight' has shape [16, 10] in the checkpoint but [32, 10] here; "
         "resume with the run's own config")
 
