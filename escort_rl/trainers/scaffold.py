@@ -460,37 +460,39 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
     bar = tqdm(total=n_iter, initial=state["iteration"], desc=desc, disable=not progress, dynamic_ncols=True)
     try:
         for it in range(state["iteration"], n_iter):
-            seed = iteration_seed(cfg.seed, it)
-            torch.manual_seed(seed)
-            t0 = time.perf_counter()
+            # an interrupt anywhere in an iteration (collection, update, logging, the checkpoint's
+            # write) ends the run with the resume line; the last complete checkpoint stays
             try:
+                seed = iteration_seed(cfg.seed, it)
+                torch.manual_seed(seed)
+                t0 = time.perf_counter()
                 stats = algorithm.iteration(it, seed)
+                seconds = time.perf_counter() - t0
+                state["iteration"] = it + 1
+                state["frames"] += int(stats.pop("frames"))
+                state["seconds"] += seconds
+                record = {"iteration": it + 1, "filter": algorithm.belief_at(it), "frames": state["frames"], **stats,
+                          "fps": stats.get("fps", float("nan")), "seconds": seconds,
+                          "wall_seconds": state["seconds"]}
+                bad = [k for k, v in record.items()
+                       if isinstance(v, float) and k.startswith("loss") and not math.isfinite(v)]
+                if bad:
+                    raise FloatingPointError(f"training: non-finite {', '.join(bad)} at iteration {it + 1}; lower "
+                                             "trainer.lr or check the model's rewards (last checkpoint kept)")
+                bar.set_postfix({k: f"{record[k]:.2f}" for k in watch if k in record})
+                bar.update(1)
+                state["history"].append(record)
+                for key, value in record.items():
+                    if key != "iteration" and isinstance(value, (int, float)):  # the filter's name is history only
+                        logger.log_scalar(key, value, step=it + 1)
+                if (it + 1) % every == 0 or it + 1 == n_iter:
+                    last_checkpoint = save_checkpoint(rotation, it + 1, state, config_dict, **components)
             except BaseException as err:
                 if caused_by_interrupt(err):
                     raise TrainingInterrupted(interrupt_message(it + 1, last_checkpoint, run_dir)) from None
                 if isinstance(err, Exception):
                     raise_if_worker_died(algorithm, it + 1, last_checkpoint, run_dir)
                 raise
-            seconds = time.perf_counter() - t0
-            state["iteration"] = it + 1
-            state["frames"] += int(stats.pop("frames"))
-            state["seconds"] += seconds
-            record = {"iteration": it + 1, "filter": algorithm.belief_at(it), "frames": state["frames"], **stats,
-                      "fps": stats.get("fps", float("nan")), "seconds": seconds,
-                      "wall_seconds": state["seconds"]}
-            bad = [k for k, v in record.items()
-                   if isinstance(v, float) and k.startswith("loss") and not math.isfinite(v)]
-            if bad:
-                raise FloatingPointError(f"training: non-finite {', '.join(bad)} at iteration {it + 1}; lower "
-                                         "trainer.lr or check the model's rewards (last checkpoint kept)")
-            bar.set_postfix({k: f"{record[k]:.2f}" for k in watch if k in record})
-            bar.update(1)
-            state["history"].append(record)
-            for key, value in record.items():
-                if key != "iteration" and isinstance(value, (int, float)):  # the filter's name is history only
-                    logger.log_scalar(key, value, step=it + 1)
-            if (it + 1) % every == 0 or it + 1 == n_iter:
-                last_checkpoint = save_checkpoint(rotation, it + 1, state, config_dict, **components)
     finally:
         bar.close()
         algorithm.close()
