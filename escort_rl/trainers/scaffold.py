@@ -460,9 +460,7 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
     bar = tqdm(total=n_iter, initial=state["iteration"], desc=desc, disable=not progress, dynamic_ncols=True)
     try:
         for it in range(state["iteration"], n_iter):
-            # an interrupt anywhere in an iteration (collection, update, logging, the checkpoint's
-            # write) ends the run with the resume line; the last complete checkpoint stays
-            try:
+            try:  # an interrupt anywhere in the iteration, its checkpoint's write included, is caught below
                 seed = iteration_seed(cfg.seed, it)
                 torch.manual_seed(seed)
                 t0 = time.perf_counter()
