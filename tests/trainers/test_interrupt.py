@@ -16,7 +16,10 @@ def test_sigint_during_training_prints_one_line_and_exits_130(tmp_path):
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "escort_rl.cli", "train", "--quiet",
            *tiny_overrides("trainer.iterations=100000", f"output_dir={run}")]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    # a shell starts a command with SIGINT at its default; an earlier test or library of this pytest process
+    # may have left it ignored, which a child inherits, and Python then installs no KeyboardInterrupt
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 300
         while not list((run / "checkpoints").glob("checkpoint-*")) and time.monotonic() < deadline:
