@@ -259,3 +259,20 @@ def plot_rows_with_seeds(rows: list[dict], metric: str, path: Path, ylabel: str,
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_against_frames(curves: dict, lines: dict, path: Path, ylabel: str, title: str = "") -> Path:
+    """Each of ``curves`` (label -> ``(frames, mean, se)``, three lists) as a line with ± s.e. bars
+    against training frames, and each of ``lines`` (label -> ``(value, se)``) as a horizontal line
+    with its ± s.e. band: a learner's success against frames beside a fixed policy's."""
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for i, (label, (frames, mean, se)) in enumerate(curves.items()):
+        ax.errorbar(frames, mean, yerr=se, label=label, color=f"C{i}", lw=1.2, capsize=3, marker="o", ms=3)
+    for j, (label, (value, se)) in enumerate(lines.items()):
+        color = f"C{len(curves) + j}"
+        ax.axhline(value, color=color, ls="--", lw=1.0, label=label)
+        ax.axhspan(value - se, value + se, color=color, alpha=0.12)
+    ax.set_xlabel("training frames")
+    ax.set_ylabel(ylabel)
+    ax.legend(fontsize=7)
+    return _finish(fig, path, title)

@@ -128,6 +128,10 @@ class PPOParams(BeliefTrainerParams):
             grows with the ratio unbounded, and a TanhNormal that has learned bang-bang control gives
             ratios of 1e18 (an action near the box's edge drawn from a wide policy, later narrowed).
             The cap bounds that term at ``c·A``, as dual-clip PPO does (Ye et al. 2020, ``c = 3``).
+        lr_schedule: ``constant``: Adam's rate is ``lr`` throughout; ``linear``: it falls linearly
+            from ``lr`` at the first update to ``lr / updates`` at the last, over all ``iterations``
+            (PPO's annealing, as in Stable-Baselines3 and CleanRL). It is a function of the update's
+            index, so a resumed run continues on the same schedule.
     """
 
     iterations: int = param(33, ge=1)
@@ -147,6 +151,21 @@ class PPOParams(BeliefTrainerParams):
     action_repeat: int = param(1, ge=1)
     update_particles: Optional[int] = param(25, ge=1)
     max_importance_ratio: Optional[float] = param(None, gt=1)
+    lr_schedule: str = param("constant", choices=["constant", "linear"])
+
+    def lr_at(self, update: int, updates: int) -> float:
+        """Adam's rate at update ``update`` (0-based) of ``updates`` in the whole run.
+
+        Examples:
+            >>> p = PPOParams(lr=1e-3, lr_schedule="linear")
+            >>> [round(p.lr_at(u, 4), 6) for u in range(4)]
+            [0.001, 0.00075, 0.0005, 0.00025]
+            >>> PPOParams(lr=1e-3).lr_at(3, 4)
+            0.001
+        """
+        if self.lr_schedule == "constant":
+            return float(self.lr)
+        return float(self.lr) * (1.0 - min(max(update, 0), updates - 1) / max(updates, 1))
 
 
 @dataclass(frozen=True)

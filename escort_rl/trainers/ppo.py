@@ -115,6 +115,12 @@ class PPOBase(CollectorAlgorithm):
         p = self.params
         return p.warm_start_epochs if p.warm_start_epochs is not None and p.in_warm_start(index) else p.epochs
 
+    def set_lr(self, update: int) -> None:
+        """Adam's rate for update ``update`` of the run (``trainer.lr_schedule``)."""
+        lr = self.params.lr_at(update, int(self.params.iterations) * self.batches)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
     # ------------------------------------------------------------------ the hooks
     @abstractmethod
     def make_env_factory(self, cfg: DictConfig, num_envs: int, seed: int | None):
@@ -188,6 +194,7 @@ class PPOBase(CollectorAlgorithm):
         collector.reset()
         stats, seen, collect_s, frames = {}, [], 0.0, 0
         for _ in range(self.batches):
+            self.set_lr(index * self.batches + len(seen))
             t0 = time.perf_counter()
             batch = self.collectors.next()
             collect_s += time.perf_counter() - t0
@@ -201,7 +208,8 @@ class PPOBase(CollectorAlgorithm):
             if int(self.cfg.collector.workers) > 1:
                 self.collectors.update_policy_weights()
         episodes = episode_stats(torch.cat(seen, dim=1), self.model)
-        return {"frames": frames, **episodes, **stats, "fps": frames / max(collect_s, 1e-9)}
+        return {"frames": frames, **episodes, **stats, "fps": frames / max(collect_s, 1e-9),
+                "lr": self.optimizer.param_groups[0]["lr"]}
 
 
 class PPO(PPOBase):

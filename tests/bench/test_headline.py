@@ -90,3 +90,20 @@ def test_overrides_under_every_row_run_the_table_on_the_continuous_task(tmp_path
     assert len(configs) == 2 and {c.env.name for c in configs} == {"lightdark10d_continuous"}
     policies = [r["policy"] for r in result["rows"]]
     assert policies[-1] == "random" and policies.count("scripted controller (gain 1)") == 2
+
+
+def test_a_curve_evaluates_every_kept_checkpoint_and_averages_seeds_at_common_frames(tmp_path):
+    """--curve-every 1: each seed's every iteration on the same episodes; the last point is the final policy's."""
+    from escort_rl.bench.headline.cli import write_headline
+
+    spec = HeadlineSpec.quick(seeds=2, episodes=2, gains=(1.0,), output=tmp_path, curve_every=1,
+                              rows=(("sir", ("filter=sir_rough", "trainer.warm_start_iterations=0")),))
+    result = run_headline(spec, make_backend("inprocess"))
+    row = result["rows"][0]
+    assert [p["frames"] for p in row["curve"]] == [row["frames"] // 2, row["frames"]]  # after iterations 1 and 2
+    assert row["curve"][-1]["success"] == pytest.approx(row["success"])
+    assert row["curve"][-1]["steps"] == pytest.approx(row["steps"]) and row["curve"][0]["seeds"] == 2
+    md = write_headline(result, tmp_path)
+    assert "against training frames" in md and (tmp_path / "curve.png").is_file()
+    with pytest.raises(ValueError, match=r"^--curve-every: give 0"):
+        HeadlineSpec(curve_every=-1)

@@ -3,6 +3,7 @@ warm start and exact resume."""
 
 import dataclasses
 import math
+import shutil
 
 import pytest
 import torch
@@ -11,7 +12,7 @@ from tensordict import TensorDict
 from escort_rl.config import compose
 from escort_rl.modules import DeepSetsActor, make_deepsets_policy
 from escort_rl.trainers.builders import belief_keys
-from escort_rl.trainers.checkpointing import load_checkpoint
+from escort_rl.trainers.checkpointing import list_checkpoints, load_checkpoint
 from escort_rl.trainers.ppo import make_ppo_loss
 from escort_rl.trainers.training import train
 
@@ -115,6 +116,23 @@ def test_ppo_resume_is_exact(tmp_path):
     ha = load_checkpoint(straight)["trainer_state"]["history"]
     hb = load_checkpoint(resumed)["trainer_state"]["history"]
     assert [h["episode_return"] for h in ha] == [h["episode_return"] for h in hb]
+
+
+def test_linear_lr_schedule_falls_per_update_and_resumes_on_the_same_schedule(tmp_path):
+    """trainer.lr_schedule=linear: each update's rate is lr·(1 − u/U) over the run's U updates (two per
+    iteration here), the history records the last update's, and a stop and resume matches a straight run."""
+    sched = [*TINY_PPO, "trainer.lr_schedule=linear", "trainer.lr=0.001"]
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    train(compose([*sched, "trainer.iterations=3", f"output_dir={straight}"]), progress=False)
+    history = load_checkpoint(straight)["trainer_state"]["history"]
+    assert [round(h["lr"], 9) for h in history] == [round(1e-3 * (1 - u / 6), 9) for u in (1, 3, 5)]
+    shutil.copytree(straight, resumed)  # the same run, stopped after its first iteration
+    for later in list_checkpoints(resumed / "checkpoints")[:-1]:
+        shutil.rmtree(later)
+    cfg = compose([*sched, "trainer.iterations=3", f"output_dir={resumed}"])
+    train(cfg, resume_state={"path": str(resumed)}, progress=False)
+    a, b = _params(straight), _params(resumed)
+    assert all(torch.equal(a[k], b[k]) for k in a)
 
 
 def test_collection_config_applies_exploring_starts_and_the_warm_start_filter():

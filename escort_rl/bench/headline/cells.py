@@ -33,11 +33,19 @@ def per_episode(metrics: dict) -> dict:
             "steps": metrics["steps"].double().tolist()}
 
 
+def mean_of(values: list[float]) -> float:
+    """The mean of the non-NaN ``values`` (NaN when there are none)."""
+    xs = [v for v in values if v == v]
+    return sum(xs) / len(xs) if xs else float("nan")
+
+
 @dataclass(frozen=True, kw_only=True)
 class TrainedCell(Cell):
     """One training seed of a row: ``escort-rl train`` with ``overrides`` and ``seed`` into
     ``run_dir`` (a killed cell resumes there from its last checkpoint), then the final policy, greedy,
-    on ``episodes`` episodes from env seed ``eval_seed``."""
+    on ``episodes`` episodes from env seed ``eval_seed``. With ``curve_every = k > 0`` the run keeps a
+    checkpoint every ``k`` iterations and each one is evaluated the same way: the cell's ``curve``
+    (success, steps and return against training frames)."""
 
     label: str
     overrides: tuple[str, ...]
@@ -45,12 +53,15 @@ class TrainedCell(Cell):
     run_dir: str
     episodes: int
     eval_seed: int
+    curve_every: int = 0
 
     def key(self) -> str:
         return f"trained/{safe_name(self.label)}/seed{self.seed}"
 
     def overrides_with_run(self) -> list[str]:
-        return [*self.overrides, f"seed={self.seed}", f"output_dir={self.run_dir}"]
+        curve = [f"trainer.checkpoint_every={self.curve_every}", "trainer.keep_checkpoints=100000"] \
+            if self.curve_every > 0 else []
+        return [*self.overrides, *curve, f"seed={self.seed}", f"output_dir={self.run_dir}"]
 
     def spec(self) -> dict:
         """The cell's fields and the config they compose to: a changed config file is a new cell."""
@@ -65,7 +76,7 @@ class TrainedCell(Cell):
         from torchrl.envs.utils import ExplorationType, set_exploration_type
 
         from escort_rl.trainers.builders import build_model
-        from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
+        from escort_rl.trainers.checkpointing import list_checkpoints, load_checkpoint, resolve_checkpoint
         from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes, trained_policy
         from escort_rl.trainers.resume import train_config
         from escort_rl.trainers.training import train
@@ -76,17 +87,27 @@ class TrainedCell(Cell):
         cfg, saved = train_config(overrides)
         if saved is None or saved["trainer_state"]["iteration"] < int(cfg.trainer.iterations):
             train(cfg, resume_state=saved, progress=False)
+        model = build_model(cfg.env, cfg.device)
+
+        def evaluate(checkpoint) -> tuple[dict, float]:
+            policy, make, estimates = trained_policy(cfg, checkpoint)
+            with set_exploration_type(ExplorationType.DETERMINISTIC):
+                rollout, step_s = run_episodes(cfg, policy, self.episodes, self.eval_seed, make=make)
+            return per_episode(first_episode_metrics(rollout, model, estimates(rollout))), step_s
+
         checkpoint = resolve_checkpoint(self.run_dir)
         state = load_checkpoint(checkpoint)["trainer_state"]
-        model = build_model(cfg.env, cfg.device)
-        policy, make, estimates = trained_policy(cfg, checkpoint)
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
-            rollout, step_s = run_episodes(cfg, policy, self.episodes, self.eval_seed, make=make)
+        final, step_s = evaluate(checkpoint)
+        curve = []
+        if self.curve_every > 0:
+            for earlier in list_checkpoints(Path(self.run_dir) / "checkpoints"):
+                frames = int(load_checkpoint(earlier)["trainer_state"].get("frames", 0))
+                episodes = final if frames == int(state.get("frames", 0)) else evaluate(earlier)[0]
+                curve.append({"frames": frames, **{k: mean_of(v) for k, v in episodes.items()}})
         return {"label": self.label, "seed": self.seed, "filter": str(cfg.filter.name),
-                "run_dir": self.run_dir, "config": OmegaConf.to_container(cfg, resolve=True),
-                **per_episode(first_episode_metrics(rollout, model, estimates(rollout))),
+                "run_dir": self.run_dir, "config": OmegaConf.to_container(cfg, resolve=True), **final,
                 "frames": int(state.get("frames", 0)), "train_seconds": float(state.get("seconds", float("nan"))),
-                "seconds_per_step": step_s}
+                "seconds_per_step": step_s, "curve": sorted(curve, key=lambda point: point["frames"])}
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -31,6 +31,9 @@ def register(subparsers) -> None:
                    help="the trained rows: headline (the default job and PPO on SIR beliefs), ablation (the "
                    "learner's changes one at a time) or starts (the default job with half its training starts "
                    "in the evaluation's box)")
+    p.add_argument("--curve-every", type=int, default=None, metavar="K",
+                   help="also evaluate every trained seed's checkpoint of every K-th iteration on the same episodes: "
+                   "success against training frames beside the controller's line, in curve.png (default: 0, no curve)")
     options.add_quick_option(p, f"{quick.seeds} seeds of a 2-iteration job, {quick.episodes} episodes of 20 steps")
     options.add_output_option(p, DEFAULT_OUTPUT, "headline.md, headline.json, headline.png, cells/ and runs/")
     options.add_runner_options(p, seeds_per_cell=False)
@@ -39,7 +42,7 @@ def register(subparsers) -> None:
 
 def spec_from_args(args) -> HeadlineSpec:
     base = HeadlineSpec.quick() if args.quick else HeadlineSpec()
-    changes = options.given(args, "seeds", "episodes", "threads")
+    changes = options.given(args, "seeds", "episodes", "threads", "curve_every")
     if args.gains is not None:
         changes["gains"] = tuple(args.gains)
     overrides = (*base.overrides, *getattr(args, "overrides", ()))
@@ -50,7 +53,7 @@ def spec_from_args(args) -> HeadlineSpec:
 def write_headline(result: dict, out: Path) -> str:
     """``headline.md``, ``headline.json`` and ``headline.png`` in ``out``; returns the Markdown."""
     from escort_rl.bench.headline.report import env_name, headline_markdown
-    from escort_rl.reporting.plots import plot_rows_with_seeds
+    from escort_rl.reporting.plots import plot_against_frames, plot_rows_with_seeds
 
     out.mkdir(parents=True, exist_ok=True)
     md = headline_markdown(result)
@@ -59,6 +62,14 @@ def write_headline(result: dict, out: Path) -> str:
     spec = result["spec"]
     plot_rows_with_seeds(result["rows"], "success", out / "headline.png", "success rate (mean ± s.e.; dots: seeds)",
                          title=f"{env_name(spec)}, {spec['episodes']} evaluation episodes")
+    curves = {r["policy"]: ([p["frames"] for p in r["curve"]], [p["success"] for p in r["curve"]],
+                            [p["success_se"] for p in r["curve"]]) for r in result["rows"] if r.get("curve")}
+    if curves:
+        lines = {f"{r['policy']} on {r['filter']}": (r["success"], r["success_se"])
+                 for r in result["rows"] if r["kind"] == "scripted"}
+        plot_against_frames(curves, lines, out / "curve.png", "success rate (mean ± s.e. across seeds)",
+                            title=f"{env_name(spec)}: greedy success against training frames, "
+                            f"{spec['episodes']} evaluation episodes")
     return md
 
 

@@ -16,6 +16,23 @@ def env_name(spec: dict) -> str:
     return spec.get("env", "lightdark10d")
 
 
+def curve_markdown(rows: list[dict]) -> list[str]:
+    """The lines of the success-against-frames table: one row per evaluated checkpoint of each trained
+    row that has a curve (none: no lines)."""
+    curved = [r for r in rows if r.get("curve")]
+    if not curved:
+        return []
+    lines = ["", "Greedy success, steps and return against training frames (each seed's checkpoint on the same "
+             "episodes; mean ± s.e. across seeds; `curve.png`):", "",
+             "| policy | frames | success | steps | return |", "| --- | --- | --- | --- | --- |"]
+    for r in curved:
+        for p in r["curve"]:
+            ret = _cell(p["episode_return"], p["episode_return_se"], 1)
+            lines.append(f"| {r['policy']} | {p['frames']} | {_cell(p['success'], p['success_se'], 3)} | "
+                         f"{_cell(p['steps'], p['steps_se'], 0)} | {ret} |")
+    return lines
+
+
 def headline_markdown(result: dict) -> str:
     """The table: each row's success, final distance, return and steps (mean ± s.e.), its belief,
     its training frames and minutes; then the gain search and how to read the table."""
@@ -53,6 +70,7 @@ def headline_markdown(result: dict) -> str:
     for r in result["rows"]:
         if r["kind"] == "trained":
             lines.append(f"- {r['policy']}: " + ", ".join(f"{v:.2f}" for v in r["per_seed"]["success"]))
+    lines += curve_markdown(result["rows"])
     lines += ["", "Gain search (success on the selection episodes):", "",
               "| belief | " + " | ".join(f"gain {g:g}" for g in spec["gains"]) + " |",
               "| --- |" + " --- |" * len(spec["gains"])]

@@ -31,7 +31,8 @@ def mean_se(values: list[float]) -> tuple[float, float]:
 def trained_cells(spec: HeadlineSpec) -> list[TrainedCell]:
     return [TrainedCell(label=label, overrides=tuple(row_overrides(spec.overrides, overrides)), seed=seed,
                         run_dir=str(spec.output / "runs" / f"{safe_name(label)}-seed{seed}"),
-                        episodes=spec.episodes, eval_seed=spec.eval_seed, threads=spec.threads)
+                        episodes=spec.episodes, eval_seed=spec.eval_seed, threads=spec.threads,
+                        curve_every=spec.curve_every)
             for label, overrides in spec.rows for seed in range(spec.seeds)]
 
 
@@ -49,8 +50,32 @@ def trained_row(label: str, results: list[dict]) -> dict:
         row["per_seed"][key] = per_seed
         row[key], row[f"{key}_se"] = mean_se(per_seed)
     row["frames"] = results[0]["frames"]
+    row["curve"] = mean_curve([r.get("curve", []) for r in results])
     row["train_minutes"], row["train_minutes_se"] = mean_se([r["train_seconds"] / 60 for r in results])
     return row
+
+
+def mean_curve(curves: list[list[dict]]) -> list[dict]:
+    """The seeds' curves (each a list of ``{"frames", "success", "steps", "episode_return", ...}``) as
+    one: at every frame count that all the seeds reached, each metric's mean ± s.e. across the seeds.
+
+    Examples:
+        >>> a = [{"frames": 10, "success": 0.5}, {"frames": 20, "success": 1.0}]
+        >>> b = [{"frames": 10, "success": 0.7}]
+        >>> mean_curve([a, b])
+        [{'frames': 10, 'seeds': 2, 'success': 0.6, 'success_se': 0.09999999999999998}]
+    """
+    if not curves or not all(curves):
+        return []
+    common = sorted(set.intersection(*({p["frames"] for p in c} for c in curves)))
+    out = []
+    for frames in common:
+        points = [next(p for p in c if p["frames"] == frames) for c in curves]
+        point = {"frames": frames, "seeds": len(points)}
+        for key in (k for k in points[0] if k != "frames"):
+            point[key], point[f"{key}_se"] = mean_se([p[key] for p in points])
+        out.append(point)
+    return out
 
 
 PAIRED = ("success", "steps", "episode_return")
@@ -113,7 +138,8 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
     return {"rows": rows, "spec": {"env": env, "seeds": spec.seeds, "episodes": spec.episodes,
                                    "eval_seed": spec.eval_seed, "selection_seed": spec.selection_seed,
                                    "gains": list(spec.gains),
-                                   "overrides": list(spec.overrides), "threads": spec.threads},
+                                   "overrides": list(spec.overrides), "threads": spec.threads,
+                                   "curve_every": spec.curve_every},
             "selection": [{"filter": c.filter, "gain": c.gain, "success": mean_se(r["success"])[0]}
                           for c, r in zip(selection, results)],
             "runs": [{"label": c.label, "seed": c.seed, "run_dir": c.run_dir} for c in trained]}

@@ -62,7 +62,9 @@ class HeadlineSpec:
     choice does not select on the reported noise. The controller's action (push the dimension of the
     largest ``|k_p·(g − x̂) − k_v·v̂|``) depends on the gains through ``k_v / k_p`` alone, so the grid of
     velocity gains at ``k_p = 1`` sweeps both; 0 is a pure P rule. ``overrides`` go under every row's own (the
-    smoke run's sizes); ``threads``: torch threads per cell.
+    smoke run's sizes); ``threads``: torch threads per cell; ``curve_every = k > 0``: every trained seed
+    also evaluates its checkpoint of every ``k``-th iteration on the same episodes (success against
+    frames, beside the controller's line).
 
     Examples:
         >>> HeadlineSpec().seeds, HeadlineSpec.quick().seeds
@@ -82,12 +84,15 @@ class HeadlineSpec:
     scripted_filters: tuple[str, ...] = SCRIPTED_FILTERS
     overrides: tuple[str, ...] = ()
     threads: int = 1
+    curve_every: int = 0
     output: Path = Path(DEFAULT_OUTPUT)
 
     def __post_init__(self) -> None:
         for flag, value in (("--seeds", self.seeds), ("--episodes", self.episodes), ("--threads", self.threads)):
             if int(value) < 1:
                 raise ValueError(f"{flag}: must be >= 1, got {value}")
+        if int(self.curve_every) < 0:
+            raise ValueError(f"--curve-every: give 0 (no curve) or an iteration count >= 1, got {self.curve_every}")
         if not self.gains or any(float(g) < 0 for g in self.gains):
             raise ValueError(f"--gains: give one or more velocity gains >= 0, got {list(self.gains)}")
         object.__setattr__(self, "gains", tuple(float(g) for g in self.gains))
