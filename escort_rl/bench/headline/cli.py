@@ -29,8 +29,9 @@ def register(subparsers) -> None:
                    f"{' '.join(f'{g:g}' for g in full.gains)})")
     p.add_argument("--rows", choices=sorted(ROW_SETS), default="headline",
                    help="the trained rows: headline (the default job and PPO on SIR beliefs), ablation (the "
-                   "learner's changes one at a time) or starts (the default job with half its training starts "
-                   "in the evaluation's box)")
+                   "learner's changes one at a time), starts (the default job with half its training starts "
+                   "in the evaluation's box), half (half the frames on ESCORT beliefs) or frames (PPO on SIR beliefs "
+                   "for twice the frames)")
     p.add_argument("--curve-every", type=int, default=None, metavar="K",
                    help="also evaluate every trained seed's checkpoint of every K-th iteration on the same episodes: "
                    "success against training frames beside the controller's line, in curve.png (default: 0, no curve)")

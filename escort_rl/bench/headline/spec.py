@@ -38,7 +38,24 @@ START_ROWS = (
 from the goal as the evaluation's ``[0, 2]^5``) against the same with half the training episodes
 starting in the evaluation's box."""
 
-ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS, "starts": START_ROWS}
+HALF_ROWS = (
+    ("half on ESCORT: 12 + 12 iterations, linear lr, 50-step batches",
+     ("trainer.iterations=24", "trainer.warm_start_iterations=12", "trainer.lr_schedule=linear",
+      "trainer.rollout_steps=50")),
+)
+"""``--rows half``: a job that trains half its frames on ESCORT beliefs (12 iterations on SIR beliefs, then
+12 on ESCORT's: 768,000 frames), with the learning rate falling linearly and 3,200-frame batches (two and a
+half times the Adam steps per frame), so that ESCORT's dear frames teach more."""
+
+FRAMES_ROWS = (
+    ("PPO on SIR beliefs, 66 iterations", ("filter=sir_rough", "trainer.warm_start_iterations=0",
+                                           "trainer.iterations=66")),
+)
+"""``--rows frames``: PPO on SIR beliefs for twice the default job's frames (2.1M); with ``--curve-every``,
+success against frames."""
+
+ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS, "starts": START_ROWS, "half": HALF_ROWS,
+            "frames": FRAMES_ROWS}
 """The trained rows ``--rows`` picks by name."""
 
 SCRIPTED_FILTERS = ("escort_train", "sir_rough")
