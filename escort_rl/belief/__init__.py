@@ -1,11 +1,12 @@
 """Particle beliefs and the filters that update them: SIR, EnKF, SVGD and ESCORT."""
 
+from escort_rl.belief import resampling
 from escort_rl.belief.base import BeliefFilter, validate_update_inputs
 from escort_rl.belief.checks import NonFiniteError
 from escort_rl.belief.enkf import EnKFFilter, EnKFParams
 from escort_rl.belief.escort import ESCORTFilter, ESCORTParams, SVGDFilter, SVGDParams
 from escort_rl.belief.particle_belief import ParticleBelief
-from escort_rl.belief.sir import SIRFilter, SIRParams, systematic_resample_indices
+from escort_rl.belief.sir import SIRFilter, SIRParams
 
 __all__ = [
     "BeliefFilter",
@@ -19,6 +20,6 @@ __all__ = [
     "ParticleBelief",
     "SIRFilter",
     "SIRParams",
-    "systematic_resample_indices",
+    "resampling",
     "validate_update_inputs",
 ]

@@ -6,39 +6,12 @@ import math
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
 
 from escort_rl.belief.base import BeliefFilter, check_output_shape
 from escort_rl.belief.checks import OFF
 from escort_rl.belief.particle_belief import ParticleBelief
+from escort_rl.belief.resampling import SCHEMES, effective_sample_size, resample_indices
 from escort_rl.config.params import HasParams, build_params, param
-
-
-def systematic_resample_indices(log_weights: Tensor, generator: torch.Generator | None = None,
-                                num_samples: int | None = None) -> Tensor:
-    """Systematic resampling: one uniform offset per belief.
-
-    With normalised weights ``w`` ``[*B, N]`` and ``u ~ U[0, 1)``, draw ``k`` of the new set is
-    the index ``i`` with ``C_{i-1} ≤ (u + k)/M < C_i``, where ``C`` is the cumulative sum of ``w``
-    and ``M`` = ``num_samples`` (default ``N``). Returns indices ``[*B, M]`` (int64).
-
-    Examples:
-        >>> g = torch.Generator().manual_seed(0)
-        >>> systematic_resample_indices(torch.log(torch.tensor([0.5, 0.0, 0.5])), g, num_samples=4)
-        tensor([0, 0, 2, 2])
-    """
-    n = log_weights.shape[-1]
-    m = n if num_samples is None else int(num_samples)
-    w = torch.softmax(log_weights, dim=-1)
-    cdf = torch.cumsum(w, dim=-1)
-    cdf = cdf / cdf[..., -1:]  # exactly 1 at the top, and flat after the last positive weight
-    u = torch.rand((*log_weights.shape[:-1], 1), generator=generator, device=w.device, dtype=w.dtype)
-    positions = (u + torch.arange(m, device=w.device, dtype=w.dtype)) / m
-    # (u + M - 1)/M can round up to 1.0; keep positions strictly below 1 so that a trailing
-    # zero-weight particle (whose cdf value equals 1) is never selected.
-    one = torch.ones((), dtype=w.dtype, device=w.device)
-    positions = positions.clamp_max(torch.nextafter(one, torch.zeros_like(one)))
-    return torch.searchsorted(cdf.contiguous(), positions.contiguous(), right=True).clamp_max(n - 1)
 
 
 @dataclass(frozen=True)
@@ -51,10 +24,14 @@ class SIRParams:
         roughening: if > 0, after resampling add ``N(0, (roughening·range·N^(-1/d))²)`` per dimension,
             where ``range`` is the per-dimension spread of the resampled particles (Gordon et al.).
             0 is off.
+        resampling: the scheme (:mod:`escort_rl.belief.resampling`): ``systematic`` (the default: the
+            least variance in practice, and the cheapest), ``stratified``, ``residual`` or
+            ``multinomial``.
     """
 
     resample_threshold: float = param(0.5, ge=0, le=1)
     roughening: float = param(0.0, ge=0)
+    resampling: str = param("systematic", choices=sorted(SCHEMES))
 
 
 class SIRFilter(HasParams, BeliefFilter):
@@ -78,7 +55,9 @@ class SIRFilter(HasParams, BeliefFilter):
 
     def __repr__(self) -> str:
         extra = "" if self.check_finite else ", check_finite=False"
-        return f"SIRFilter(resample_threshold={self.resample_threshold}, roughening={self.roughening}{extra})"
+        scheme = "" if self.resampling == "systematic" else f", resampling={self.resampling!r}"
+        return (f"SIRFilter(resample_threshold={self.resample_threshold}, roughening={self.roughening}{scheme}"
+                f"{extra})")
 
     def _update(self, model, belief, action, observation, generator, *, guard=None):
         guard = OFF if guard is None else guard
@@ -94,13 +73,13 @@ class SIRFilter(HasParams, BeliefFilter):
         log_w = torch.where(all_neg_inf, belief.log_weights, log_w)
         log_w = log_w - torch.logsumexp(log_w, dim=-1, keepdim=True)
 
-        ess_ratio = 1.0 / (torch.exp(2 * log_w).sum(-1) * n)  # [*B]
+        ess_ratio = effective_sample_size(log_w) / n  # [*B]
         self._record_importance(ess_ratio, torch.ones_like(ess_ratio))
         resample = ess_ratio < self.resample_threshold
         if self.resample_threshold >= 1.0:
             resample = torch.ones_like(resample)
         if resample.any():
-            idx = systematic_resample_indices(log_w, generator)
+            idx = resample_indices(log_w, self.resampling, generator)
             x_res = torch.gather(x_next, -2, idx.unsqueeze(-1).expand(*idx.shape, d))
             if self.roughening > 0:
                 spread = x_res.amax(-2, keepdim=True) - x_res.amin(-2, keepdim=True)

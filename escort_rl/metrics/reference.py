@@ -42,8 +42,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from escort_rl.belief.resampling import effective_sample_size, systematic
 from escort_rl.belief.seeding import derived_seed, initial_beliefs, tensor_hash
-from escort_rl.belief.sir import SIRFilter, systematic_resample_indices
+from escort_rl.belief.sir import SIRFilter
 from escort_rl.metrics.distances import kernel_mean, median_gamma, sphere_directions, weighted_sliced_wasserstein
 from escort_rl.metrics.moments import weighted_moments
 
@@ -95,8 +96,8 @@ def step_summary(particles: Tensor, log_w: Tensor, parts: dict, sample: int, gen
     ``[B, M, dp]``, ``gamma`` ``[B]`` and ``kyy`` ``[B]``; and ``ess`` ``[B]``, the effective sample size of
     the weights after the update (and its resampling, when ESS/N fell below 0.5)."""
     w = torch.softmax(log_w.double(), -1)
-    idx = systematic_resample_indices(log_w.double(), generator, sample)
-    out = {"ess": 1.0 / (w ** 2).sum(-1)}
+    idx = systematic(log_w.double(), generator, sample)
+    out = {"ess": effective_sample_size(log_w.double())}
     for name, dims in parts.items():
         x = particles[..., list(dims)]
         mean, cov = weighted_moments(x, w)
@@ -315,7 +316,7 @@ class Reference:
         m = next(iter(self.parts.values()))["sample"].shape[-2]
         thin = None
         if n > m:  # MMD² of a large belief on m systematic draws (same draws for every part)
-            thin = systematic_resample_indices(log_weights.double(), torch.Generator().manual_seed(THIN_SEED + t), m)
+            thin = systematic(log_weights.double(), torch.Generator().manual_seed(THIN_SEED + t), m)
         for name, ref in self.parts.items():
             x = particles[..., ref["dims"].tolist()]
             y = ref["sample"][rows, t].to(x.dtype)

@@ -33,6 +33,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from escort_rl.belief.resampling import systematic
 from escort_rl.config import ConfigError
 from escort_rl.modules.dvrl_networks import (
     SUMMARIES,
@@ -59,28 +60,6 @@ class DVRLState(NamedTuple):
 
 
 # ------------------------------------------------------------------------------------ resampling
-def systematic_resample_indices(log_weights: Tensor, uniforms: Tensor) -> Tensor:
-    """Ancestor indices by systematic resampling.
-
-    With ``w̄ = softmax(log_weights)`` and ``C_j = Σ_{i<=j} w̄_i``, particle ``k`` takes the ancestor
-    ``j`` with ``C_{j-1} <= (u + k)/K < C_j``. Each index ``j`` is drawn ``K·w̄_j`` times in expectation.
-    A row whose weights are not finite is treated as uniform.
-
-    Args:
-        log_weights: ``[B, K]`` (need not be normalised).
-        uniforms: ``[B]``, one ``u ~ U[0, 1)`` per row.
-
-    Returns: ``[B, K]`` int64 indices in ``[0, K)``, non-decreasing along ``K``.
-    """
-    k = log_weights.shape[-1]
-    w = torch.softmax(log_weights.detach(), dim=-1)
-    w = torch.where(torch.isfinite(w).all(-1, keepdim=True), w, torch.full_like(w, 1.0 / k))
-    cdf = torch.cumsum(w, dim=-1)
-    positions = (uniforms.unsqueeze(-1) + torch.arange(k, device=w.device, dtype=w.dtype)) / k
-    idx = torch.searchsorted(cdf.contiguous(), positions.contiguous(), right=True)
-    return idx.clamp_max(k - 1)
-
-
 def resample(state: DVRLState, indices: Tensor) -> DVRLState:
     """Take the ancestors ``indices [B, K]`` of every particle; the weights become uniform ``-log K``."""
     k = state.log_w.shape[-1]
@@ -252,9 +231,8 @@ class DVRL(nn.Module):
         b, k = state.log_w.shape
         obs_enc = self.observation_encoder(observation)  # [B, E]
         action_enc = self.encode_action(action_prev, reset_mask)  # [B, E]
-        uniforms = torch.rand(b, generator=generator, device=observation.device)
         if self.resample:
-            state = resample(state, systematic_resample_indices(state.log_w, uniforms))
+            state = resample(state, systematic(state.log_w.detach(), generator))
         log_w_prev = torch.log_softmax(state.log_w, dim=-1)
 
         obs_k = obs_enc.unsqueeze(1).expand(b, k, -1)

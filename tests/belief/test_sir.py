@@ -6,10 +6,8 @@ import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
-from escort_rl.belief import ParticleBelief, SIRFilter, systematic_resample_indices, validate_update_inputs
+from escort_rl.belief import ParticleBelief, SIRFilter, validate_update_inputs
 from escort_rl.models import LightDark10D, LinearGaussian
 
 
@@ -89,105 +87,6 @@ def test_sir_tracks_the_kalman_posterior():
 # ---------------------------------------------------------------------------------------------
 # Systematic resampling
 # ---------------------------------------------------------------------------------------------
-
-
-weight_lists = st.lists(
-    st.one_of(st.just(0.0), st.floats(min_value=1e-6, max_value=1.0)), min_size=1, max_size=60
-).filter(lambda ws: sum(ws) > 0)
-
-
-@settings(max_examples=150, deadline=None)
-@given(weights=weight_lists, seed=st.integers(0, 2**31 - 1))
-def test_systematic_resample_counts_are_within_one_of_n_w(weights, seed):
-    """Each particle is drawn floor(N w_i) or ceil(N w_i) times; zero-weight ones never (float64)."""
-    w = torch.tensor(weights, dtype=torch.float64)
-    n = w.numel()
-    log_w = torch.log(w / w.sum())
-    idx = systematic_resample_indices(log_w.expand(8, n), gen(seed))
-    assert idx.shape == (8, n) and idx.dtype == torch.int64
-    assert bool(((idx >= 0) & (idx < n)).all())
-    expected = n * w / w.sum()
-    for row in idx:
-        counts = torch.bincount(row, minlength=n).double()
-        assert counts.sum() == n
-        assert bool(((counts - expected).abs() < 1 + 1e-9).all()), (counts, expected)
-        assert bool((counts[w == 0] == 0).all())
-        # systematic resampling returns the indices in order
-        assert bool((row[1:] >= row[:-1]).all())
-
-
-@settings(max_examples=60, deadline=None)
-@given(weights=weight_lists, seed=st.integers(0, 2**31 - 1))
-def test_systematic_resample_counts_float32_interior(weights, seed):
-    """The same count property for float32 log-weights (small sets, where round-off stays small)."""
-    w = torch.tensor(weights, dtype=torch.float64)
-    n = w.numel()
-    log_w = torch.log(w / w.sum()).float()
-    idx = systematic_resample_indices(log_w.expand(4, n), gen(seed))
-    expected = n * torch.softmax(log_w.double(), -1)
-    for row in idx:
-        counts = torch.bincount(row, minlength=n).double()
-        assert bool(((counts - expected).abs() < 1 + 1e-3).all()), (counts, expected)
-
-
-def test_systematic_resample_uniform_weights_is_identity():
-    n = 37
-    idx = systematic_resample_indices(torch.full((5, n), -math.log(n)), gen(1))
-    assert torch.equal(idx, torch.arange(n).expand(5, n))
-
-
-def test_systematic_resample_degenerate_weight():
-    log_w = torch.full((3, 10), -float("inf"))
-    log_w[torch.arange(3), torch.tensor([0, 4, 9])] = 0.0
-    idx = systematic_resample_indices(log_w, gen(2))
-    assert torch.equal(idx, torch.tensor([0, 4, 9]).unsqueeze(-1).expand(3, 10))
-
-
-def test_systematic_resample_draws_any_number_of_indices():
-    # M = 8 draws from weights (1/2, 0, 1/4, 1/4): exactly M w_i of each, whatever the offset
-    log_w = torch.log(torch.tensor([0.5, 0.0, 0.25, 0.25], dtype=torch.float64))
-    for seed in range(5):
-        idx = systematic_resample_indices(log_w, gen(seed), num_samples=8)
-        assert idx.shape == (8,)
-        assert torch.bincount(idx, minlength=4).tolist() == [4, 0, 2, 2]
-
-
-
-
-def _largest_rand(monkeypatch):
-    """Make torch.rand return the largest value below 1 of the requested dtype (a legal draw)."""
-    real_rand = torch.rand
-
-    def fake_rand(*size, generator=None, dtype=None, device=None, **kwargs):
-        dtype = dtype or torch.get_default_dtype()
-        one = torch.tensor(1.0, dtype=dtype)
-        top = torch.nextafter(one, torch.tensor(0.0, dtype=dtype)).item()
-        real_rand(*size, generator=generator, dtype=dtype, device=device)  # keep the stream moving
-        shape = size[0] if len(size) == 1 and isinstance(size[0], (tuple, list, torch.Size)) else size
-        return torch.full(tuple(shape), top, dtype=dtype, device=device)
-
-    monkeypatch.setattr(torch, "rand", fake_rand)
-
-
-@pytest.mark.parametrize("n", [2, 5, 20_000])
-def test_systematic_resample_largest_u_with_positive_weights(monkeypatch, n):
-    """With u just below 1 and all weights positive the counts are still floor/ceil of N w."""
-    w = torch.linspace(1.0, 2.0, n, dtype=torch.float64)
-    log_w = torch.log(w / w.sum())
-    _largest_rand(monkeypatch)
-    idx = systematic_resample_indices(log_w, gen(0))
-    counts = torch.bincount(idx, minlength=n).double()
-    assert bool(((counts - n * w / w.sum()).abs() < 1 + 1e-9).all())
-
-
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_systematic_resample_never_picks_a_trailing_zero_weight_particle(monkeypatch, dtype):
-    n = 20_000
-    log_w = torch.zeros(n, dtype=dtype)
-    log_w[-1] = -float("inf")  # the last particle is impossible
-    _largest_rand(monkeypatch)
-    idx = systematic_resample_indices(log_w, gen(0))
-    assert int((idx == n - 1).sum()) == 0
 
 
 # ---------------------------------------------------------------------------------------------

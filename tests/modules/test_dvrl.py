@@ -16,11 +16,12 @@ from torchrl.collectors import Collector
 from torchrl.envs import Compose, InitTracker, ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.utils import step_mdp
 
+from escort_rl.belief.resampling import systematic
 from escort_rl.config import config_dir
 from escort_rl.envs import POMDPEnv
 from escort_rl.models import DOMAINS
 from escort_rl.models.light_dark import LightDark10D
-from escort_rl.modules.dvrl import DVRL, DVRLState, resample, systematic_resample_indices
+from escort_rl.modules.dvrl import DVRL, DVRLState, resample
 from escort_rl.modules.dvrl_networks import AtariEncoder
 from escort_rl.modules.dvrl_torchrl import DVRLPolicy
 
@@ -104,30 +105,11 @@ def test_marginal_estimate_is_unbiased_over_two_steps(resample_every_step):
 
 
 # ------------------------------------------------------------------------------------ resampling
-def test_systematic_resampling_hand_example():
-    log_w = torch.tensor([[0.1, 0.2, 0.3, 0.4]]).log().repeat(3, 1)
-    u = torch.tensor([0.5, 0.0, 0.99])
-    # positions (u + k)/4 against the CDF [0.1, 0.3, 0.6, 1.0]
-    expected = torch.tensor([[1, 2, 3, 3], [0, 1, 2, 3], [1, 2, 3, 3]])
-    assert torch.equal(systematic_resample_indices(log_w, u), expected)
-    assert torch.equal(systematic_resample_indices(log_w + 7.0, u), expected)  # unnormalised is fine
-
-
-def test_systematic_resampling_counts_are_floor_or_ceil_of_k_w():
-    g = torch.Generator().manual_seed(0)
-    k = 10
-    log_w = torch.randn(500, k, generator=g) * 2
-    idx = systematic_resample_indices(log_w, torch.rand(500, generator=g))
-    counts = torch.zeros(500, k).scatter_add_(1, idx, torch.ones(500, k))
-    expected = k * torch.softmax(log_w, -1)
-    assert bool(((counts >= expected.floor() - 1e-4) & (counts <= expected.ceil() + 1e-4)).all())
-
-
 def test_resample_keeps_shapes_and_gives_uniform_weights():
     g = torch.Generator().manual_seed(0)
     state = DVRLState(torch.randn(3, 5, 4, generator=g), torch.randn(3, 5, 2, generator=g),
                       torch.log_softmax(torch.randn(3, 5, generator=g), -1))
-    idx = systematic_resample_indices(state.log_w, torch.rand(3, generator=g))
+    idx = systematic(state.log_w, g)
     new = resample(state, idx)
     assert new.h.shape == state.h.shape and new.z.shape == state.z.shape and new.log_w.shape == state.log_w.shape
     torch.testing.assert_close(new.log_w, torch.full((3, 5), -math.log(5)))

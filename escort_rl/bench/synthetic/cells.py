@@ -33,9 +33,8 @@ import torch
 
 from escort_rl import metrics
 from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
-from escort_rl.belief.importance import effective_sample_size
 from escort_rl.belief.prior import silverman_factor
-from escort_rl.belief.sir import systematic_resample_indices
+from escort_rl.belief.resampling import effective_sample_size, systematic
 from escort_rl.bench.core.runner import Cell
 from escort_rl.bench.targets import (
     GaussianMixture,
@@ -101,7 +100,7 @@ def initial_particles(x0: torch.Tensor, target: GaussianMixture, initial: Gaussi
     if init != "resampled":
         return x0
     log_w = (target.log_prob(x0) - initial.log_prob(x0)).to(torch.float64)
-    idx = systematic_resample_indices(log_w, generator)
+    idx = systematic(log_w, generator)
     x = torch.gather(x0, -2, idx.unsqueeze(-1).expand_as(x0))
     h = silverman_factor(x.shape[-2], x.shape[-1])
     std = x.std(-2, keepdim=True).clamp_min(1e-6)
@@ -154,7 +153,7 @@ def fit_particles(method: str, target: GaussianMixture, initial: GaussianMixture
         log_w = (target.log_prob(x0) - start.log_prob(x0)).to(torch.float64)
         importance = {"ess_fraction": (effective_sample_size(log_w) / n).tolist()}
         g = torch.Generator().manual_seed(seeds[0])
-        idx = systematic_resample_indices(log_w, g)
+        idx = systematic(log_w, g)
         x = torch.gather(x0, -2, idx.unsqueeze(-1).expand_as(x0))
     else:
         filt = make_filter(method, filter_kwargs)
