@@ -129,6 +129,7 @@ class BeliefFilter(ABC):
         check_model_structure(model)  # the filters check their inputs per update; envs and runs probe the model
         if not isinstance(num_particles, int) or isinstance(num_particles, bool) or num_particles < 1:
             raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
+        validate_generator(generator)
         batch_shape = validate_batch_shape(batch_shape)
         if start_state is not None and getattr(model, "prior_width", None) is not None:
             if tuple(start_state.shape) != (*batch_shape, model.state_dim):
@@ -164,6 +165,10 @@ class BeliefFilter(ABC):
         because a model method returns the wrong shape or dtype, or fails on the belief's dtype, the
         ``ValueError`` names that method (see :func:`diagnose_model_outputs`).
         """
+        if not isinstance(belief, ParticleBelief):
+            raise ValueError(f"belief: expected a ParticleBelief, got {type(belief).__name__}; build it with the "
+                             "filter's init, or wrap particles [*B, N, d] with ParticleBelief.uniform(particles)")
+        validate_generator(generator)
         timer = self.part_timer(belief.particles.device)
         with timer(f"{type(self).__name__}.update", timed=False):
             return self._checked_update(timer, model, belief, action, observation, generator)
@@ -229,6 +234,13 @@ def validate_batch_shape(batch_shape) -> tuple[int, ...]:
     return shape
 
 
+def validate_generator(generator) -> None:
+    """``ValueError`` naming ``generator`` unless it is a ``torch.Generator`` or ``None``."""
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise ValueError(f"generator: expected a torch.Generator or None, got {type(generator).__name__} "
+                         f"{generator!r}; pass torch.Generator().manual_seed(seed)")
+
+
 def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observation: Tensor) -> None:
     """Raise ``ValueError`` naming the field when the update inputs do not fit together."""
     check_model_structure(model)
@@ -277,21 +289,24 @@ def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observ
     )
 
 
-def check_output_shape(method: str, t: Tensor, shape: tuple[int, ...], what: str) -> None:
+def check_output_shape(method: str, t: Tensor, shape: tuple[int, ...], what: str,
+                       dtype: torch.dtype | None = None) -> None:
     """Raise ``ValueError`` naming model method ``method`` unless it returned a tensor of ``shape``
-    (``what`` says what that shape is, e.g. ``"the particles' [*B, N, d]"``). Reads shapes only (no sync)."""
-    if not isinstance(t, Tensor) or tuple(t.shape) != tuple(shape) or not t.dtype.is_floating_point:
+    (``what`` says what that shape is, e.g. ``"the particles' [*B, N, d]"``) in a floating dtype
+    (``dtype``: that one, the particles'). Reads shapes only (no sync)."""
+    if not isinstance(t, Tensor) or tuple(t.shape) != tuple(shape) or not t.dtype.is_floating_point \
+            or (dtype is not None and t.dtype != dtype):
         got = f"shape {tuple(t.shape)}, dtype {t.dtype}" if isinstance(t, Tensor) else type(t).__name__
-        raise ValueError(f"{method}: returned {got}, expected a floating-point tensor of shape {tuple(shape)} "
-                         f"({what})")
+        kind = "a floating-point tensor" if dtype is None else f"a {dtype} tensor (the particles' dtype)"
+        raise ValueError(f"{method}: returned {got}, expected {kind} of shape {tuple(shape)} ({what})")
 
 
 def diagnose_model_outputs(model, belief: ParticleBelief, action: Tensor, observation: Tensor) -> str | None:
     """Why an update failed, when a model method is the cause: it raises on the belief's inputs, or
-    returns the wrong shape or dtype. Calls ``model.transition`` and ``model.observation_log_prob``
-    once on the validated inputs (``action`` ``[*B]``, ``observation`` ``[*B, obs_dim]`` in the belief's
-    dtype); returns the message naming the method, or ``None`` when both behave. For the failure path
-    of :meth:`BeliefFilter.update` only."""
+    returns the wrong shape or dtype. Calls ``model.transition``, ``model.observation_log_prob`` and
+    ``model.observe`` once on the validated inputs (``action`` ``[*B]``, ``observation`` ``[*B, obs_dim]``
+    in the belief's dtype); returns the message naming the method, or ``None`` when all behave. For the
+    failure path of :meth:`BeliefFilter.update` only."""
     x = belief.particles
     a = per_particle(model, action, x.shape[:-1])
     fix = "a model method must keep the particles' shape [*B, N, d] and dtype"
@@ -315,13 +330,14 @@ def diagnose_model_outputs(model, belief: ParticleBelief, action: Tensor, observ
                     f"{x.dtype}; {fix}")
         lp, problem = call("observation_log_prob",
                            lambda: model.observation_log_prob(observation.unsqueeze(-2), x_next, a))
-    if problem is not None:
-        return problem
-    if not isinstance(lp, Tensor) or lp.shape != x.shape[:-1] or not lp.dtype.is_floating_point:
-        got = f"shape {tuple(lp.shape)}, dtype {lp.dtype}" if isinstance(lp, Tensor) else type(lp).__name__
-        return (f"model.observation_log_prob: returned {got}, expected one log-density per particle, shape "
-                f"{tuple(x.shape[:-1])} ([*B, N]) in a floating dtype")
-    return None
+        if problem is None and (not isinstance(lp, Tensor) or lp.shape != x.shape[:-1]
+                                or not lp.dtype.is_floating_point):
+            got = f"shape {tuple(lp.shape)}, dtype {lp.dtype}" if isinstance(lp, Tensor) else type(lp).__name__
+            problem = (f"model.observation_log_prob: returned {got}, expected one log-density per particle, shape "
+                       f"{tuple(x.shape[:-1])} ([*B, N]) in a floating dtype")
+        if problem is None:  # the EnKF draws perturbed observations with model.observe
+            _, problem = call("observe", lambda: model.observe(x_next, a, None))
+    return problem
 
 
 def validate_check_finite(owner: str, value: object) -> bool:

@@ -61,13 +61,25 @@ def coordinates(model, kind: str, size: int, state_dim: int) -> Tensor:
     over the state's index range, ``j · d / m``). Returns ``[size, k]`` float32."""
     own = getattr(model, f"{kind}_coordinates", None)
     if own is not None:
-        c = torch.as_tensor(own, dtype=torch.float32)
+        where = f"model.{kind}_coordinates"
+        try:
+            c = torch.as_tensor(own, dtype=torch.float32)
+        except (TypeError, ValueError, RuntimeError):
+            raise ValueError(f"{where}: expected a list or tensor of positions, [{size}] or [{size}, k], got "
+                             f"{type(own).__name__} {own!r:.60}") from None
         c = c.unsqueeze(-1) if c.ndim == 1 else c
-        if c.shape[0] != size:
-            raise ValueError(f"model.{kind}_coordinates: expected {size} rows, got shape {tuple(c.shape)}")
+        if c.ndim != 2 or c.shape[0] != size:
+            raise ValueError(f"{where}: expected {size} rows ([{size}] or [{size}, k]: where each {kind} coordinate "
+                             f"lies), got shape {tuple(c.shape)}")
+        if not bool(torch.isfinite(c).all()):
+            raise ValueError(f"{where}: expected finite positions, got NaN or inf (the taper would cut every "
+                             "correlation of that coordinate); give each coordinate a finite position")
         return c
     index = torch.arange(size, dtype=torch.float32)
     return (index if kind == "state" else index * state_dim / max(size, 1)).unsqueeze(-1)
+
+
+MIN_MEMBERS = "EnKFFilter needs at least 2 particles (its gain is the ensemble's covariance)"
 
 
 @dataclass(frozen=True)
@@ -114,15 +126,26 @@ class EnKFFilter(HasParams, BeliefFilter):
         if self.localisation_radius is None:
             return None
         xs, ys = coordinates(model, "state", d, d), coordinates(model, "observation", m, d)
+        if xs.shape[1] != ys.shape[1]:
+            raise ValueError(f"model.state_coordinates, model.observation_coordinates: expected positions in the same "
+                             f"space, got {xs.shape[1]} and {ys.shape[1]} columns; give both [size, k] with one k")
         c = self.localisation_radius
         taper_xy = gaspari_cohn(torch.cdist(xs, ys) / c)
         taper_yy = gaspari_cohn(torch.cdist(ys, ys) / c)
         return taper_xy.to(like), taper_yy.to(like)
 
+    def init(self, model, batch_shape, num_particles, generator=None, start_state=None) -> ParticleBelief:
+        """As :meth:`BeliefFilter.init`, with at least 2 particles (the gain is the ensemble's covariance)."""
+        if isinstance(num_particles, int) and num_particles == 1:
+            raise ValueError(f"num_particles: {MIN_MEMBERS}, got 1; use num_particles >= 2")
+        return super().init(model, batch_shape, num_particles, generator, start_state)
+
     def _update(self, model, belief, action, observation, generator, *, guard=None):
         guard = OFF if guard is None else guard
         x = belief.particles
         n, d = x.shape[-2], x.shape[-1]
+        if n < 2:
+            raise ValueError(f"belief.particles: {MIN_MEMBERS}, got {n} per belief; build it with num_particles >= 2")
         x_pred, a = self._predict(model, belief, action, generator, guard)
         w = belief.weights().unsqueeze(-1)  # [*B, N, 1]; equal for an EnKF's own beliefs
         mean = (w * x_pred).sum(-2, keepdim=True)
@@ -130,7 +153,7 @@ class EnKFFilter(HasParams, BeliefFilter):
             x_pred = mean + self.inflation * (x_pred - mean)
         y = model.observe(x_pred, a, generator)
         check_output_shape("model.observe", y, (*x.shape[:-1], observation.shape[-1]),
-                           "one observation per particle, [*B, N, obs_dim]")
+                           "one observation per particle, [*B, N, obs_dim]", dtype=x.dtype)
         guard.model_values("model.observe", y)
         m = y.shape[-1]
         dx = x_pred - mean
@@ -146,6 +169,11 @@ class EnKFFilter(HasParams, BeliefFilter):
         c_yy = c_yy + jitter[..., None, None] * eye
         innovations = observation.unsqueeze(-2) - y  # [*B, N, m]
         # K (o − y_i) = C_xy C_yy⁻¹ (o − y_i), for every member at once: solve C_yy Z = (o − y)ᵀ
-        z = torch.linalg.solve(c_yy, innovations.transpose(-1, -2))  # [*B, m, N]
+        try:
+            z = torch.linalg.solve(c_yy, innovations.transpose(-1, -2))  # [*B, m, N]
+        except torch.linalg.LinAlgError:
+            raise ValueError(f"EnKFFilter.ridge: the ensemble's observation covariance is singular ({n} particles, "
+                             f"obs_dim {m}, ridge={self.ridge}); set ridge > 0 (default 1e-6), or use more particles "
+                             "than obs_dim with a model.observe that draws noise") from None
         x_post = x_pred + (c_xy @ z).transpose(-1, -2)
         return ParticleBelief(x_post, belief.log_weights)

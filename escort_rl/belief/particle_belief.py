@@ -25,6 +25,11 @@ class ParticleBelief:
     @classmethod
     def uniform(cls, particles: Tensor) -> ParticleBelief:
         """Equal weights for ``particles`` ``[*B, N, d]``."""
+        if not isinstance(particles, Tensor) or particles.ndim < 2 or not particles.dtype.is_floating_point:
+            got = (f"shape {tuple(particles.shape)}, dtype {particles.dtype}" if isinstance(particles, Tensor)
+                   else type(particles).__name__)
+            raise ValueError(f"particles: expected a floating-point tensor [*B, N, d] (N particles of dimension d), "
+                             f"got {got}; reshape it, e.g. particles.unsqueeze(-1) for N particles of one dimension")
         n = particles.shape[-2]
         log_w = torch.full(particles.shape[:-1], -math.log(n), dtype=particles.dtype, device=particles.device)
         return cls(particles, log_w)

@@ -27,6 +27,10 @@ memory games: Repeat Previous, Battleship, Concentration...) have no model here;
 from __future__ import annotations
 
 import functools
+import numbers
+
+import gymnasium as gym
+import numpy as np
 
 from escort_rl.config.errors import MissingExtra
 
@@ -72,7 +76,6 @@ def popgym_tasks() -> dict[str, str]:
         >>> popgym_tasks()["RepeatPreviousEasy"]  # doctest: +SKIP
         'popgym-RepeatPreviousEasy-v0'
     """
-    import gymnasium as gym
 
     import_popgym()
     return {env_id.removeprefix("popgym-").removesuffix("-v0"): env_id
@@ -96,8 +99,6 @@ def make_gym_popgym_env(name: str):
     float32 (gymnasium's ``FlattenObservation`` and ``DtypeObservation``), a multi-discrete action
     one discrete action over their product (POPGym's ``DiscreteAction``). The control tasks are left
     as they are."""
-    import gymnasium as gym
-    import numpy as np
 
     key = popgym_any_task(name)
     from popgym.wrappers import DiscreteAction
@@ -107,7 +108,24 @@ def make_gym_popgym_env(name: str):
         env = DiscreteAction(env.unwrapped)  # POPGym's wrappers take its own env, not gymnasium's
     if not isinstance(env.observation_space, gym.spaces.Box):
         env = gym.wrappers.DtypeObservation(gym.wrappers.FlattenObservation(env), np.float32)
-    return env
+    return CheckedAction(env)
+
+
+class CheckedAction(gym.Wrapper):
+    """A POPGym env that refuses an action outside its action space with one line naming ``action``,
+    where POPGym would clip a torque silently, step a NaN into NaN observations or fail an ``assert``."""
+
+    def step(self, action):
+        space, value, fix = self.action_space, np.asarray(action), None
+        if isinstance(space, gym.spaces.Discrete):
+            if not (value.shape == () and np.issubdtype(value.dtype, np.integer) and space.contains(int(value))):
+                fix = f"pass an integer index in [{space.start}, {space.start + space.n})"
+        elif isinstance(space, gym.spaces.Box):
+            if not (np.issubdtype(value.dtype, np.number) and space.contains(value.astype(space.dtype))):
+                fix = "pass finite values inside the box (squash or clip the policy's output)"
+        if fix is not None:
+            raise ValueError(f"action: expected an element of {space}, got {value.tolist()!r}; {fix}")
+        return self.env.step(action)
 
 
 def popgym_episode_length(name: str) -> int | None:
@@ -121,7 +139,6 @@ def popgym_episode_length(name: str) -> int | None:
 def popgym_task_spaces(name: str, device: str = "cpu"):
     """The :class:`~escort_rl.models.TaskSpaces` of POPGym's task ``name`` as
     :func:`make_single_popgym_env` presents it: the observation's width and the actions."""
-    import gymnasium as gym
     import torch
 
     from escort_rl.models import TaskSpaces
@@ -168,6 +185,8 @@ def make_popgym_env(name: str, num_envs: int = 1, parallel: bool = False, seed: 
     key = popgym_any_task(name)
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ValueError(f"num_envs: expected a positive int, got {num_envs!r}")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, numbers.Integral)):
+        raise ValueError(f"seed: expected an int or None, got {seed!r}")
     import_popgym()  # here too, for the message before any worker starts
     if num_envs == 1 and not parallel:
         return make_single_popgym_env(key, device=device, seed=seed)

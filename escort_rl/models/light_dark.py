@@ -38,6 +38,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from escort_rl.config.errors import ConfigError
 from escort_rl.config.params import HasParams, build_params, param
 from escort_rl.models.gaussian import (
     AdditiveGaussianTransition,
@@ -163,6 +164,9 @@ class LightDark10D(HasParams, AdditiveGaussianTransition):
     def __init__(self, params: LightDark10DParams | None = None, *, device: torch.device | str | None = None,
                  **kwargs) -> None:
         self.params = p = build_params(LightDark10DParams, params, kwargs, owner=type(self).__name__)
+        if not p.start_low < p.start_high:
+            raise ConfigError(f"{type(self).__name__}.start_low: must be < start_high (the start box is "
+                              f"[start_low, start_high]^n_pos), got {p.start_low} >= {p.start_high}")
         n, confusion_prob, force = p.n_pos, p.confusion_prob, p.force
         if n != type(self).n_pos:
             self.n_pos, self.position_dims, self.velocity_dims = n, tuple(range(n)), tuple(range(n, 2 * n))

@@ -133,6 +133,9 @@ def check_model_structure(model: object) -> None:
             f"model.n_actions: expected an int attribute on {type(model).__name__} (or, for continuous actions, "
             "action_dim with action_low and action_high); a model must follow escort_rl.models.POMDPModel"
         )
+    elif isinstance(model.n_actions, bool) or model.n_actions < 1:
+        raise TypeError(f"model.n_actions: expected a positive int (the number of actions) on {type(model).__name__}, "
+                        f"got {model.n_actions!r}")
     for name in (
         "initial_state",
         "initial_belief",

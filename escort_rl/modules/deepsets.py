@@ -163,10 +163,16 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
         module = TensorDictModule(actor, in_keys=in_keys, out_keys=["logits"])
         return ProbabilisticActor(module, in_keys=["logits"], out_keys=[action_key], distribution_class=Categorical,
                                   return_log_prob=True, log_prob_key="action_log_prob")
+    if not isinstance(action_box, (tuple, list)) or len(action_box) != 2:
+        raise ValueError(f"action_box: expected a pair (low, high) of tensors [A], got {type(action_box).__name__} "
+                         f"of {len(action_box) if hasattr(action_box, '__len__') else 'no'} items")
     low, high = (torch.as_tensor(b, dtype=torch.float32) for b in action_box)
     if low.ndim != 1 or low.shape != high.shape or actor.n_actions != 2 * low.shape[0]:
         raise ValueError(f"action_box: expected (low, high) of shape [A] for an actor with n_actions = 2A, got shapes "
                          f"{tuple(low.shape)}, {tuple(high.shape)} and n_actions {actor.n_actions}")
+    if not bool((torch.isfinite(low) & torch.isfinite(high) & (low < high)).all()):
+        raise ValueError(f"action_box: expected finite bounds with low < high in every dimension (a TanhNormal "
+                         f"squashes into the box), got low {low.tolist()} and high {high.tolist()}")
     module = TensorDictSequential(
         TensorDictModule(actor, in_keys=in_keys, out_keys=["normal_params"]),
         TensorDictModule(NormalParamExtractor(), in_keys=["normal_params"], out_keys=["loc", "scale"]))

@@ -11,6 +11,7 @@ from torchrl.envs import Compose, TransformedEnv
 from torchrl.modules import ProbabilisticActor
 
 from escort_rl.config import ConfigError, registry
+from escort_rl.config.errors import first_line
 from escort_rl.envs import POMDPEnv
 from escort_rl.modules import DeepSetsActor, DeepSetsCritic, make_deepsets_policy, policy_outputs
 from escort_rl.transforms import ActionRepeat, BeliefTransform
@@ -32,9 +33,23 @@ def _instantiate(target: str, kwargs: dict, where: str, **extra):
         return instantiate({"_target_": target, **kwargs}, **extra, _convert_="all")
     except InstantiationException as err:
         cause = err.__cause__
-        if cause is None or isinstance(cause, ImportError):
-            raise ConfigError(f"{where}._target_: cannot import '{target}'") from None
+        if cause is None:  # located, but hydra cannot call it
+            raise ConfigError(f"{where}._target_: '{target}' is not a class or a function "
+                              f"({first_line(err)}); name a class, e.g. my_pkg.models.MyModel") from None
+        if isinstance(cause, ImportError):
+            raise ConfigError(f"{where}._target_: cannot import '{target}'{_import_reason(target, cause)}") from None
         raise cause from None
+
+
+def _import_reason(target: str, err: ImportError) -> str:
+    """Why ``target`` does not import, when that is not simply that it is not there: its module fails
+    (an error in its body, a dependency it imports is missing), as `` (Type: first line)``."""
+    origin = err.__cause__ or err
+    if isinstance(origin, ModuleNotFoundError) and origin.name and target.startswith(origin.name):
+        return ""  # the module or class itself is not there
+    if isinstance(origin, (ImportError, AttributeError)) and origin is err:
+        return ""
+    return f" ({type(origin).__name__}: {first_line(origin)})"
 
 
 def _prefixed(where: str, err: Exception) -> str:
@@ -68,6 +83,8 @@ def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu", densiti
         check_model(model, densities=densities)
     except (TypeError, ValueError) as err:
         raise ConfigError(_prefixed("env.model", err)) from None
+    except RuntimeError as err:  # e.g. a torch error in the model's constructor
+        raise ConfigError(f"env.model: building '{target}' raised {type(err).__name__}: {first_line(err)}") from None
     return model
 
 
@@ -98,6 +115,8 @@ def _takes(target: str, name: str) -> bool:
             obj = importlib.import_module(".".join(parts[:i]))
         except ImportError:
             continue
+        except Exception:  # noqa: BLE001 - the module's body fails: instantiate names it
+            return True
         try:
             for attr in parts[i:]:
                 obj = getattr(obj, attr)
@@ -219,13 +238,19 @@ def env_factory(cfg: DictConfig, num_envs: int, seed: int | None = None, action_
     return partial(make_env, plain, num_envs, seed, action_repeat)
 
 
-def input_scaling(cfg: DictConfig) -> tuple:
+def input_scaling(cfg: DictConfig, state_dim: int | None = None) -> tuple:
     """The per-dimension standardisation of particles, ``(x − loc) / scale``, of the env group
-    (``env.input_loc``, ``env.input_scale``: a number or one per state dimension)."""
+    (``env.input_loc``, ``env.input_scale``: a number or one per state dimension). With ``state_dim``,
+    a list of another length raises :class:`ConfigError` naming the key."""
     def plain(v):
         return OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
 
-    return plain(cfg.env.input_loc), plain(cfg.env.input_scale)
+    loc, scale = plain(cfg.env.input_loc), plain(cfg.env.input_scale)
+    for key, value in (("input_loc", loc), ("input_scale", scale)):
+        if state_dim is not None and isinstance(value, (list, tuple)) and len(value) not in (1, state_dim):
+            raise ConfigError(f"env.{key}: expected a number or {state_dim} numbers (one per dimension of the model's "
+                              f"state), got {len(value)}; set env.{key} to a number or a list of {state_dim}")
+    return loc, scale
 
 
 def build_critic(cfg: DictConfig, model, critic_input: str) -> tuple:
@@ -236,9 +261,9 @@ def build_critic(cfg: DictConfig, model, critic_input: str) -> tuple:
     from escort_rl.modules.critics import StateValueNet
 
     if critic_input == "state":
-        loc, scale = input_scaling(cfg)
+        loc, scale = input_scaling(cfg, model.state_dim)
         return StateValueNet(model.state_dim, int(cfg.actor.hidden), loc, scale), ["true_state"]
-    return DeepSetsCritic(model.state_dim, **deepsets_sizes(cfg)), list(belief_keys(cfg))
+    return DeepSetsCritic(model.state_dim, **deepsets_sizes(cfg, model.state_dim)), list(belief_keys(cfg))
 
 
 def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticActor]:
@@ -250,14 +275,14 @@ def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticAc
     return actor, make_deepsets_policy(actor, *belief_keys(cfg), action_box=box)
 
 
-def deepsets_sizes(cfg: DictConfig) -> dict:
+def deepsets_sizes(cfg: DictConfig, state_dim: int | None = None) -> dict:
     """The keyword arguments of a :class:`~escort_rl.modules.DeepSetsNet` from the ``actor`` group: width
     ``actor.hidden``, depth ``actor.encoder_layers``, ``actor.summary``, and the env group's input
-    scaling and angles (``env.periodic_dims``)."""
+    scaling (checked against ``state_dim`` when given) and angles (``env.periodic_dims``)."""
     from escort_rl.config.schema import ActorConfig
 
     actor = OmegaConf.merge(OmegaConf.structured(ActorConfig), cfg.actor)  # typed; a saved config's absent keys
-    loc, scale = input_scaling(cfg)                                         # take the schema's defaults
+    loc, scale = input_scaling(cfg, state_dim)                              # take the schema's defaults
     periodic = cfg.env.get("periodic_dims", None) or ()  # an env key of the angle-carrying env groups only
     return dict(hidden=actor.hidden, input_loc=loc, input_scale=scale, encoder_layers=actor.encoder_layers,
                 periodic_dims=list(periodic), summary=actor.summary)
@@ -265,4 +290,4 @@ def deepsets_sizes(cfg: DictConfig) -> dict:
 
 def build_actor(cfg: DictConfig, state_dim: int, n_actions: int) -> DeepSetsActor:
     """A :class:`DeepSetsActor` of the ``actor`` group's sizes (:func:`deepsets_sizes`)."""
-    return DeepSetsActor(state_dim, n_actions, **deepsets_sizes(cfg))
+    return DeepSetsActor(state_dim, n_actions, **deepsets_sizes(cfg, state_dim))

@@ -162,12 +162,14 @@ def checkpoint_damage(path: str | Path) -> str | None:
     path = Path(path)
     try:
         manifest = Checkpoint.manifest(path)
-    except (CheckpointError, OSError, TypeError, ValueError):
+        components = sorted(manifest["components"].items())
+        records = [(name, path / record["path"], list(record["files"])) for name, record in components]
+    except (CheckpointError, OSError, TypeError, ValueError, AttributeError, KeyError):
         return "manifest.json is missing or unreadable"
     if not path.is_dir():
         return None
-    for name, record in sorted(manifest["components"].items()):
-        damage = component_damage(name, path / record["path"], list(record["files"]))
+    for name, folder, files in records:
+        damage = component_damage(name, folder, files)
         if damage is not None:
             return damage
     return None

@@ -58,7 +58,7 @@ def build_dvrl_policy(cfg: DictConfig, model) -> DVRLPolicy:
     :class:`StateReadout` to ``model.state_dim`` standardised by ``cfg.actor``'s input scaling."""
     dvrl = DVRL.from_config(OmegaConf.to_container(cfg.dvrl, resolve=True), model.obs_dim,
                             getattr(model, "n_actions", None))
-    loc, scale = input_scaling(cfg)
+    loc, scale = input_scaling(cfg, model.state_dim)
     readout = StateReadout(dvrl.summary_dim, model.state_dim, hidden=int(cfg.actor.hidden), loc=loc, scale=scale)
     return DVRLPolicy(dvrl, readout=readout).to(cfg.device)
 

@@ -55,11 +55,15 @@ def saved_model_overrides(overrides: list[str], model) -> list[str]:
     if envs and envs[-1] != "custom":
         raise ConfigError(f"model: a model object replaces the env group's model only with env=custom (got "
                           f"env={envs[-1]}); drop env=, or set the package model's keys with env.model.KEY=VALUE")
+    keys = [o for o in overrides if o.lstrip("+~").startswith("env.model.")]
+    if keys:
+        raise ConfigError(f"model: a model object is used as it is, so '{keys[0]}' would not reach it; drop it and "
+                          "set the value on the object itself (MyModel(KEY=VALUE))")
     try:
         check_model(model)
+        data = model_bytes(model)
     except TypeError as err:
         raise ConfigError(str(err)) from None
-    data = model_bytes(model)
     digest = sha256(data)
     base = [o for o in overrides if not o.startswith("env=")]
     probe = new_run_config(["env=custom", "env.model._target_=escort_rl.models.saved.load_saved_model", *base])

@@ -4,6 +4,7 @@ controller on the same filter's belief (where the domain has one) and a uniform-
 from __future__ import annotations
 
 import json
+import numbers
 import time
 from functools import partial
 from pathlib import Path
@@ -13,6 +14,8 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from escort_rl.config import ConfigError
+from escort_rl.config.schema import check_output_dir
 from escort_rl.models import TaskSpaces, has_goal, position_dims, position_error, velocity_dims
 from escort_rl.planners import ScriptedBeliefController
 from escort_rl.planners.scripted import DEFAULT_GAIN_V
@@ -224,6 +227,13 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     Writes ``summary.md``, ``metrics.json``, ``learning_curve.png`` and ``belief_projection.png``
     into ``output`` (default: ``<run>/evaluation``) and returns the metrics.
     """
+    if episodes is not None and (isinstance(episodes, bool) or not isinstance(episodes, numbers.Integral)
+                                 or episodes < 1):
+        raise ConfigError(f"episodes: expected a positive int (or None: the config's evaluate.episodes), got "
+                          f"{episodes!r}")
+    problem = None if output is None else check_output_dir(str(output))
+    if problem is not None:
+        raise ConfigError(f"output: {problem}")
     ckpt_path = resolve_checkpoint(checkpoint)
     meta = load_checkpoint(ckpt_path)  # reads config and history without restoring modules
     cfg = run_config(meta)

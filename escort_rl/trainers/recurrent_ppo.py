@@ -55,8 +55,8 @@ def observation_scaling(cfg: DictConfig, model) -> tuple[list[float], list[float
       position and detections) is not a slice of the state: it is left as is (loc 0, scale 1).
 
     Returns two lists of ``obs_dim`` floats."""
-    loc, scale = input_scaling(cfg)
     d, m = int(model.state_dim), int(model.obs_dim)
+    loc, scale = input_scaling(cfg, d)
     loc = [float(loc)] * d if not isinstance(loc, (list, tuple)) else [float(x) for x in loc]
     scale = [float(scale)] * d if not isinstance(scale, (list, tuple)) else [float(x) for x in scale]
     dims = getattr(model, "position_dims", None)

@@ -35,7 +35,7 @@ from omegaconf import DictConfig, OmegaConf
 from escort_rl.config import files
 from escort_rl.config.composition import check_composed, compose, hydra_error_line, is_group_override
 from escort_rl.config.errors import ConfigError
-from escort_rl.trainers.checkpointing import load_checkpoint, run_dir_of
+from escort_rl.trainers.checkpointing import checkpoint_dir, list_checkpoints, load_checkpoint, run_dir_of
 
 NEW_RUN = ("", "null", "None")
 
@@ -278,17 +278,27 @@ def check_new_run_dir(cfg: DictConfig, run_dir: Path) -> None:
     (its ``config.yaml``) whose config differs from ``cfg``: a new run must not mix its config and
     checkpoints with another's. The same config may start again there."""
     saved_path = Path(run_dir) / "config.yaml"
-    if not saved_path.is_file():
+    elsewhere = f"continue that run with resume={run_dir}, or start this one in another folder (output_dir=...)"
+    if not saved_path.exists():
+        if list_checkpoints(checkpoint_dir(run_dir)):  # a run's checkpoints, its config.yaml deleted
+            raise ConfigError(f"output_dir: '{run_dir}' holds another run's checkpoints but no config.yaml; "
+                              f"{elsewhere}")
         return
-    saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=False)
+    try:
+        saved = OmegaConf.to_container(OmegaConf.load(saved_path), resolve=False)
+    except Exception as err:  # noqa: BLE001 - yaml, OmegaConf and the file system raise many types
+        saved = f"{type(err).__name__}: {(str(err).strip().splitlines() or [''])[0]}"
+    if not isinstance(saved, dict):
+        what = saved if isinstance(saved, str) else f"a {type(saved).__name__}, not a mapping"
+        raise ConfigError(f"output_dir: '{run_dir}' holds a config.yaml that cannot be read ({what}); {elsewhere}, "
+                          "or restore its config.yaml")
     now = OmegaConf.to_container(cfg, resolve=True)
     differ = [k for k in _diff({k: v for k, v in saved.items() if k not in _NOT_THE_RUN},
                                {k: v for k, v in now.items() if k not in _NOT_THE_RUN}, "")]
     if differ:
         shown = ", ".join(differ[:4]) + (f" and {len(differ) - 4} more" if len(differ) > 4 else "")
         raise ConfigError(f"output_dir: '{run_dir}' already holds another run (its config.yaml differs in {shown}); "
-                          f"continue that run with resume={run_dir}, or start this one in another folder "
-                          "(output_dir=...)")
+                          f"{elsewhere}")
 
 
 def fresh_state() -> dict:

@@ -99,6 +99,11 @@ def check_popgym_any_task(cfg: DictConfig) -> None:
     from escort_rl.trainers.builders import build_task_spaces
 
     build_task_spaces(cfg.env)  # the task is named, known, and popgym installed
+    keys = list(cfg.env.get("model") or {})
+    if keys:
+        raise ConfigError(f"env.model.{keys[0]}: env=popgym has no model of the task (the GRU reads POPGym's own "
+                          "observations), so it would be ignored; drop it, or use env=popgym_cartpole or "
+                          "env=popgym_pendulum for a model with its keys")
     if cfg.trainer.get("algorithm") != "recurrent_ppo":
         raise ConfigError(f"trainer: env=popgym has no model of the task's dynamics, so no belief can be computed "
                           f"and only the model-free GRU trains on it (trainer=recurrent_ppo), got "
@@ -138,3 +143,7 @@ def check_popgym_task(cfg: DictConfig) -> None:
         raise ConfigError("env.popgym_task: POPGym's own env has no true state, which trainer=dvrl_a2c's readout "
                           "and trainer.critic_input=state read; act in the model's simulator (env.popgym_task=null) "
                           "or set trainer.critic_input=belief")
+    noise, assumed = float(model.TASKS[task_key(task)]["obs_noise"]), cfg.env.model.get("obs_noise", None)
+    if cfg.trainer.algorithm != "recurrent_ppo" and assumed is not None and abs(float(assumed) - noise) > 1e-9:
+        raise ConfigError(f"env.model.obs_noise: POPGym's {task} adds observation noise {noise:g}, but the filters' "
+                          f"model assumes {float(assumed):g}; set env.model.obs_noise={noise:g}")

@@ -19,7 +19,7 @@ BELIEF_PPO = ["trainer=ppo", "filter=sir", "trainer.critic_input=belief", "train
 @pytest.mark.parametrize("overrides", [
     ["env=popgym_pendulum", "env.popgym_task=NoisyPositionOnlyPendulumHard", "trainer=recurrent_ppo",
      "trainer.minibatches=2"],
-    ["env=popgym_cartpole", "env.popgym_task=NoisyPositionOnlyCartPoleEasy", *BELIEF_PPO],
+    ["env=popgym_cartpole", "env.popgym_task=NoisyPositionOnlyCartPoleEasy", "env.model.obs_noise=0.1", *BELIEF_PPO],
 ], ids=["gru-pendulum-gym", "belief-ppo-cartpole-gym"])
 def test_training_in_popgyms_own_env(tmp_path, overrides):
     from escort_rl.trainers.checkpointing import load_checkpoint

@@ -29,6 +29,7 @@ import torch
 
 from escort_rl.bench.core.runner import Cell
 from escort_rl.bench.reference_cell import ReferenceCell
+from escort_rl.config.errors import first_line
 from escort_rl.metrics.reference import Reference, exact_reference, has_exact_posterior
 
 FILTER_METHODS = ("sir", "enkf", "svgd", "escort")
@@ -36,10 +37,16 @@ FILTER_METHODS = ("sir", "enkf", "svgd", "escort")
 ITERATIVE = ("svgd", "escort")
 
 
-def _parse_value(text: str):
+def _parse_value(text: str, option: str = "--model-arg"):
+    """``text`` read as OmegaConf reads a dotlist's value (a number, a list, a string); ``ValueError``
+    naming ``option`` when it does not parse."""
     from omegaconf import OmegaConf
 
-    return OmegaConf.from_dotlist([f"value={text}"])["value"]
+    try:
+        return OmegaConf.from_dotlist([f"value={text}"])["value"]
+    except Exception as err:  # noqa: BLE001 - yaml and OmegaConf raise several types
+        raise ValueError(f"{option}: cannot read the value '{text}' ({first_line(err)}); quote a string, close a "
+                         "list") from None
 
 
 @lru_cache(maxsize=16)
@@ -54,23 +61,43 @@ def build_model(model: str, model_args: tuple = ()):
 
         cfg = compose([f"env={target}", *(f"env.{a}" for a in model_args)])
         return build_env_model(cfg.env)
-    if kind != "class" or ":" not in target:
-        raise ValueError(f"--model: expected pkg.module:Class (or env=NAME), got {target or model!r}")
     module, _, name = target.partition(":")
+    if kind != "class" or not module or not name.isidentifier():
+        raise ValueError(f"--model: expected pkg.module:Class (or env=NAME), got {target or model!r}")
     try:
         cls = getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError) as err:
         raise ValueError(f"--model: cannot import {module}:{name} ({err}); is the module on the path?") from None
+    except Exception as err:  # noqa: BLE001 - the module's own code fails (a SyntaxError, an error in its body)
+        raise ValueError(f"--model: cannot import {module}:{name} ({type(err).__name__}: {first_line(err)})") from None
+    if not callable(cls):
+        raise ValueError(f"--model: {module}:{name} is a {type(cls).__name__}, not a class; name the model's class")
     kwargs = {}
     for item in model_args:
         key, sep, value = item.partition("=")
         if not sep or not key:
             raise ValueError(f"--model-arg: '{item}' is not of the form KEY=VALUE")
+        if key in kwargs:
+            raise ValueError(f"--model-arg: {key} is given twice; give each keyword once")
         kwargs[key] = _parse_value(value)
     try:
-        return cls(**kwargs)
+        built = cls(**kwargs)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"--model-arg: {name}({', '.join(kwargs)}) failed: {first_line(err)}; check the keywords and "
+                         "values against the class") from None
+    check_user_model(built)
+    return built
+
+
+def check_user_model(model) -> None:
+    """The model protocol's probe (:func:`~escort_rl.models.check_model`) on a model built from
+    ``--model``, before any cell runs: ``ValueError`` with the probe's line naming the method."""
+    from escort_rl.models import check_model
+
+    try:
+        check_model(model)
     except TypeError as err:
-        raise ValueError(f"--model-arg: {name}({', '.join(kwargs)}) failed: {err}") from None
+        raise ValueError(str(err)) from None
 
 
 def model_label(model: str, model_args: tuple = ()) -> str:
@@ -91,7 +118,7 @@ def make_filter(method: str, num_steps: int = 0, compile: bool = False, filter_a
     kwargs = dict(num_steps=int(num_steps), compile=bool(compile)) if method in ITERATIVE else {}
     for item in filter_args:
         key, _, value = item.partition("=")
-        kwargs[key] = _parse_value(value)
+        kwargs[key] = _parse_value(value, "--variant")
     try:
         return classes[method](**kwargs)
     except TypeError as err:
