@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
             if isinstance(status, int):
                 return status
         elif args.command == "check-model":
-            from escort_rl.bench.frontier.cells import build_model as build_user_model
+            from escort_rl.bench.frontier.cells import frontier_model as build_user_model
             from escort_rl.models import check_model
 
             model = build_user_model(f"class:{args.model}", tuple(args.model_arg))

@@ -13,19 +13,20 @@ import math
 from pathlib import Path
 
 from escort_rl.bench.core import options
+from escort_rl.config import registry
 from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 
 
 def run_label(config: dict) -> str:
-    """``"dvrl"`` for a DVRL run, ``"GRU on observations (recurrent_ppo)"`` for the recurrent
-    baseline, else ``"<filter> + DeepSets (<algorithm>)"``."""
+    """``"<filter> + DeepSets (<algorithm>)"`` for a policy on a filter's beliefs; for a trainer whose
+    policy reads something else, what it reads (its class's ``belief_label``, e.g. ``"dvrl (learned
+    belief)"``)."""
     algorithm = config.get("trainer", {}).get("algorithm", "reinforce")
-    if algorithm == "dvrl_a2c":
-        return "dvrl"
-    if algorithm == "recurrent_ppo":
-        return "GRU on observations (recurrent_ppo)"
+    label = registry.resolve("trainer", algorithm).belief_label
+    if label is not None:
+        return label
     return f"{config.get('filter', {}).get('name', '?')} + DeepSets ({algorithm})"
 
 

@@ -49,14 +49,32 @@ REGISTRY: dict[str, dict[str, str]] = {
 1-D planning problem ``lightdark1d`` has none), ``filter`` names are filter families
 (``filter.kind``), ``trainer`` names are ``trainer.algorithm``."""
 
-TRAINER_PARAMS: dict[str, str] = {
-    "ppo": "escort_rl.trainers.params.PPOParams",
-    "reinforce": "escort_rl.trainers.params.ReinforceParams",
-    "dvrl_a2c": "escort_rl.trainers.params.DVRLA2CParams",
-    "recurrent_ppo": "escort_rl.trainers.params.RecurrentPPOParams",
+TRAINER_PARAMS_MODULE = "escort_rl.trainers.params"
+"""Where every trainer's parameters dataclass lives, as ``<class name>Params`` (``PPO`` ->
+``PPOParams``): a light module, so that composing a config reads them without importing TorchRL."""
+
+TASK_ONLY_ENVS: dict[str, str] = {
+    "popgym": "escort_rl.envs.popgym.popgym_task_spaces",
 }
-"""The trainers' parameter classes (each trainer's ``Params``), from a light module: composing a
-config reads them without importing TorchRL."""
+"""Env groups with no model of the task, only its spaces (``name -> the function of (task, device)
+that returns its :class:`~escort_rl.models.TaskSpaces`): no belief can be computed there, and only a
+model-free trainer trains on them. ``env=popgym``: any of POPGym's tasks (``env.popgym_task``)."""
+
+
+def is_task_only(env_name: str) -> bool:
+    """Whether the env group ``env_name`` has only a task's spaces (:data:`TASK_ONLY_ENVS`), no model."""
+    return str(env_name) in TASK_ONLY_ENVS
+
+
+def class_name(kind: str, name: str) -> str:
+    """The name of the class registered as ``name``, without importing it.
+
+    Example:
+        >>> class_name("trainer", "dvrl_a2c")
+        'DVRLA2C'
+    """
+    return target(kind, name).rpartition(".")[2]
+
 
 _FIELD = {"model": "env.name", "filter": "filter.kind", "trainer": "trainer.algorithm"}
 
@@ -89,7 +107,7 @@ def name_of(kind: str, cls: type) -> str:
         'popgym_pendulum'
     """
     for name in names(kind):
-        if target(kind, name).rpartition(".")[2] == cls.__name__ and resolve(kind, name) is cls:
+        if class_name(kind, name) == cls.__name__ and resolve(kind, name) is cls:
             return name
     raise ValueError(f"cls: {cls.__name__} is not a registered {kind}")
 
@@ -97,8 +115,7 @@ def name_of(kind: str, cls: type) -> str:
 def params(kind: str, name: str) -> type:
     """The parameters dataclass of the class registered as ``name`` (its ``Params``)."""
     if kind == "trainer":
-        target(kind, name)  # an unknown name is named
-        return import_target(TRAINER_PARAMS[name])
+        return import_target(f"{TRAINER_PARAMS_MODULE}.{class_name(kind, name)}Params")
     return resolve(kind, name).Params
 
 

@@ -142,15 +142,9 @@ def trainer_schema(algorithm: str, schema_name: str) -> type:
 
 
 # ------------------------------------------------------------------------------- env (models)
-LightDark10DModelConfig = model_schema("lightdark10d", "LightDark10DModelConfig")
-LightDark10DContinuousModelConfig = model_schema("lightdark10d_continuous", "LightDark10DContinuousModelConfig")
-
-
-KidnappedRobot20DModelConfig = model_schema("kidnapped20d", "KidnappedRobot20DModelConfig")
-MultiTargetTracking20DModelConfig = model_schema("mtt20d", "MultiTargetTracking20DModelConfig")
-LinearGaussianModelConfig = model_schema("linear_gaussian", "LinearGaussianModelConfig")
-POPGymCartPoleModelConfig = model_schema("popgym_cartpole", "POPGymCartPoleModelConfig")
-POPGymPendulumModelConfig = model_schema("popgym_pendulum", "POPGymPendulumModelConfig")
+MODEL_SCHEMAS = {name: model_schema(name, f"{registry.class_name('model', name)}ModelConfig")
+                 for name in registry.names("model")}
+"""The schema of every registered model (``env.model``), by its env group's name."""
 
 
 @dataclass
@@ -186,44 +180,28 @@ def env_schema(name: str, model: type, schema_name: str) -> type:
     return schema
 
 
-LightDark10DEnvConfig = env_schema("lightdark10d", LightDark10DModelConfig, "LightDark10DEnvConfig")
-LightDark10DContinuousEnvConfig = env_schema("lightdark10d_continuous", LightDark10DContinuousModelConfig,
-                                             "LightDark10DContinuousEnvConfig")
-KidnappedRobot20DEnvConfig = env_schema("kidnapped20d", KidnappedRobot20DModelConfig, "KidnappedRobot20DEnvConfig")
-MultiTargetTracking20DEnvConfig = env_schema("mtt20d", MultiTargetTracking20DModelConfig,
-                                             "MultiTargetTracking20DEnvConfig")
-LinearGaussianEnvConfig = env_schema("linear_gaussian", LinearGaussianModelConfig, "LinearGaussianEnvConfig")
-POPGymCartPoleEnvConfig = env_schema("popgym_cartpole", POPGymCartPoleModelConfig, "POPGymCartPoleEnvConfig")
-POPGymPendulumEnvConfig = env_schema("popgym_pendulum", POPGymPendulumModelConfig, "POPGymPendulumEnvConfig")
-POPGymAnyEnvConfig = env_schema("popgym", Dict[str, Any], "POPGymAnyEnvConfig")
+ENV_SCHEMAS = {name: env_schema(name, model, f"{registry.class_name('model', name)}EnvConfig")
+               for name, model in MODEL_SCHEMAS.items()}
+"""The schema of every env group option: each registered model's, then the groups below."""
+ENV_SCHEMAS["popgym"] = env_schema("popgym", Dict[str, Any], "POPGymAnyEnvConfig")
 """``env=popgym``: any POPGym task (``env.popgym_task``) in POPGym's own env, for the model-free GRU
 (``trainer=recurrent_ppo``); no model, so ``env.model`` stays empty."""
-CustomEnvConfig = env_schema("custom", Dict[str, Any], "CustomEnvConfig")
+ENV_SCHEMAS["custom"] = env_schema("custom", Dict[str, Any], "CustomEnvConfig")
 """``env=custom``: a user's own model. ``env.model`` is open: its ``_target_`` (the class, or any
 callable returning a model) and the keyword arguments that go with it, each added with
 ``+env.model.KEY=VALUE``; :func:`escort_rl.trainers.builders.build_model` instantiates it."""
-ENV_SCHEMAS = {"lightdark10d": LightDark10DEnvConfig, "lightdark10d_continuous": LightDark10DContinuousEnvConfig,
-               "kidnapped20d": KidnappedRobot20DEnvConfig,
-               "mtt20d": MultiTargetTracking20DEnvConfig, "linear_gaussian": LinearGaussianEnvConfig,
-               "popgym_cartpole": POPGymCartPoleEnvConfig, "popgym_pendulum": POPGymPendulumEnvConfig,
-               "popgym": POPGymAnyEnvConfig, "custom": CustomEnvConfig}
 
 
 # ------------------------------------------------------------------------------------ filters
-SIRConfig = filter_schema("sir", "SIRConfig")
-EnKFConfig = filter_schema("enkf", "EnKFConfig")
-SVGDConfig = filter_schema("svgd", "SVGDConfig")
-ESCORTConfig = filter_schema("escort", "ESCORTConfig")
-FILTER_SCHEMAS = {"sir": SIRConfig, "enkf": EnKFConfig, "svgd": SVGDConfig, "escort": ESCORTConfig}
+FILTER_SCHEMAS = {kind: filter_schema(kind, f"{registry.class_name('filter', kind).removesuffix('Filter')}Config")
+                  for kind in registry.names("filter")}
+"""The schema of every registered filter family (``filter.kind``)."""
 
 
 # ----------------------------------------------------------------------------------- trainers
-ReinforceConfig = trainer_schema("reinforce", "ReinforceConfig")
-PPOConfig = trainer_schema("ppo", "PPOConfig")
-DVRLA2CConfig = trainer_schema("dvrl_a2c", "DVRLA2CConfig")
-RecurrentPPOConfig = trainer_schema("recurrent_ppo", "RecurrentPPOConfig")
-TRAINER_SCHEMAS = {"reinforce": ReinforceConfig, "ppo": PPOConfig, "dvrl_a2c": DVRLA2CConfig,
-                   "recurrent_ppo": RecurrentPPOConfig}
+TRAINER_SCHEMAS = {name: trainer_schema(name, f"{registry.class_name('trainer', name)}Config")
+                   for name in registry.names("trainer")}
+"""The schema of every registered trainer (``trainer.algorithm``)."""
 
 
 # --------------------------------------------------------------------------------------- dvrl

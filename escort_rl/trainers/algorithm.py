@@ -58,6 +58,16 @@ def trainer_params(params: type, trainer_cfg):
     return build_params(params, None, values, owner="trainer")
 
 
+def algorithm(cfg: DictConfig) -> str:
+    """``cfg.trainer.algorithm``, a registered trainer (configs saved before the key existed are
+    ``reinforce``); an unknown name raises a ``ConfigError`` naming the choices."""
+    from escort_rl.config import registry
+
+    name = cfg.trainer.get("algorithm", "reinforce")
+    registry.target("trainer", name)
+    return name
+
+
 def typed_trainer(cfg: DictConfig):
     """``cfg.trainer`` as the ``Params`` dataclass of its trainer (``trainer.algorithm``), checked."""
     from escort_rl.config import registry
@@ -93,6 +103,27 @@ class Algorithm(ABC):
     belief_label: str | None = None
     """What the policy acts on when it is not a belief filter's particles (e.g. recurrent PPO's
     ``"none (GRU on raw observations)"``); ``None``: the particles of a filter of the config."""
+
+    model_free: bool = False
+    """Whether the algorithm trains without a model of the task (recurrent PPO's GRU on raw
+    observations): the only kind that trains on an env group with no model (``env=popgym``)."""
+
+    watch: tuple[str, ...] | None = None
+    """The history keys the progress bar shows; ``None``: the return, and the final distance and
+    success rate on a model with a goal."""
+
+    @classmethod
+    def reads_true_state(cls, params) -> bool:
+        """Whether training reads the simulator's true state (an asymmetric critic,
+        ``trainer.critic_input=state``), which an env without one (POPGym's own) cannot give."""
+        return getattr(params, "critic_input", None) == "state"
+
+    @classmethod
+    def trained_policy(cls, cfg: DictConfig, checkpoint):
+        """The trained policy of ``checkpoint``, the env maker it runs in, and a function ``rollout ->
+        belief_mean [E, T, d]`` (``None``: the rollout's particles give the belief mean)."""
+        raise NotImplementedError(f"{cls.__name__}.trained_policy: this trainer's policies are not evaluated "
+                                  "by escort-rl evaluate")
 
     @classmethod
     def belief_of(cls, cfg: DictConfig, params, index: int) -> str:

@@ -67,7 +67,7 @@ def build_model(env_cfg: DictConfig, device: str | torch.device = "cpu", densiti
     (:class:`~escort_rl.models.TaskSpaces`), all a model-free trainer reads."""
     from escort_rl.models import check_model
 
-    if env_cfg.get("name") == "popgym":
+    if registry.is_task_only(env_cfg.get("name")):
         return build_task_spaces(env_cfg, device)
 
     model_cfg = env_cfg.get("model") or {}

@@ -133,6 +133,19 @@ class DVRLA2C(Algorithm):
 
     Params = DVRLA2CParams
     belief_label = "dvrl (learned belief)"
+    watch = ("episode_return", "elbo")
+
+    @classmethod
+    def reads_true_state(cls, params) -> bool:
+        """DVRL's readout (a probe of its belief) learns the true position."""
+        return True
+
+    @classmethod
+    def trained_policy(cls, cfg: DictConfig, checkpoint):
+        """The DVRL policy (its own belief) in the env with its state primer; the belief mean is its
+        readout's estimate."""
+        _, policy = load_dvrl_policy(checkpoint)
+        return policy, make_dvrl_env, lambda rollout: next_state_estimates(policy, rollout)
 
     def __init__(self, cfg: DictConfig, model) -> None:
         validate_dvrl_config(cfg)

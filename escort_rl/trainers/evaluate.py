@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import numbers
 import time
-from functools import partial
 from pathlib import Path
 
 import torch
@@ -14,7 +13,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from escort_rl.config import ConfigError
+from escort_rl.config import ConfigError, registry
 from escort_rl.config.schema import check_output_dir
 from escort_rl.models import TaskSpaces, has_goal, position_dims, position_error, velocity_dims
 from escort_rl.planners import ScriptedBeliefController
@@ -22,7 +21,7 @@ from escort_rl.planners.scripted import DEFAULT_GAIN_V
 from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
 from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
-from escort_rl.trainers.builders import belief_keys, build_model, build_policy, make_env, trained_action_repeat
+from escort_rl.trainers.builders import belief_keys, build_model, make_env
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 from escort_rl.trainers.resume import run_config
 from escort_rl.trainers.training import algorithm
@@ -154,28 +153,12 @@ def policy_summary(cfg, model, policy, episodes: int, seed: int, make=make_env,
 
 
 def trained_policy(cfg, checkpoint):
-    """The trained policy of a checkpoint of either trainer, the env maker it runs in, and a function
-    ``rollout -> belief_mean [E, T, d]`` (``None``: the rollout's particles give the belief mean).
-
-    REINFORCE: the DeepSets policy, in the env with ``cfg``'s belief filter. DVRL: the DVRL policy
-    (its own belief) in the env with its state primer; the belief mean is its readout's estimate."""
-    if algorithm(cfg) == "recurrent_ppo":
-        from escort_rl.trainers.recurrent_ppo import load_recurrent_policy, make_recurrent_env, no_state_estimate
-
-        model = build_model(cfg.env, cfg.device)
-        return (load_recurrent_policy(cfg, checkpoint), make_recurrent_env,
-                lambda rollout: no_state_estimate(rollout, model))
-    if algorithm(cfg) == "dvrl_a2c":
-        from escort_rl.trainers.dvrl_a2c import load_dvrl_policy, make_dvrl_env, next_state_estimates
-
-        _, policy = load_dvrl_policy(checkpoint)
-        return policy, make_dvrl_env, lambda rollout: next_state_estimates(policy, rollout)
-    model = build_model(cfg.env, cfg.device)
-    actor, policy = build_policy(cfg, model)
-    load_checkpoint(checkpoint, actor=actor)
-    actor.eval()
-    return (policy, partial(make_env, action_repeat=trained_action_repeat(cfg)),
-            lambda rollout: None)
+    """The trained policy of a checkpoint of any trainer, the env maker it runs in, and a function
+    ``rollout -> belief_mean [E, T, d]`` (``None``: the rollout's particles give the belief mean): the
+    trainer class's :meth:`~escort_rl.trainers.algorithm.Algorithm.trained_policy`. A belief trainer's
+    is the DeepSets policy in the env with ``cfg``'s belief filter; DVRL's, its policy with its state
+    primer and its readout's estimate; recurrent PPO's, its GRU on raw observations."""
+    return registry.resolve("trainer", algorithm(cfg)).trained_policy(cfg, checkpoint)
 
 
 def scripted_gain(cfg) -> float:
@@ -323,7 +306,8 @@ def _markdown(r: dict) -> str:
         )
     return "\n".join([
         f"# Evaluation: {r['env']}, belief filter {r['filter']}"
-        + ("" if r.get("trainer") == "recurrent_ppo" else f" (N={r['num_particles']})"),
+        + ("" if registry.resolve("trainer", r.get("trainer", "reinforce")).belief_label else
+           f" (N={r['num_particles']})"),
         "",
         f"Checkpoint `{r['checkpoint']}` ({r.get('trainer', 'reinforce')}) after {r['trained_iterations']} "
         f"iterations ({r.get('frames', 0)} frames); {r['episodes']} episodes with env seed {r['eval_seed']}, "

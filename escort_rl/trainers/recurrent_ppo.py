@@ -148,6 +148,14 @@ class RecurrentPPO(PPOBase):
 
     Params = RecurrentPPOParams
     belief_label = "none (GRU on raw observations)"
+    model_free = True
+
+    @classmethod
+    def trained_policy(cls, cfg: DictConfig, checkpoint):
+        """The GRU policy on raw observations, in its env; no state estimate (NaN)."""
+        model = build_model(cfg.env, cfg.device)
+        return (load_recurrent_policy(cfg, checkpoint), make_recurrent_env,
+                lambda rollout: no_state_estimate(rollout, model))
 
     def __init__(self, cfg: DictConfig, model) -> None:
         validate_recurrent_ppo_config(cfg)

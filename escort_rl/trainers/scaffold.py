@@ -282,6 +282,21 @@ class CollectorAlgorithm(Algorithm):
     :meth:`close` shuts the current collector down. Building it draws nothing from torch's
     generator, so a subclass may build it before or after its networks."""
 
+    @classmethod
+    def trained_policy(cls, cfg: DictConfig, checkpoint):
+        """The trained policy of ``checkpoint``, the env maker it runs in, and a function ``rollout ->
+        belief_mean [E, T, d]`` (``None``: the rollout's particles give the belief mean). Here: the
+        DeepSets policy, in the env with ``cfg``'s belief filter (and the run's action repeat)."""
+        from functools import partial
+
+        from escort_rl.trainers.builders import build_model, build_policy, make_env, trained_action_repeat
+        from escort_rl.trainers.checkpointing import load_checkpoint
+
+        actor, policy = build_policy(cfg, build_model(cfg.env, cfg.device))
+        load_checkpoint(checkpoint, actor=actor)
+        actor.eval()
+        return policy, partial(make_env, action_repeat=trained_action_repeat(cfg)), lambda rollout: None
+
     def __init__(self, cfg: DictConfig, model, build_collector) -> None:
         super().__init__(cfg, model)
         run_filter = str(cfg.filter.name)

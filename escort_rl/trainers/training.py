@@ -9,14 +9,7 @@ import torch
 from omegaconf import DictConfig
 
 from escort_rl.config import registry
-
-
-def algorithm(cfg: DictConfig) -> str:
-    """``cfg.trainer.algorithm``, a registered trainer (configs saved before the key existed are
-    ``reinforce``); an unknown name raises a ``ConfigError`` naming the choices."""
-    name = cfg.trainer.get("algorithm", "reinforce")
-    registry.target("trainer", name)
-    return name
+from escort_rl.trainers.algorithm import algorithm
 
 
 def build_algorithm(cfg: DictConfig, model):
@@ -37,6 +30,6 @@ def train(cfg: DictConfig, resume_state: dict | None = None, progress: bool = Tr
     from escort_rl.models import has_goal
 
     goal = ("final_distance", "success_rate") if has_goal(model) else ()
-    watch = ("episode_return", "elbo") if name == "dvrl_a2c" else ("episode_return", *goal)
-    return run_training(cfg, build_algorithm(cfg, model), resume_state=resume_state, progress=progress,
-                        desc=f"train {name}", watch=watch)
+    algo = build_algorithm(cfg, model)
+    return run_training(cfg, algo, resume_state=resume_state, progress=progress, desc=f"train {name}",
+                        watch=algo.watch or ("episode_return", *goal))

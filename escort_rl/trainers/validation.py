@@ -10,10 +10,10 @@ import typing
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from escort_rl.config import ConfigError
+from escort_rl.config import ConfigError, registry
 from escort_rl.config.checking import check_config, describe_error, find_problem
 from escort_rl.config.schema import ENV_SCHEMAS
-from escort_rl.trainers.algorithm import typed_trainer
+from escort_rl.trainers.algorithm import algorithm, typed_trainer
 
 
 def validate_train_config(cfg: DictConfig) -> None:
@@ -91,6 +91,11 @@ def check_exploring_starts(cfg: DictConfig, field: str = "exploring_starts") -> 
 
 
 
+def trainer_class(cfg: DictConfig) -> type:
+    """The :class:`~escort_rl.trainers.algorithm.Algorithm` class ``trainer.algorithm`` names."""
+    return registry.resolve("trainer", algorithm(cfg))
+
+
 def check_popgym_any_task(cfg: DictConfig) -> None:
     """``env=popgym``: any POPGym task (``env.popgym_task``), no model of it, so only the model-free GRU
     (``trainer=recurrent_ppo``) trains there, and an iteration (``env.max_steps`` per env) holds at least
@@ -104,7 +109,7 @@ def check_popgym_any_task(cfg: DictConfig) -> None:
         raise ConfigError(f"env.model.{keys[0]}: env=popgym has no model of the task (the GRU reads POPGym's own "
                           "observations), so it would be ignored; drop it, or use env=popgym_cartpole or "
                           "env=popgym_pendulum for a model with its keys")
-    if cfg.trainer.get("algorithm") != "recurrent_ppo":
+    if not trainer_class(cfg).model_free:
         raise ConfigError(f"trainer: env=popgym has no model of the task's dynamics, so no belief can be computed "
                           f"and only the model-free GRU trains on it (trainer=recurrent_ppo), got "
                           f"trainer={cfg.trainer.get('algorithm')}; with beliefs, use env=popgym_cartpole or "
@@ -120,7 +125,7 @@ def check_popgym_task(cfg: DictConfig) -> None:
     group's system, with its episode length as ``env.max_steps``; not with a trainer that reads the
     simulator's true state (``trainer=dvrl_a2c``'s readout, ``trainer.critic_input=state``)."""
     task = cfg.env.get("popgym_task", None)
-    if cfg.env.name == "popgym":
+    if registry.is_task_only(cfg.env.name):
         return check_popgym_any_task(cfg)
     if not task:
         return
@@ -139,11 +144,11 @@ def check_popgym_task(cfg: DictConfig) -> None:
     if int(cfg.env.max_steps) != length:
         raise ConfigError(f"env.max_steps: POPGym's {task} runs {length} steps, got {cfg.env.max_steps}; set "
                           f"env.max_steps={length}")
-    if cfg.trainer.algorithm == "dvrl_a2c" or getattr(typed_trainer(cfg), "critic_input", None) == "state":
+    if trainer_class(cfg).reads_true_state(typed_trainer(cfg)):
         raise ConfigError("env.popgym_task: POPGym's own env has no true state, which trainer=dvrl_a2c's readout "
                           "and trainer.critic_input=state read; act in the model's simulator (env.popgym_task=null) "
                           "or set trainer.critic_input=belief")
     noise, assumed = float(model.TASKS[task_key(task)]["obs_noise"]), cfg.env.model.get("obs_noise", None)
-    if cfg.trainer.algorithm != "recurrent_ppo" and assumed is not None and abs(float(assumed) - noise) > 1e-9:
+    if not trainer_class(cfg).model_free and assumed is not None and abs(float(assumed) - noise) > 1e-9:
         raise ConfigError(f"env.model.obs_noise: POPGym's {task} adds observation noise {noise:g}, but the filters' "
                           f"model assumes {float(assumed):g}; set env.model.obs_noise={noise:g}")

@@ -269,13 +269,13 @@ def test_bench_scaling_takes_methods_and_the_tracking_protocol(tmp_path, capsys)
 
 def test_lambda_overrides_reach_escort_and_leave_the_ablations_alone():
     from escort_rl.bench.methods import applied_filter_set
-    from escort_rl.bench.synthetic import make_filter
+    from escort_rl.bench.synthetic import row_filter
 
     kw = {"lambda_corr": 0.3, "lambda_temp": 0.2, "num_steps": 4}
-    assert make_filter("escort", kw).lambda_corr == 0.3
-    nocorr = make_filter("escort_nocorr", kw)
+    assert row_filter("escort", kw).lambda_corr == 0.3
+    nocorr = row_filter("escort_nocorr", kw)
     assert (nocorr.lambda_corr, nocorr.lambda_temp, nocorr.num_steps) == (0.0, 0.2, 4)
-    svgd = make_filter("svgd", kw)
+    svgd = row_filter("svgd", kw)
     assert (svgd.lambda_corr, svgd.lambda_temp, svgd.num_steps) == (0.0, 0.0, 4)
     sweep = (("lambda_corr", "0.3"), ("projection", "random"))
     assert applied_filter_set("escort", sweep) == {"lambda_corr": "0.3", "projection": "random"}

@@ -33,10 +33,10 @@ TRAINERS = option_names("trainer")
 def test_default_config_is_typed():
     cfg = compose()
     assert OmegaConf.get_type(cfg) is schema.Config
-    assert OmegaConf.get_type(cfg.env) is schema.LightDark10DEnvConfig
-    assert OmegaConf.get_type(cfg.env.model) is schema.LightDark10DModelConfig
-    assert OmegaConf.get_type(cfg.filter) is schema.ESCORTConfig
-    assert OmegaConf.get_type(cfg.trainer) is schema.PPOConfig
+    assert OmegaConf.get_type(cfg.env) is schema.ENV_SCHEMAS["lightdark10d"]
+    assert OmegaConf.get_type(cfg.env.model) is schema.MODEL_SCHEMAS["lightdark10d"]
+    assert OmegaConf.get_type(cfg.filter) is schema.FILTER_SCHEMAS["escort"]
+    assert OmegaConf.get_type(cfg.trainer) is schema.TRAINER_SCHEMAS["ppo"]
     assert OmegaConf.get_type(cfg.dvrl) is schema.DVRLConfig
     assert cfg.overrides is None and cfg.resume is None
 
@@ -250,7 +250,7 @@ def test_resume_recomposes_a_group_override():
     saved["overrides"] = saved_overrides
     assert saved_config_drift(saved) == []
     cfg = recompose(saved, ["filter=sir", "trainer.iterations=2"])
-    assert OmegaConf.get_type(cfg.filter) is schema.SIRConfig and cfg.filter.name == "sir"
+    assert OmegaConf.get_type(cfg.filter) is schema.FILTER_SCHEMAS["sir"] and cfg.filter.name == "sir"
     assert "num_steps" not in cfg.filter and cfg.trainer.iterations == 2 and cfg.num_particles == 8
     assert list(cfg.overrides) == ["num_particles=8", "filter=sir", "trainer.iterations=2"]
     with pytest.raises(ConfigError, match="^config: trainer.gamma: must be <= 1"):
@@ -322,7 +322,7 @@ def test_a_class_schema_has_its_params_fields_and_defaults():
     from escort_rl.belief import ESCORTFilter
     from escort_rl.models import MultiTargetTracking20D
 
-    for node, cls in ((schema.ESCORTConfig, ESCORTFilter), (schema.MultiTargetTracking20DModelConfig,
+    for node, cls in ((schema.FILTER_SCHEMAS["escort"], ESCORTFilter), (schema.MODEL_SCHEMAS["mtt20d"],
                                                             MultiTargetTracking20D)):
         defaults = {k: v for k, v in _schema_defaults(node).items() if k not in ("name", "kind")}
         own = {f.name: (f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default)
@@ -336,7 +336,7 @@ def test_a_class_schema_has_its_params_fields_and_defaults():
 
 
 def test_svgd_schema_is_escort_without_the_regularisers():
-    svgd, escort = _schema_defaults(schema.SVGDConfig), _schema_defaults(schema.ESCORTConfig)
+    svgd, escort = _schema_defaults(schema.FILTER_SCHEMAS["svgd"]), _schema_defaults(schema.FILTER_SCHEMAS["escort"])
     assert set(svgd) < set(escort)
     assert all(svgd[k] == escort[k] for k in svgd if k not in ("name", "kind"))
 
@@ -362,7 +362,7 @@ def test_planner_settings_load_typed(domain):
 
 
 def test_group_options_load_typed_without_hydra():
-    cfg = checking.load_typed(config_dir() / "env" / "mtt20d.yaml", schema.MultiTargetTracking20DEnvConfig)
+    cfg = checking.load_typed(config_dir() / "env" / "mtt20d.yaml", schema.ENV_SCHEMAS["mtt20d"])
     assert cfg.model.goal == [9.0, 9.0] and "defaults" not in cfg
 
 

@@ -105,7 +105,7 @@ def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict,
     ``configs/trainer/`` (default: the config's, PPO). A trainer with ``rollout_steps`` (PPO,
     recurrent PPO) gets :func:`batch_length` unless ``train`` sets it, and recurrent PPO at most
     ``num_envs`` minibatches (they are whole env rows) unless ``train`` sets them."""
-    from escort_rl.config import compose
+    from escort_rl.config import compose, registry
 
     overrides = [f"env={domain}", f"filter={method}", f"num_particles={n}", f"output_dir={run_dir}",
                  f"seed={seed}", *([f"trainer={trainer}"] if trainer else [])]
@@ -117,7 +117,7 @@ def run_config(domain: str, method: str, n: int, run_dir: Path, train: dict,
     t = cfg.trainer
     if "rollout_steps" in t and "rollout_steps" not in train:
         t.rollout_steps = batch_length(int(cfg.env.max_steps), int(t.rollout_steps))
-    if t.get("algorithm") == "recurrent_ppo" and "minibatches" not in train:
+    if registry.resolve("trainer", t.algorithm).model_free and "minibatches" not in train:  # whole rows
         t.minibatches = min(int(t.minibatches), int(t.num_envs))
     if t.get("warm_start_filter") and "warm_start_filter" not in train:
         t.warm_start_filter = None  # each row trains on its own filter's beliefs only

@@ -18,6 +18,7 @@ file, its hash checked.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import re
 import time
@@ -29,12 +30,14 @@ import torch
 
 from escort_rl.bench.core.runner import Cell
 from escort_rl.bench.reference_cell import ReferenceCell
+from escort_rl.config import registry
 from escort_rl.config.errors import first_line
 from escort_rl.metrics.reference import Reference, exact_reference, has_exact_posterior
 
-FILTER_METHODS = ("sir", "enkf", "svgd", "escort")
+FILTER_METHODS = tuple(registry.REGISTRY["filter"])
 """The frontier's filters: SIR and EnKF cost N; SVGD and ESCORT cost N × K."""
-ITERATIVE = ("svgd", "escort")
+ITERATIVE = tuple(m for m in FILTER_METHODS
+                  if "num_steps" in {f.name for f in dataclasses.fields(registry.params("filter", m))})
 
 
 def _parse_value(text: str, option: str = "--model-arg"):
@@ -50,7 +53,7 @@ def _parse_value(text: str, option: str = "--model-arg"):
 
 
 @lru_cache(maxsize=16)
-def build_model(model: str, model_args: tuple = ()):
+def frontier_model(model: str, model_args: tuple = ()):
     """The model of a cell: ``env:<name>`` with env-group overrides, or ``class:<module>:<Class>`` with
     ``key=value`` arguments (values read as OmegaConf reads a dotlist). Raises ``ValueError`` naming
     ``--model`` or the argument that does not fit."""
@@ -106,23 +109,21 @@ def model_label(model: str, model_args: tuple = ()) -> str:
     return re.sub(r"[^A-Za-z0-9_.=-]+", "_", raw.replace("model.", ""))[:80]
 
 
-def make_filter(method: str, num_steps: int = 0, compile: bool = False, filter_args: tuple = ()):
+def frontier_filter(method: str, num_steps: int = 0, compile: bool = False, filter_args: tuple = ()):
     """The filter of a frontier row: SIR, EnKF, SVGD or ESCORT (its class defaults), with
     ``K = num_steps`` and ``compile`` for the iterative two, and ``filter_args`` (``key=value``
     strings, a variant's settings) as keyword arguments."""
-    from escort_rl.belief import EnKFFilter, ESCORTFilter, SIRFilter, SVGDFilter
-
-    classes = {"sir": SIRFilter, "enkf": EnKFFilter, "svgd": SVGDFilter, "escort": ESCORTFilter}
-    if method not in classes:
+    if method not in FILTER_METHODS:
         raise ValueError(f"--methods: unknown filter '{method}'; choose from {', '.join(FILTER_METHODS)}")
+    cls = registry.resolve("filter", method)
     kwargs = dict(num_steps=int(num_steps), compile=bool(compile)) if method in ITERATIVE else {}
     for item in filter_args:
         key, _, value = item.partition("=")
         kwargs[key] = _parse_value(value, "--variant")
     try:
-        return classes[method](**kwargs)
+        return cls(**kwargs)
     except TypeError as err:
-        raise ValueError(f"--variant: {classes[method].__name__} does not take {sorted(kwargs)} ({err})") from None
+        raise ValueError(f"--variant: {cls.__name__} does not take {sorted(kwargs)} ({err})") from None
     except ValueError as err:
         if not filter_args:
             raise
@@ -161,7 +162,7 @@ class FrontierReferenceCell(ReferenceCell):
     computed once and saved, instead of SIR with ``particles``."""
 
     def model(self):
-        return build_model(self.model_spec, tuple(self.model_args))
+        return frontier_model(self.model_spec, tuple(self.model_args))
 
     def spec(self) -> dict:
         spec = super().spec()
@@ -237,11 +238,11 @@ class FrontierCell(Cell):
         from escort_rl.belief.seeding import derived_seed, initial_beliefs
         from escort_rl.bench.trajectories import belief_failures, generate_trajectories
 
-        model = build_model(self.model, tuple(self.model_args))
+        model = frontier_model(self.model, tuple(self.model_args))
         seeds = list(self.seeds)
         traj = generate_trajectories(model, self.steps, seeds, self.base_seed)
         ref = self.load_reference(model, traj, seeds)
-        filt = make_filter(self.method, self.num_steps, self.compile, self.filter_args)
+        filt = frontier_filter(self.method, self.num_steps, self.compile, self.filter_args)
         belief, _ = initial_beliefs(filt, model, seeds, self.particles, self.base_seed)
         g = torch.Generator().manual_seed(derived_seed("filter", self.base_seed, seeds[0]))
         series, seconds, failed = [], 0.0, None

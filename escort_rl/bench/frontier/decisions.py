@@ -32,7 +32,7 @@ import torch
 
 from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import Cell, CellStore, InProcessBackend, run_cells
-from escort_rl.bench.frontier.cells import ITERATIVE, build_model, make_filter, model_label
+from escort_rl.bench.frontier.cells import ITERATIVE, frontier_filter, frontier_model, model_label
 from escort_rl.bench.frontier.spec import DECISIONS_OUTPUT, DecisionsSpec
 from escort_rl.metrics.reference import exact_posterior_start, exact_posterior_update
 from escort_rl.reporting.paths import write_results
@@ -66,7 +66,7 @@ class DecisionCell(Cell):
                 f"E{self.episodes}-T{self.steps}")
 
     def run(self) -> dict:
-        model = build_model(self.model, tuple(self.model_args))
+        model = frontier_model(self.model, tuple(self.model_args))
         e, exact = self.episodes, self.method == "exact"
         env = torch.Generator().manual_seed(10_007)  # the same starts and noise draws for every row
         s = model.initial_state((e,), env)
@@ -74,7 +74,7 @@ class DecisionCell(Cell):
             log_w, means, covs = exact_posterior_start(model, e)
             mean = _mixture_mean(log_w, means)
         else:
-            filt = make_filter(self.method, self.num_steps)
+            filt = frontier_filter(self.method, self.num_steps)
             g = torch.Generator().manual_seed(54_321)
             belief = filt.init(model, (e,), self.particles, g)
             mean = belief.mean()
@@ -106,7 +106,7 @@ def run_decisions(spec: DecisionsSpec, backend=None) -> dict:
     """Every row of ``spec`` driving the greedy regulator; each row's returns (mean ± s.e. over
     episodes), their paired difference to the first row's, the error of the mean and the ms per
     update. ``backend``: where the cells run (default in-process), closed at the end."""
-    built = build_model(spec.model, spec.model_args)
+    built = frontier_model(spec.model, spec.model_args)
     if getattr(built, "n_actions", 1) < 2:
         raise ValueError(f"--model: {type(built).__name__} has {getattr(built, 'n_actions', 1)} action; the regulator "
                          "needs a choice (gmm_tracking: pass --model-arg control=1)")

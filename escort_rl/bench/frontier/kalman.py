@@ -35,10 +35,10 @@ def enkf_against_kalman(dim: int = 50, particles: int = 1000, episodes: int = 20
     ``enkf``: :class:`~escort_rl.belief.EnKFFilter`'s arguments (``inflation``, ``localisation_radius``)."""
     from escort_rl.belief import EnKFFilter
     from escort_rl.bench.calibration import kalman_episode
-    from escort_rl.bench.frontier.cells import build_model
+    from escort_rl.bench.frontier.cells import frontier_model
 
     args = (f"model.state_dim={int(dim)}",) + ((f"model.obs_std={float(obs_std)}",) if obs_std is not None else ())
-    model = build_model("env:linear_gaussian", args)
+    model = frontier_model("env:linear_gaussian", args)
     g = torch.Generator().manual_seed(int(seed))
     d_mean = torch.zeros(episodes, dim, dtype=torch.float64)
     d_cov = torch.zeros(episodes, dim, dim, dtype=torch.float64)

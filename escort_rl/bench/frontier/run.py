@@ -11,7 +11,7 @@ from escort_rl.bench.frontier.cells import (
     ITERATIVE,
     FrontierCell,
     FrontierReferenceCell,
-    build_model,
+    frontier_model,
     model_label,
 )
 from escort_rl.bench.frontier.pareto import best_at_budgets, pareto_front
@@ -84,7 +84,7 @@ def run_frontier(spec: FrontierSpec, backend=None, progress=None) -> dict:
     ``progress(row)`` is called per row as it finishes."""
     from escort_rl.metrics.reference import state_parts
 
-    built = build_model(spec.model, spec.model_args)
+    built = frontier_model(spec.model, spec.model_args)
     part = next(iter(state_parts(built)))
     store = CellStore(spec.output / "cells") if spec.output is not None else None
     backend = backend or InProcessBackend()

@@ -17,7 +17,7 @@ from escort_rl.bench.synthetic.cells import (
     TrackingCell,
     fit_particles,
     initial_particles,
-    make_filter,
+    row_filter,
     scaled,
     score_particles,
     start_distribution,
@@ -27,5 +27,5 @@ from escort_rl.bench.synthetic.run import run_scaling, run_synthetic
 from escort_rl.bench.synthetic.spec import PROTOCOLS, SCALING_DIMS, SYNTHETIC_TARGETS, ScalingSpec, SyntheticSpec
 
 __all__ = ["INITS", "PROTOCOLS", "SCALING_DIMS", "SYNTHETIC_TARGETS", "ScalingSpec", "SyntheticCell", "SyntheticSpec",
-           "TrackingCell", "filter_arguments", "fit_particles", "initial_particles", "main", "make_filter", "register",
+           "TrackingCell", "filter_arguments", "fit_particles", "initial_particles", "main", "row_filter", "register",
            "run_scaling", "run_synthetic", "scaled", "score_particles", "start_distribution"]

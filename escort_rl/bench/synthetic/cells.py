@@ -32,7 +32,6 @@ from dataclasses import dataclass
 import torch
 
 from escort_rl import metrics
-from escort_rl.belief import ESCORTFilter, SIRFilter, SVGDFilter
 from escort_rl.belief.prior import silverman_factor
 from escort_rl.belief.resampling import effective_sample_size, systematic
 from escort_rl.bench.core.runner import Cell
@@ -43,13 +42,12 @@ from escort_rl.bench.targets import (
     scalability_initial,
     scalability_target,
 )
+from escort_rl.config import registry
 
 INITS = ("cloud", "overlap", "resampled")
 """The starts of the static protocol (:func:`start_distribution`, :func:`initial_particles`)."""
 OVERLAP_SPREAD = 2.0
 """The ``overlap`` start: the target's components with their standard deviations times this."""
-FILTER_METHODS = ("escort", "escort_nocorr", "svgd")
-"""The rows that run an :class:`ESCORTFilter` (their ``filter.KEY=VALUE`` overrides apply)."""
 TRACKING_METHODS = ("escort", "escort_nocorr", "svgd", "sir")
 """The rows of the tracking protocol: the filters (no oracle: the exact posterior is not at hand)."""
 
@@ -107,23 +105,25 @@ def initial_particles(x0: torch.Tensor, target: GaussianMixture, initial: Gaussi
     return x + h * std * torch.randn(x.shape, generator=generator, dtype=x.dtype)
 
 
-def make_filter(method: str, filter_kwargs: dict | None = None):
-    """The filter of row ``method``. ``filter_kwargs`` go to the ESCORT and SVGD constructors; the
-    row's own settings win: ESCORT-NoCorr keeps ``lambda_corr = 0`` and SVGD both ``λ = 0`` (a sweep
-    of ``lambda_corr`` moves ESCORT alone). SIR takes none."""
-    kw = dict(filter_kwargs or {})
-    if method == "escort":
-        return ESCORTFilter(**kw)
-    if method == "escort_nocorr":
-        kw.pop("lambda_corr", None)
-        return ESCORTFilter(lambda_corr=0.0, **kw)
-    if method == "svgd":
-        kw.pop("lambda_corr", None)
-        kw.pop("lambda_temp", None)
-        return SVGDFilter(**kw)
-    if method == "sir":
-        return SIRFilter()
-    raise ValueError(f"method: expected one of {', '.join((*FILTER_METHODS, 'sir'))}, got {method!r}")
+ROW_FILTERS: dict[str, tuple[str, dict, tuple[str, ...]]] = {
+    "escort": ("escort", {}, ()),
+    "escort_nocorr": ("escort", {"lambda_corr": 0.0}, ("lambda_corr",)),
+    "svgd": ("svgd", {}, ("lambda_corr", "lambda_temp")),
+    "sir": ("sir", {}, None),
+}
+"""Each filter row: the registered filter family (``filter.kind``), the row's own settings, and the
+keys of a sweep's ``filter_kwargs`` it ignores (``None``: all of them)."""
+
+
+def row_filter(method: str, filter_kwargs: dict | None = None):
+    """The filter of row ``method`` (:data:`ROW_FILTERS`). ``filter_kwargs`` go to the ESCORT and SVGD
+    constructors; the row's own settings win: ESCORT-NoCorr keeps ``lambda_corr = 0`` and SVGD both
+    ``λ = 0`` (a sweep of ``lambda_corr`` moves ESCORT alone). SIR takes none."""
+    if method not in ROW_FILTERS:
+        raise ValueError(f"method: expected one of {', '.join(ROW_FILTERS)}, got {method!r}")
+    kind, own, ignored = ROW_FILTERS[method]
+    kw = {} if ignored is None else {k: v for k, v in (filter_kwargs or {}).items() if k not in ignored}
+    return registry.resolve("filter", kind)(**{**kw, **own})
 
 
 def fit_particles(method: str, target: GaussianMixture, initial: GaussianMixture, seeds: list[int], n: int,
@@ -156,7 +156,7 @@ def fit_particles(method: str, target: GaussianMixture, initial: GaussianMixture
         idx = systematic(log_w, g)
         x = torch.gather(x0, -2, idx.unsqueeze(-1).expand_as(x0))
     else:
-        filt = make_filter(method, filter_kwargs)
+        filt = row_filter(method, filter_kwargs)
         g = torch.Generator().manual_seed(seeds[0])
         if init == "resampled":
             log_w = (target.log_prob(x0) - start.log_prob(x0)).to(torch.float64)
@@ -276,7 +276,7 @@ class TrackingCell(_TargetCell):
         kw = dict(self.filter_kwargs)
         if self.method != "sir":
             kw["num_steps"] = self.num_steps
-        filt = make_filter(self.method, kw)
+        filt = row_filter(self.method, kw)
         t0 = time.perf_counter()
         result = track(filt, GMMTracking(target), list(self.seeds), self.particles, self.steps)
         importance = result.pop("importance")
