@@ -33,6 +33,7 @@ Examples:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional
 
@@ -41,6 +42,7 @@ from torch import Tensor
 
 from escort_rl.belief.base import BeliefFilter, check_output_shape
 from escort_rl.belief.checks import OFF
+from escort_rl.belief.importance import effective_sample_size
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.config.params import HasParams, build_params, param
 
@@ -176,4 +178,21 @@ class EnKFFilter(HasParams, BeliefFilter):
                              f"obs_dim {m}, ridge={self.ridge}); set ridge > 0 (default 1e-6), or use more particles "
                              "than obs_dim with a model.observe that draws noise") from None
         x_post = x_pred + (c_xy @ z).transpose(-1, -2)
-        return ParticleBelief(x_post, belief.log_weights)
+        # the ensemble's Gaussian predictive density N(o; ȳ, C_yy) of the observation
+        increment = gaussian_log_density(observation - (w * y).sum(-2), c_yy)
+        ess = effective_sample_size(belief.log_weights)  # the EnKF moves its members, it does not weigh them
+        return ParticleBelief(x_post, belief.log_weights).diagnosed(increment, ess, previous=belief)
+
+
+def gaussian_log_density(residual: Tensor, covariance: Tensor) -> Tensor:
+    """``log N(r; 0, S)`` of residuals ``r`` ``[*B, m]`` under covariances ``S`` ``[*B, m, m]``:
+    ``−½ (m log 2π + log det S + rᵀ S⁻¹ r)``, by the Cholesky factor of ``S``.
+
+    Example:
+        >>> round(float(gaussian_log_density(torch.zeros(1), torch.eye(1))), 4)  # −½ log 2π
+        -0.9189
+    """
+    chol = torch.linalg.cholesky(covariance)
+    z = torch.linalg.solve_triangular(chol, residual.unsqueeze(-1), upper=False).squeeze(-1)
+    log_det = 2 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
+    return -0.5 * (residual.shape[-1] * math.log(2 * math.pi) + log_det + (z * z).sum(-1))

@@ -33,7 +33,7 @@ from escort_rl.belief.checks import (
 from escort_rl.belief.compiling import CompiledFunctions, unaliased
 from escort_rl.belief.denormals import flush_denormals
 from escort_rl.belief.evolution import AdaptiveStop, IterationScalars, evolution_step, jittered
-from escort_rl.belief.importance import tempered_log_weights
+from escort_rl.belief.importance import effective_sample_size, tempered_log_weights
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.prior import SmoothedPrior
@@ -410,6 +410,11 @@ class ESCORTFilter(HasParams, BeliefFilter):
             score_fn, channels = self._target_score(model, observation, a, prior_score)
             log_lik = model.observation_log_prob(observation.unsqueeze(-2), x_pred, a).detach()
             guard.model_log_density("model.observation_log_prob", log_lik)
+            # the predictive-particle estimate log Σᵢ wᵢ⁻ p(o_t | xᵢ⁻): an approximation (the predicted
+            # particles are a sample of the prediction only where the transition was sampled exactly)
+            weighed = belief.log_weights + log_lik
+            increment = torch.logsumexp(weighed, -1) - torch.logsumexp(belief.log_weights, -1)
+            ess = effective_sample_size(weighed)
             # -inf (zero likelihood) -> -1e30: a belief whose particles are all impossible gets equal
             # target weights, not NaN. NaN and +inf were recorded above and fail the guard.
             log_lik = torch.where(torch.isfinite(log_lik), log_lik, torch.full_like(log_lik, -1e30))
@@ -425,7 +430,7 @@ class ESCORTFilter(HasParams, BeliefFilter):
         if std > 0 and self.jitter_at == "end":
             with timer("jitter"):
                 x = jittered(x, std, generator)
-        return ParticleBelief.uniform(x.detach())
+        return ParticleBelief.uniform(x.detach()).diagnosed(increment, ess, previous=belief)
 
     def fit(self, log_prob: Callable[[Tensor], Tensor], particles: Tensor, num_steps: int | None = None,
             generator: torch.Generator | None = None,

@@ -68,12 +68,15 @@ class SIRFilter(HasParams, BeliefFilter):
         check_output_shape("model.observation_log_prob", log_lik, x.shape[:-1], "one log-density per particle, [*B, N]")
         guard.model_log_density("model.observation_log_prob", log_lik)
         log_w = belief.log_weights + log_lik
+        # log p̂(o_t | o_<t) = log Σᵢ wᵢ⁻ p(o_t | xᵢ⁻), the standard unbiased estimate (of p, not of log p)
+        increment = torch.logsumexp(log_w, -1) - torch.logsumexp(belief.log_weights, -1)
         all_neg_inf = torch.isneginf(log_w).all(-1, keepdim=True)
         # If every particle has zero likelihood, keep the prior weights instead of producing NaN.
         log_w = torch.where(all_neg_inf, belief.log_weights, log_w)
         log_w = log_w - torch.logsumexp(log_w, dim=-1, keepdim=True)
 
-        ess_ratio = effective_sample_size(log_w) / n  # [*B]
+        ess = effective_sample_size(log_w)  # [*B], before any resampling
+        ess_ratio = ess / n
         self._record_importance(ess_ratio, torch.ones_like(ess_ratio))
         resample = ess_ratio < self.resample_threshold
         if self.resample_threshold >= 1.0:
@@ -89,4 +92,4 @@ class SIRFilter(HasParams, BeliefFilter):
             uniform = torch.full_like(log_w, -math.log(n))
             x_next = torch.where(resample[..., None, None], x_res, x_next)
             log_w = torch.where(resample[..., None], uniform, log_w)
-        return ParticleBelief(x_next, log_w)
+        return ParticleBelief(x_next, log_w).diagnosed(increment, ess, resample, previous=belief)

@@ -6,7 +6,7 @@ import hashlib
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Compose, Transform, TransformedEnv
 
 from escort_rl.belief.base import BeliefFilter
@@ -23,9 +23,16 @@ class BeliefTransform(Transform):
 
     - ``particles_key`` (default ``"particles"``): ``[*B, N, d]``.
     - ``log_weights_key`` (default ``"particle_log_weights"``): ``[*B, N]``, normalised.
+    - ``log_evidence_key`` (default ``"log_evidence"``): ``[*B]``, the belief's running
+      ``log p̂(o_1:t)`` since the episode's reset (0 there; see
+      :class:`~escort_rl.belief.ParticleBelief`).
+    - ``ess_key`` (default ``"ess"``): ``[*B]``, the effective sample size of the update's weights
+      before any resampling (``N`` at a reset).
+    - ``resampled_key`` (default ``"resampled"``): bool ``[*B]``, whether the update resampled.
 
-    Both keys are registered in the observation spec and in the state spec: ParallelEnv ships only
-    state-spec keys to its workers, so an observation-only spec would lose the particles there.
+    Every key is registered in the observation spec; the belief and its log-evidence, which the next
+    step reads, also in the state spec: ParallelEnv ships only state-spec keys to its workers, so an
+    observation-only spec would lose the particles there.
 
     Args:
         model: the POMDP model the filter uses (the env's model, or an approximation of it).
@@ -33,6 +40,7 @@ class BeliefTransform(Transform):
         num_particles: ``N``.
         observation_key, action_key: where the observation and the action are read.
         particles_key, log_weights_key: where the belief is written.
+        log_evidence_key, ess_key, resampled_key: where its diagnostics are written.
         seed: the seed of the filter's randomness until the env is seeded (see below).
 
     Seeding: ``env.set_seed(s)`` and ``collector.set_seed(s)`` seed the belief wherever the
@@ -67,18 +75,23 @@ class BeliefTransform(Transform):
         particles_key: str = "particles",
         log_weights_key: str = "particle_log_weights",
         seed: int | None = None,
+        log_evidence_key: str = "log_evidence",
+        ess_key: str = "ess",
+        resampled_key: str = "resampled",
     ) -> None:
         check_model(model)
         if not isinstance(filter, BeliefFilter):
             raise TypeError(f"filter: expected a BeliefFilter, got {type(filter).__name__}")
         if not isinstance(num_particles, int) or num_particles < 1:
             raise ValueError(f"num_particles: expected a positive int, got {num_particles!r}")
-        super().__init__(in_keys=[observation_key, action_key], out_keys=[particles_key, log_weights_key])
+        super().__init__(in_keys=[observation_key, action_key],
+                         out_keys=[particles_key, log_weights_key, log_evidence_key, ess_key, resampled_key])
         self.model = model
         self.filter = filter
         self.num_particles = num_particles
         self.observation_key, self.action_key = observation_key, action_key
         self.particles_key, self.log_weights_key = particles_key, log_weights_key
+        self.log_evidence_key, self.ess_key, self.resampled_key = log_evidence_key, ess_key, resampled_key
         self._seed = seed
         self._env_seeded = False  # whether env.set_seed has reached the transform since `seed`
         self._env_seed: int | None = None
@@ -139,15 +152,25 @@ class BeliefTransform(Transform):
 
     # ------------------------------------------------------------------ specs
     def _belief_specs(self, batch_shape: torch.Size, device) -> dict:
+        """The specs of what the next step reads: the belief and its running log-evidence."""
         n, d = self.num_particles, self.model.state_dim
         return {
             self.particles_key: Unbounded(shape=(*batch_shape, n, d), dtype=torch.float32, device=device),
             self.log_weights_key: Unbounded(shape=(*batch_shape, n), dtype=torch.float32, device=device),
+            self.log_evidence_key: Unbounded(shape=tuple(batch_shape), dtype=torch.float32, device=device),
+        }
+
+    def _diagnostic_specs(self, batch_shape: torch.Size, device) -> dict:
+        """The specs of the update's own diagnostics (observation only)."""
+        return {
+            self.ess_key: Unbounded(shape=tuple(batch_shape), dtype=torch.float32, device=device),
+            self.resampled_key: Categorical(2, shape=tuple(batch_shape), dtype=torch.bool, device=device),
         }
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         self._check_env(observation_spec)
-        for key, spec in self._belief_specs(observation_spec.shape, observation_spec.device).items():
+        shape, device = observation_spec.shape, observation_spec.device
+        for key, spec in {**self._belief_specs(shape, device), **self._diagnostic_specs(shape, device)}.items():
             observation_spec[key] = spec
         return observation_spec
 
@@ -248,6 +271,11 @@ class BeliefTransform(Transform):
             log_w[rows] = prior.log_weights.to(device, torch.float32)
         tensordict_reset.set(self.particles_key, particles)
         tensordict_reset.set(self.log_weights_key, log_w)
+        kept = ParticleBelief(particles, log_w)  # the rows being reset: log-evidence 0, ESS of equal weights
+        for key, value, old in ((self.log_evidence_key, kept.log_evidence, self.log_evidence_key),
+                                (self.ess_key, kept.ess, self.ess_key), (self.resampled_key, kept.resampled, None)):
+            previous = tensordict.get(old, None) if tensordict is not None and old is not None else None
+            tensordict_reset.set(key, value if previous is None else torch.where(rows, value, previous))
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
@@ -257,13 +285,17 @@ class BeliefTransform(Transform):
                 f"BeliefTransform: '{self.particles_key}' is missing from the input tensordict; "
                 "call env.reset() before env.step()"
             )
-        belief = ParticleBelief(particles, tensordict.get(self.log_weights_key))
+        belief = ParticleBelief(particles, tensordict.get(self.log_weights_key),
+                                log_evidence=tensordict.get(self.log_evidence_key, None))
         action = tensordict.get(self.action_key)
         observation = next_tensordict.get(self.observation_key)
         device = particles.device
         new = self.filter.update(self.model, belief, action, observation, self._get_generator(device))
         next_tensordict.set(self.particles_key, new.particles.to(torch.float32))
         next_tensordict.set(self.log_weights_key, new.log_weights.to(torch.float32))
+        next_tensordict.set(self.log_evidence_key, new.log_evidence.to(torch.float32))
+        next_tensordict.set(self.ess_key, new.ess.to(torch.float32))
+        next_tensordict.set(self.resampled_key, new.resampled)
         return next_tensordict
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
