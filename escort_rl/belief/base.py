@@ -22,6 +22,7 @@ from torch import Tensor
 
 from escort_rl.belief.checks import FiniteGuard
 from escort_rl.belief.denormals import flush_denormals
+from escort_rl.belief.importance import effective_sample_size
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.timing import PartTimer
 from escort_rl.models.protocol import (
@@ -153,11 +154,18 @@ class BeliefFilter(ABC):
         model,
         belief: ParticleBelief,
         action: Tensor,
-        observation: Tensor,
+        observation: Tensor | None = None,
         generator: torch.Generator | None = None,
+        *,
+        observed: Tensor | None = None,
     ) -> ParticleBelief:
         """Fold in ``action`` ``[*B]`` (integer; ``[*B, action_dim]`` real for a model with continuous
         actions) and the next ``observation`` ``[*B, obs_dim]``.
+
+        A missing observation (a sensor dropout): ``observation=None`` predicts only
+        (:meth:`predict`); ``observed``, a bool mask ``[*B]``, predicts only the rows where it is
+        False (their observation is never read, NaN allowed there). A row that only predicts keeps
+        its weights and its log-evidence.
 
         Returns the posterior belief with particles ``[*B, N, d]``. With ``check_finite``, raises
         ``NonFiniteError`` (a ``ValueError``) naming ``belief.particles``, ``belief.log_weights`` or the
@@ -169,9 +177,50 @@ class BeliefFilter(ABC):
             raise ValueError(f"belief: expected a ParticleBelief, got {type(belief).__name__}; build it with the "
                              "filter's init, or wrap particles [*B, N, d] with ParticleBelief.uniform(particles)")
         validate_generator(generator)
+        if observation is None:
+            return self.predict(model, belief, action, generator)
+        if observed is not None:
+            return self._partly_observed_update(model, belief, action, observation, generator, observed)
         timer = self.part_timer(belief.particles.device)
         with timer(f"{type(self).__name__}.update", timed=False):
             return self._checked_update(timer, model, belief, action, observation, generator)
+
+    def predict(self, model, belief: ParticleBelief, action: Tensor,
+                generator: torch.Generator | None = None) -> ParticleBelief:
+        """The belief after ``action`` with no observation: every particle moved by
+        ``model.transition``, the weights and the log-evidence kept, ``ess`` that of the weights, no
+        resampling."""
+        with self.part_timer(belief.particles.device)("checks"):
+            validate_update_inputs(model, belief, action, None)
+        guard = FiniteGuard(type(self).__name__, belief.batch_shape, enabled=self.check_finite)
+        guard.input_belief(belief)
+        x_next, _ = self._predict(model, belief, action, generator, guard)
+        guard.verify()
+        ess = effective_sample_size(belief.log_weights)
+        return ParticleBelief(x_next, belief.log_weights, belief.log_evidence, ess)
+
+    def _partly_observed_update(self, model, belief, action, observation, generator, observed) -> ParticleBelief:
+        """:meth:`update` of the rows where ``observed`` (bool ``[*B]``) is True and :meth:`predict` of the
+        others. Every row is updated, the unobserved ones on a stand-in observation (``model.observe``
+        of the predicted weighted-mean particle: finite and plausible), then their result is replaced
+        by the prediction."""
+        if not isinstance(observed, Tensor) or observed.dtype != torch.bool or observed.shape != belief.batch_shape:
+            got = (f"dtype {observed.dtype}, shape {tuple(observed.shape)}" if isinstance(observed, Tensor)
+                   else type(observed).__name__)
+            raise ValueError(f"observed: expected a bool mask of shape {tuple(belief.batch_shape)} (True where the "
+                             f"observation arrived), got {got}")
+        prediction = self.predict(model, belief, action, generator)
+        if isinstance(observation, Tensor) and observation.shape == (*belief.batch_shape, model.obs_dim):
+            a = per_particle(model, action, (*belief.batch_shape, 1))
+            mean = prediction.mean().unsqueeze(-2)  # [*B, 1, d]
+            stand_in = model.observe(mean.to(belief.particles.dtype), a, generator).squeeze(-2)
+            observation = torch.where(observed.unsqueeze(-1), observation, stand_in.to(observation.dtype))
+        posterior = self.update(model, belief, action, observation, generator)
+        keep = observed.unsqueeze(-1)
+        return ParticleBelief(torch.where(keep.unsqueeze(-1), posterior.particles, prediction.particles),
+                              torch.where(keep, posterior.log_weights, prediction.log_weights),
+                              torch.where(observed, posterior.log_evidence, prediction.log_evidence),
+                              torch.where(observed, posterior.ess, prediction.ess), posterior.resampled & observed)
 
     def _checked_update(self, timer: PartTimer, model, belief: ParticleBelief, action: Tensor, observation: Tensor,
                         generator: torch.Generator | None) -> ParticleBelief:
@@ -241,8 +290,9 @@ def validate_generator(generator) -> None:
                          f"{generator!r}; pass torch.Generator().manual_seed(seed)")
 
 
-def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observation: Tensor) -> None:
-    """Raise ``ValueError`` naming the field when the update inputs do not fit together."""
+def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observation: Tensor | None) -> None:
+    """Raise ``ValueError`` naming the field when the update inputs do not fit together
+    (``observation=None``: a prediction, whose observation is not checked)."""
     check_model_structure(model)
     x, log_w = belief.particles, belief.log_weights
     if not isinstance(x, Tensor) or x.ndim < 2 or not x.dtype.is_floating_point:
@@ -269,6 +319,10 @@ def validate_update_inputs(model, belief: ParticleBelief, action: Tensor, observ
     if (continuous and not floating) or (not continuous and (floating or action.dtype == torch.bool)):
         kind = "a floating-point tensor (continuous actions)" if continuous else "an integer tensor"
         raise ValueError(f"action: expected {kind}, got dtype {action.dtype}")
+    if observation is None:
+        if action.numel() and not bool(action_in_range(model, action).all()):
+            raise ValueError(f"action: {describe_action_range(model, action)}")
+        return
     if not isinstance(observation, Tensor) or observation.shape != (*batch, model.obs_dim):
         shape = tuple(observation.shape) if isinstance(observation, Tensor) else type(observation).__name__
         raise ValueError(

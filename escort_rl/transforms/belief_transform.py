@@ -30,6 +30,10 @@ class BeliefTransform(Transform):
       before any resampling (``N`` at a reset).
     - ``resampled_key`` (default ``"resampled"``): bool ``[*B]``, whether the update resampled.
 
+    A sensor dropout: where ``next`` holds a bool ``observed_key`` (default ``"observed"``, ``[*B]``;
+    written by a transform before this one, or by the env), the rows where it is False predict only
+    (the observation there is never read) and keep their log-evidence.
+
     Every key is registered in the observation spec; the belief and its log-evidence, which the next
     step reads, also in the state spec: ParallelEnv ships only state-spec keys to its workers, so an
     observation-only spec would lose the particles there.
@@ -41,6 +45,7 @@ class BeliefTransform(Transform):
         observation_key, action_key: where the observation and the action are read.
         particles_key, log_weights_key: where the belief is written.
         log_evidence_key, ess_key, resampled_key: where its diagnostics are written.
+        observed_key: where an optional mask of the observations that arrived is read.
         seed: the seed of the filter's randomness until the env is seeded (see below).
 
     Seeding: ``env.set_seed(s)`` and ``collector.set_seed(s)`` seed the belief wherever the
@@ -78,6 +83,7 @@ class BeliefTransform(Transform):
         log_evidence_key: str = "log_evidence",
         ess_key: str = "ess",
         resampled_key: str = "resampled",
+        observed_key: str = "observed",
     ) -> None:
         check_model(model)
         if not isinstance(filter, BeliefFilter):
@@ -92,6 +98,7 @@ class BeliefTransform(Transform):
         self.observation_key, self.action_key = observation_key, action_key
         self.particles_key, self.log_weights_key = particles_key, log_weights_key
         self.log_evidence_key, self.ess_key, self.resampled_key = log_evidence_key, ess_key, resampled_key
+        self.observed_key = observed_key
         self._seed = seed
         self._env_seeded = False  # whether env.set_seed has reached the transform since `seed`
         self._env_seed: int | None = None
@@ -290,7 +297,11 @@ class BeliefTransform(Transform):
         action = tensordict.get(self.action_key)
         observation = next_tensordict.get(self.observation_key)
         device = particles.device
-        new = self.filter.update(self.model, belief, action, observation, self._get_generator(device))
+        observed = next_tensordict.get(self.observed_key, None)
+        if observed is not None:
+            observed = observed.reshape(belief.batch_shape)
+        new = self.filter.update(self.model, belief, action, observation, self._get_generator(device),
+                                 observed=observed)
         next_tensordict.set(self.particles_key, new.particles.to(torch.float32))
         next_tensordict.set(self.log_weights_key, new.log_weights.to(torch.float32))
         next_tensordict.set(self.log_evidence_key, new.log_evidence.to(torch.float32))

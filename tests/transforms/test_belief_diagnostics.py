@@ -4,7 +4,7 @@ under renamable keys, with the log-evidence summed over an episode and restarted
 from __future__ import annotations
 
 import torch
-from torchrl.envs import TransformedEnv
+from torchrl.envs import Compose, StepCounter, Transform, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from escort_rl.belief import SIRFilter
@@ -42,3 +42,33 @@ def test_the_diagnostics_keys_can_be_renamed():
     rollout = env.rollout(2)
     assert {"belief_logz", "belief_ess", "belief_resampled"} <= set(rollout["next"].keys())
     assert "log_evidence" not in rollout["next"].keys()
+
+
+class Dropout(Transform):
+    """Loses the observation of env 1 at every odd step: NaN in it, ``observed`` False."""
+
+    def _step(self, tensordict, next_tensordict):
+        step = int(tensordict["step_count"].reshape(-1)[0])
+        observed = torch.ones(next_tensordict.batch_size, dtype=torch.bool)
+        if step % 2 == 1:
+            observed[1] = False
+            next_tensordict["observation"][1] = float("nan")
+        next_tensordict.set("observed", observed)
+        return next_tensordict
+
+    def _reset(self, tensordict, tensordict_reset):
+        return tensordict_reset
+
+
+def test_a_row_whose_observation_is_lost_predicts_only():
+    model = LinearGaussian(state_dim=2, obs_dim=1)
+    env = TransformedEnv(POMDPEnv(model, batch_size=(3,), seed=0, max_steps=6),
+                         Compose(StepCounter(), Dropout(), BeliefTransform(model, SIRFilter(), 50, seed=1)))
+    rollout = env.rollout(6)
+    evidence = rollout["next", "log_evidence"]
+    assert torch.isfinite(rollout["next", "particles"]).all() and torch.isfinite(evidence).all()
+    lost = ~rollout["next", "observed"]
+    assert lost[1, 1::2].all() and not lost[[0, 2]].any()
+    before = torch.cat([torch.zeros(3, 1), evidence[:, :-1]], 1)
+    assert torch.equal(evidence[lost], before[lost])  # no observation, no evidence added
+    assert (evidence[~lost] != before[~lost]).all()
