@@ -27,11 +27,20 @@ class SIRParams:
         resampling: the scheme (:mod:`escort_rl.belief.resampling`): ``systematic`` (the default: the
             least variance in practice, and the cheapest), ``stratified``, ``residual`` or
             ``multinomial``.
+        differentiable: keep the autograd graph through the log-weights, resampling with
+            stop-gradient weights (Ścibior & Wood 2021, *Differentiable particle filtering without
+            modifying the forward pass*): a resampled particle's log-weight is
+            ``log wₐ − stop_grad(log wₐ) − log N`` for its ancestor ``a``, equal in value to the usual
+            ``−log N`` but carrying ``∇ log wₐ``. Then ``belief.log_evidence.sum().backward()``
+            estimates ``∇θ log p(o_1:T)`` for the parameters θ of the model's observation density (and
+            of its transition, where ``model.transition`` is reparameterised). The forward pass is the
+            same as without it (every value equal up to rounding).
     """
 
     resample_threshold: float = param(0.5, ge=0, le=1)
     roughening: float = param(0.0, ge=0)
     resampling: str = param("systematic", choices=sorted(SCHEMES))
+    differentiable: bool = param(False)
 
 
 class SIRFilter(HasParams, BeliefFilter):
@@ -90,6 +99,9 @@ class SIRFilter(HasParams, BeliefFilter):
                 eps = torch.randn(x_res.shape, generator=generator, device=x.device, dtype=x.dtype)
                 x_res = x_res + scale * eps
             uniform = torch.full_like(log_w, -math.log(n))
+            if self.differentiable:  # the ancestor's log-weight minus itself: -log N, with its gradient
+                ancestor = log_w.gather(-1, idx)
+                uniform = uniform + ancestor - ancestor.detach()
             x_next = torch.where(resample[..., None, None], x_res, x_next)
             log_w = torch.where(resample[..., None], uniform, log_w)
         return ParticleBelief(x_next, log_w).diagnosed(increment, ess, resample, previous=belief)

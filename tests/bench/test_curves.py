@@ -21,7 +21,8 @@ def test_curves_of_a_dvrl_and_a_deepsets_run(tmp_path, capsys):
     assert [r["label"] for r in runs] == ["sir + DeepSets (ppo)", "dvrl (learned belief)"]
     assert [len(r["history"]) for r in runs] == [2, 2] and "elbo" in runs[1]["history"][0]
     md = (out / "learning_curves.md").read_text()
-    assert "| sir + DeepSets (ppo) |" in md and "| dvrl (learned belief) |" in md and (out / "learning_curves.png").stat().st_size > 0
+    assert "| sir + DeepSets (ppo) |" in md and "| dvrl (learned belief) |" in md
+    assert (out / "learning_curves.png").stat().st_size > 0
     capsys.readouterr()
     assert main(["bench", "curves", str(tmp_path / "nowhere"), "--output", str(out)]) == 2
     assert "nowhere" in capsys.readouterr().err
