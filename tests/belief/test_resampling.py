@@ -196,3 +196,14 @@ def test_systematic_resample_never_picks_a_trailing_zero_weight_particle(monkeyp
     _largest_rand(monkeypatch)
     idx = systematic(log_w, gen(0))
     assert int((idx == n - 1).sum()) == 0
+
+
+def test_the_scheme_is_a_config_key_and_a_bad_one_is_named():
+    from conftest import config_error
+    from escort_rl import make_filter
+    from escort_rl.config import compose
+
+    cfg = compose(["filter=sir", "filter.resampling=residual"])
+    assert cfg.filter.resampling == "residual"
+    assert make_filter("sir", resampling="stratified").resampling == "stratified"
+    assert "filter.resampling" in config_error(["filter=sir", "filter.resampling=sobol"])
