@@ -16,6 +16,37 @@ Keys (``*B`` the env batch, ``K`` particles, prefix ``"dvrl"`` by default):
   ``[*B, S]`` (the belief summary), with a readout also ``"state_estimate"`` ``[*B, state_dim]`` (the
   readout's estimate of the current state), and the four state keys under ``"next"``
   (``("next", "dvrl_prev_action")`` is the action just chosen).
+
+**The state's lifecycle**, the same for this policy-side state and for the env-side belief of
+:class:`~escort_rl.transforms.BeliefTransform` (its particles, log-weights and log-evidence):
+
+1. *reset*: fresh state in the rows being reset (every row, or those ``"_reset"`` marks), written
+   by the primer here and by the transform there; ``InitTracker`` marks the rows ``"is_init"``;
+2. *step*: the module reads the state at the root and writes the updated state under ``"next"``;
+3. ``step_mdp`` (a rollout, a collector) moves ``"next"`` to the root for the following step;
+4. *partial reset*: only the rows reset get fresh state; the others carry theirs, and the policy
+   steps on from the mixed batch.
+
+Example:
+    >>> import torch
+    >>> from torchrl.envs import Compose, InitTracker, TransformedEnv
+    >>> from torchrl.envs.utils import step_mdp
+    >>> from escort_rl.envs import POMDPEnv
+    >>> from escort_rl.models import LightDark10D
+    >>> from escort_rl.modules import DVRL, DVRLPolicy
+    >>> model = LightDark10D()
+    >>> policy = DVRLPolicy(DVRL(model.obs_dim, model.n_actions, latent_dim=2, hidden=4, num_particles=3))
+    >>> env = TransformedEnv(POMDPEnv(model, batch_size=(2,), seed=0, max_steps=5),
+    ...                      Compose(InitTracker(), policy.make_tensordict_primer()))
+    >>> td = env.reset()
+    >>> td["is_init"].squeeze(-1).tolist(), float(td["dvrl_h"].abs().sum())
+    ([True, True], 0.0)
+    >>> with torch.no_grad():
+    ...     td = step_mdp(env.step(policy(td)))
+    >>> _ = td.set("_reset", torch.tensor([[True], [False]]))  # env 0 starts a new episode
+    >>> td = env.reset(td)
+    >>> td["is_init"].squeeze(-1).tolist(), float(td["dvrl_h"][0].abs().sum()), bool(td["dvrl_h"][1].abs().sum() > 0)
+    ([True, False], 0.0, True)
 """
 
 from __future__ import annotations
