@@ -23,7 +23,8 @@ class ParticleBelief:
             filter's ``init`` (0 there): an estimate of ``log p(o_1:t)``. Each filter says what its
             increment is (SIR: the standard unbiased estimate of ``p(o_t | o_<t)``; EnKF: its
             ensemble's Gaussian predictive density; SVGD and ESCORT: ``log Σᵢ wᵢ p(o_t | xᵢ⁻)`` over
-            the predicted particles, an approximation). Default: zeros.
+            the predicted particles, a heuristic with no guarantee: never use it to rank filters or
+            models). Default: zeros.
         ess: ``[*B]``, the effective sample size (in particles) of the update's weights before any
             resampling: ``1 / Σᵢ wᵢ²`` with ``wᵢ ∝ wᵢ⁻ p(o_t | xᵢ⁻)`` (what a bootstrap step would weigh
             the predicted particles with). Low means the observation surprised the predicted cloud.
@@ -94,5 +95,6 @@ class ParticleBelief:
         return (w * centred).transpose(-1, -2) @ centred
 
     def effective_sample_size(self) -> Tensor:
-        """ESS = 1 / Σ_i w_i²: ``[*B]``."""
-        return 1.0 / (self.weights() ** 2).sum(-1)
+        """ESS = 1 / Σ_i w_i² of the belief's own weights: ``[*B]`` (``ess`` is that of the update's
+        weights before resampling)."""
+        return effective_sample_size(self.log_weights)
