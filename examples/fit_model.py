@@ -6,7 +6,7 @@ logged trajectories (actions and observations, no states) we maximise the SIR fi
 weights, so ``belief.log_evidence.sum().backward()`` gives an estimate of its gradient. On this model
 the Kalman filter gives the exact log-evidence, so its maximum-likelihood estimate is the yardstick.
 
-    python examples/fit_model.py             # about a minute on two cores
+    python examples/fit_model.py             # about ten seconds on two cores
     python examples/fit_model.py --particles 1000 --steps 300
 """
 
