@@ -33,7 +33,7 @@ from escort_rl.belief.checks import (
 from escort_rl.belief.compiling import CompiledFunctions, unaliased
 from escort_rl.belief.denormals import flush_denormals
 from escort_rl.belief.evolution import AdaptiveStop, IterationScalars, evolution_step, jittered
-from escort_rl.belief.importance import effective_sample_size, tempered_log_weights
+from escort_rl.belief.importance import effective_sample_size, predictive_log_evidence, tempered_log_weights
 from escort_rl.belief.kernels import median_bandwidth, pairwise_sq_dists
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.prior import SmoothedPrior
@@ -412,9 +412,8 @@ class ESCORTFilter(HasParams, BeliefFilter):
             guard.model_log_density("model.observation_log_prob", log_lik)
             # the predictive-particle estimate log Σᵢ wᵢ⁻ p(o_t | xᵢ⁻): an approximation (the predicted
             # particles are a sample of the prediction only where the transition was sampled exactly)
-            weighed = belief.log_weights + log_lik
-            increment = torch.logsumexp(weighed, -1) - torch.logsumexp(belief.log_weights, -1)
-            ess = effective_sample_size(weighed)
+            increment = predictive_log_evidence(belief.log_weights, log_lik)
+            ess = effective_sample_size(belief.log_weights + log_lik)
             # -inf (zero likelihood) -> -1e30: a belief whose particles are all impossible gets equal
             # target weights, not NaN. NaN and +inf were recorded above and fail the guard.
             log_lik = torch.where(torch.isfinite(log_lik), log_lik, torch.full_like(log_lik, -1e30))

@@ -52,6 +52,21 @@ def effective_sample_size(log_weights: Tensor) -> Tensor:
     return 1.0 / (w * w).sum(-1)
 
 
+def predictive_log_evidence(log_weights: Tensor, log_likelihood: Tensor) -> Tensor:
+    """``log Σ_j w_j p(o | x_j)`` ``[*B]``: the log of the observation's predictive density estimated by
+    weighted samples of the prediction (``log_weights`` ``[*B, N]``, normalised or not; the
+    log-likelihoods ``[*B, N]``), the increment of a bootstrap filter's log-evidence.
+
+    Example:
+        >>> import math
+        >>> round(float(predictive_log_evidence(torch.zeros(2), torch.log(torch.tensor([0.2, 0.4])))), 4)
+        -1.204
+        >>> round(math.log(0.3), 4)
+        -1.204
+    """
+    return torch.logsumexp(log_weights + log_likelihood, -1) - torch.logsumexp(log_weights, -1)
+
+
 def tempered_log_weights(log_weights: Tensor, ess_floor: float) -> tuple[Tensor, Tensor, Tensor]:
     """``β ℓ`` with the largest ``β ∈ [0, 1]`` such that ``ESS(β ℓ) ≥ ess_floor · N``, per row.
 

@@ -9,6 +9,7 @@ import torch
 
 from escort_rl.belief.base import BeliefFilter, check_output_shape
 from escort_rl.belief.checks import OFF
+from escort_rl.belief.importance import predictive_log_evidence
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.resampling import SCHEMES, effective_sample_size, resample_indices
 from escort_rl.config.params import HasParams, build_params, param
@@ -78,7 +79,7 @@ class SIRFilter(HasParams, BeliefFilter):
         guard.model_log_density("model.observation_log_prob", log_lik)
         log_w = belief.log_weights + log_lik
         # log p̂(o_t | o_<t) = log Σᵢ wᵢ⁻ p(o_t | xᵢ⁻), the standard unbiased estimate (of p, not of log p)
-        increment = torch.logsumexp(log_w, -1) - torch.logsumexp(belief.log_weights, -1)
+        increment = predictive_log_evidence(belief.log_weights, log_lik)
         all_neg_inf = torch.isneginf(log_w).all(-1, keepdim=True)
         # If every particle has zero likelihood, keep the prior weights instead of producing NaN.
         log_w = torch.where(all_neg_inf, belief.log_weights, log_w)

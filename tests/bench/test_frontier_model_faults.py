@@ -11,54 +11,10 @@ import textwrap
 
 import pytest
 
+from conftest import DRIFT_MODEL_SOURCE
 from escort_rl.cli import main
 
-USER_MODELS = textwrap.dedent('''
-    import math
-    import torch
-
-    class Drift:
-        """A 2-D random walk seen through noise, on the model protocol (no escort_rl import)."""
-        n_actions = 2
-
-        def __init__(self, obs_std=0.5):
-            if float(obs_std) <= 0:
-                raise ValueError(f"obs_std must be > 0, got {obs_std}")
-            self.state_dim = self.obs_dim = 2
-            self.obs_std = float(obs_std)
-
-        def initial_state(self, shape, generator=None):
-            return torch.randn(*shape, 2, generator=generator)
-
-        def initial_belief(self, shape, n, generator=None):
-            return torch.randn(*shape, n, 2, generator=generator)
-
-        def transition_mean(self, s, a):
-            return s + 0.1 * (2.0 * a.unsqueeze(-1).to(s.dtype) - 1.0)
-
-        def transition_scale_tril(self):
-            return 0.3 * torch.eye(2)
-
-        def transition(self, s, a, generator=None):
-            return self.transition_mean(s, a) + 0.3 * torch.randn(s.shape, generator=generator)
-
-        def transition_log_prob(self, s_next, s, a):
-            z = (s_next - self.transition_mean(s, a)) / 0.3
-            return -0.5 * (z * z).sum(-1) - 2 * math.log(0.3) - math.log(2 * math.pi)
-
-        def observe(self, s_next, a, generator=None):
-            return s_next + self.obs_std * torch.randn(s_next.shape, generator=generator)
-
-        def observation_log_prob(self, o, s_next, a):
-            z = (o - s_next) / self.obs_std
-            return -0.5 * (z * z).sum(-1) - 2 * math.log(self.obs_std) - math.log(2 * math.pi)
-
-        def reward(self, s, a, s_next):
-            return torch.zeros(s.shape[:-1])
-
-        def is_terminal(self, s):
-            return torch.zeros(s.shape[:-1], dtype=torch.bool)
-
+USER_MODELS = DRIFT_MODEL_SOURCE + textwrap.dedent('''
     class Detached(Drift):
         def observation_log_prob(self, o, s_next, a):
             return super().observation_log_prob(o, s_next.detach(), a)

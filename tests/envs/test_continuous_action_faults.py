@@ -10,7 +10,7 @@ import math
 import pytest
 import torch
 
-from conftest import config_error
+from conftest import config_error, one_line_error
 from escort_rl.belief import EnKFFilter, ESCORTFilter, SIRFilter
 from escort_rl.config import ConfigError, compose
 from escort_rl.models import LightDark10DContinuous
@@ -20,13 +20,6 @@ from escort_rl.trainers.builders import build_model, build_policy
 ENV = "env=lightdark10d_continuous"
 B, N = 2, 8
 
-
-def one_line_error(fn, kind: type[Exception] = ValueError) -> str:
-    with pytest.raises(kind) as info:
-        fn()
-    message = str(info.value)
-    assert "\n" not in message, message
-    return message
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ import math
 import pytest
 import torch
 
-from conftest import config_error
+from conftest import config_error, one_line_error
 from escort_rl.config import ConfigError, compose
 from escort_rl.envs import POMDPEnv
 from escort_rl.envs.popgym import popgym_model
@@ -24,13 +24,6 @@ CARTPOLE = "env=popgym_cartpole"
 BELIEF_PPO = ["trainer=ppo", "filter=sir", "trainer.critic_input=belief", "trainer.warm_start_iterations=0",
               "trainer.warm_start_filter=null", "trainer.exploring_starts=false"]
 
-
-def one_line_error(fn, kind: type[Exception] = ValueError) -> str:
-    with pytest.raises(kind) as info:
-        fn()
-    message = str(info.value)
-    assert "\n" not in message, message
-    return message
 
 
 def validation_error(overrides) -> str:

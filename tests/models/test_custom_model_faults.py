@@ -14,6 +14,7 @@ from test_probe import Drift
 
 import escort_rl
 from conftest import config_error, tiny_overrides
+from conftest import one_line_error as one_error_line
 from escort_rl.config import ConfigError, compose
 from escort_rl.trainers.builders import build_model
 
@@ -21,11 +22,8 @@ HERE = __name__
 
 
 def one_line_error(fn) -> str:
-    with pytest.raises(ConfigError) as info:
-        fn()
-    message = str(info.value)
-    assert "\n" not in message, message
-    return message
+    """The one-line message of the ``ConfigError`` that ``fn()`` raises."""
+    return one_error_line(fn, ConfigError)
 
 
 def built(*overrides: str):

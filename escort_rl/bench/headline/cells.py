@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from escort_rl.bench.core.runner import Cell
+from escort_rl.reporting.stats import mean_se
 
 
 def safe_name(label: str) -> str:
@@ -31,12 +32,6 @@ def per_episode(metrics: dict) -> dict:
             "final_distance": metrics["final_distance"].double().tolist(),
             "episode_return": metrics["episode_return"].double().tolist(),
             "steps": metrics["steps"].double().tolist()}
-
-
-def mean_of(values: list[float]) -> float:
-    """The mean of the non-NaN ``values`` (NaN when there are none)."""
-    xs = [v for v in values if v == v]
-    return sum(xs) / len(xs) if xs else float("nan")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -103,7 +98,7 @@ class TrainedCell(Cell):
             for earlier in list_checkpoints(Path(self.run_dir) / "checkpoints"):
                 frames = int(load_checkpoint(earlier)["trainer_state"].get("frames", 0))
                 episodes = final if frames == int(state.get("frames", 0)) else evaluate(earlier)[0]
-                curve.append({"frames": frames, **{k: mean_of(v) for k, v in episodes.items()}})
+                curve.append({"frames": frames, **{k: mean_se(v)[0] for k, v in episodes.items()}})
         return {"label": self.label, "seed": self.seed, "filter": str(cfg.filter.name),
                 "run_dir": self.run_dir, "config": OmegaConf.to_container(cfg, resolve=True), **final,
                 "frames": int(state.get("frames", 0)), "train_seconds": float(state.get("seconds", float("nan"))),

@@ -9,23 +9,7 @@ from escort_rl.bench.core.runner import CellStore, run_cells
 from escort_rl.bench.headline.cells import FixedPolicyCell, TrainedCell, row_overrides, safe_name
 from escort_rl.bench.headline.spec import HeadlineSpec
 from escort_rl.config import compose
-
-
-def mean_se(values: list[float]) -> tuple[float, float]:
-    """Mean and standard error of the non-NaN ``values`` (NaN, NaN when there are none; s.e. 0 for one).
-
-    Examples:
-        >>> mean_se([1.0, 2.0, 3.0])
-        (2.0, 0.5773502691896257)
-    """
-    xs = [float(v) for v in values if not math.isnan(float(v))]
-    if not xs:
-        return math.nan, math.nan
-    m = sum(xs) / len(xs)
-    if len(xs) == 1:
-        return m, 0.0
-    var = sum((x - m) ** 2 for x in xs) / (len(xs) - 1)
-    return m, math.sqrt(var / len(xs))
+from escort_rl.reporting.stats import mean_se
 
 
 def trained_cells(spec: HeadlineSpec) -> list[TrainedCell]:
