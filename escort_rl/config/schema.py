@@ -253,6 +253,7 @@ class ActorConfig:
     hidden: int = _f(MISSING, ge=1)
     encoder_layers: int = _f(2, ge=1)
     summary: bool = _f(False)
+    head: str = _f("pooled", choices=["pooled", "per_coordinate"])
 
 
 def check_ray_installed(value: str) -> str | None:

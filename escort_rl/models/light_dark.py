@@ -359,6 +359,13 @@ class LightDark10D(HasParams, AdditiveGaussianTransition):
         grad_pos = (seen - pos) / var.unsqueeze(-1) - (self.sigma_base**2 * d_var_coef).unsqueeze(-1) * d_light
         return torch.cat([grad_pos, torch.zeros_like(grad_pos)], dim=-1)
 
+    @property
+    def action_coordinates(self) -> tuple[tuple[int, int], ...]:
+        """The state coordinates each action group acts on: ``(x_i, v_i)`` for the pair of actions ``2i``,
+        ``2i+1`` that pushes dimension ``i`` (for continuous actions, action coordinate ``i``). A policy may
+        share one network across the groups (``actor.head=per_coordinate``)."""
+        return tuple((i, self.n_pos + i) for i in range(self.n_pos))
+
     def distance_to_goal(self, s: Tensor) -> Tensor:
         """‖x - x_goal‖₂. ``s``: ``[*S, 2·n_pos]`` -> ``[*S]``."""
         return torch.linalg.vector_norm(s[..., : self.n_pos] - self.goal, dim=-1)

@@ -55,6 +55,10 @@ class POMDPModel(Protocol):
     (the state indices of the position), ``velocity_dims`` (of the velocity, see
     :func:`velocity_dims`), ``position_error(estimate, truth)`` (a domain's own error,
     e.g. the mean over several targets), ``distance_to_goal(s)``.
+
+    Optional, used by policies (``actor.head=per_coordinate``): ``action_coordinates``, ``G`` tuples of
+    ``k`` state indices, the coordinates that each group of actions acts on; discrete actions come in
+    ``G`` groups of ``n_actions / G`` consecutive indices (continuous ones: ``action_dim = G``).
     """
 
     state_dim: int

@@ -48,13 +48,26 @@ class DeepSetsNet(nn.Module):
             through the encoder's saturation; this branch hands it to ρ exactly (a PD rule on the
             belief mean is then one linear map away).
 
+        coordinate_groups: ``None`` (default): one linear head ``g`` on the pooled embedding. Otherwise
+            ``G`` tuples of ``k`` state indices, one per group of outputs (e.g. Light-Dark's
+            ``((0, 5), (1, 6), …)``: the position and velocity that a pair of actions pushes; a model's
+            ``action_coordinates``). Each group ``j`` then gets ``n_actions / G`` outputs from one shared
+            network, ``g_c(c_j + e_j, ρ(…))``, where ``c_j = Σ_i w_i φ_c(x_i[group j])`` pools a shared
+            encoder of the group's own coordinates and ``e_j`` is a learned embedding of the group. The
+            rule "score each coordinate, act on the best" is then learned once for all ``G`` groups
+            instead of once per group.
+        group_layout: how the ``[G, m]`` group outputs become ``n_actions``: ``group_major``
+            (``a = m·j + r``, discrete actions, e.g. ``2i`` / ``2i+1``) or ``output_major``
+            (``a = G·r + j``, a TanhNormal's ``[loc_1..loc_G, scale_1..scale_G]``).
+
     Shapes: ``particles`` ``[*B, N, d]``, ``log_weights`` ``[*B, N]`` or ``None`` -> ``[*B, n_actions]``.
     """
 
     def __init__(self, state_dim: int, n_actions: int, hidden: int = 64,
                  input_loc: float | list[float] = 0.0, input_scale: float | list[float] = 1.0,
                  encoder_layers: int = 2, periodic_dims: tuple[int, ...] | list[int] = (),
-                 summary: bool = False) -> None:
+                 summary: bool = False, coordinate_groups: tuple[tuple[int, ...], ...] | None = None,
+                 group_layout: str = "group_major") -> None:
         super().__init__()
         self.state_dim, self.n_actions = state_dim, n_actions
         periodic = sorted({int(i) for i in periodic_dims})
@@ -71,6 +84,30 @@ class DeepSetsNet(nn.Module):
         self.phi = _mlp([inputs] + [hidden] * encoder_layers)
         self.rho = _mlp([hidden + (2 * inputs if self.summary else 0), hidden])
         self.head = nn.Linear(hidden, n_actions)
+        self.register_buffer("groups", None)
+        if coordinate_groups is not None:
+            self._build_group_head(coordinate_groups, group_layout, hidden, encoder_layers)
+
+    def _build_group_head(self, coordinate_groups, group_layout: str, hidden: int, encoder_layers: int) -> None:
+        groups = [tuple(int(i) for i in g) for g in coordinate_groups]
+        if not groups or len({len(g) for g in groups}) != 1 or not groups[0]:
+            raise ValueError(f"coordinate_groups: expected G >= 1 groups of the same number k >= 1 of state indices, "
+                             f"got {coordinate_groups!r}")
+        if any(not 0 <= i < self.state_dim for g in groups for i in g):
+            raise ValueError(f"coordinate_groups: state indices in [0, {self.state_dim}), got {coordinate_groups!r}")
+        if self.periodic:
+            raise ValueError("coordinate_groups: not supported with periodic_dims (the groups index the standardised "
+                             "state, which periodic coordinates replace by their cosine and sine)")
+        if self.n_actions % len(groups):
+            raise ValueError(f"coordinate_groups: {len(groups)} groups must divide the {self.n_actions} outputs")
+        if group_layout not in ("group_major", "output_major"):
+            raise ValueError(f"group_layout: group_major or output_major, got {group_layout!r}")
+        self.group_layout = group_layout
+        self.register_buffer("groups", torch.tensor(groups, dtype=torch.long))  # [G, k]
+        self.group_phi = _mlp([len(groups[0])] + [hidden] * encoder_layers)
+        self.group_embedding = nn.Parameter(torch.zeros(len(groups), hidden))
+        self.group_head = nn.Sequential(nn.Linear(2 * hidden, hidden), nn.Tanh(),
+                                        nn.Linear(hidden, self.n_actions // len(groups)))
 
     def features(self, particles: Tensor) -> Tensor:
         """φ's input: ``(x − loc) / scale``, with each periodic coordinate as ``(cos x_i, sin x_i)``
@@ -102,7 +139,20 @@ class DeepSetsNet(nn.Module):
         return self.rho(pooled)
 
     def forward(self, particles: Tensor, log_weights: Tensor | None = None) -> Tensor:
-        return self.head(self.pool(particles, log_weights))
+        context = self.pool(particles, log_weights)  # [*B, H]
+        if self.groups is None:
+            return self.head(context)
+        z = self.features(particles)[..., self.groups]  # [*B, N, G, k]
+        h = self.group_phi(z)  # [*B, N, G, H]
+        if log_weights is None:
+            c = h.mean(-3)
+        else:
+            c = (torch.softmax(log_weights, dim=-1)[..., None, None] * h).sum(-3)  # [*B, G, H]
+        c = c + self.group_embedding
+        out = self.group_head(torch.cat([c, context.unsqueeze(-2).expand_as(c)], dim=-1))  # [*B, G, m]
+        if self.group_layout == "output_major":
+            out = out.transpose(-1, -2)
+        return out.flatten(-2)
 
 
 class DeepSetsActor(DeepSetsNet):

@@ -13,6 +13,7 @@ from torchrl.modules import ProbabilisticActor
 from escort_rl.config import ConfigError, registry
 from escort_rl.config.errors import first_line
 from escort_rl.envs import POMDPEnv
+from escort_rl.models.protocol import is_continuous
 from escort_rl.modules import DeepSetsActor, DeepSetsCritic, make_deepsets_policy, policy_outputs
 from escort_rl.transforms import ActionRepeat, BeliefTransform
 
@@ -271,7 +272,7 @@ def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticAc
     ``ProbabilisticActor`` around it reading ``cfg``'s belief keys: a categorical head for discrete
     actions, a TanhNormal inside the action box for continuous ones (:func:`make_deepsets_policy`)."""
     n_outputs, box = policy_outputs(model)
-    actor = build_actor(cfg, model.state_dim, n_outputs)
+    actor = build_actor(cfg, model.state_dim, n_outputs, model)
     return actor, make_deepsets_policy(actor, *belief_keys(cfg), action_box=box)
 
 
@@ -288,6 +289,16 @@ def deepsets_sizes(cfg: DictConfig, state_dim: int | None = None) -> dict:
                 periodic_dims=list(periodic), summary=actor.summary)
 
 
-def build_actor(cfg: DictConfig, state_dim: int, n_actions: int) -> DeepSetsActor:
-    """A :class:`DeepSetsActor` of the ``actor`` group's sizes (:func:`deepsets_sizes`)."""
-    return DeepSetsActor(state_dim, n_actions, **deepsets_sizes(cfg, state_dim))
+def build_actor(cfg: DictConfig, state_dim: int, n_actions: int, model=None) -> DeepSetsActor:
+    """A :class:`DeepSetsActor` of the ``actor`` group's sizes (:func:`deepsets_sizes`). With
+    ``actor.head=per_coordinate`` its outputs come per group of ``model.action_coordinates``."""
+    sizes = deepsets_sizes(cfg, state_dim)
+    if OmegaConf.select(cfg, "actor.head", default="pooled") == "per_coordinate":
+        groups = getattr(model, "action_coordinates", None)
+        if groups is None:
+            raise ConfigError(f"actor.head=per_coordinate: the model {type(model).__name__} declares no "
+                              f"action_coordinates (the state coordinates each group of actions acts on); "
+                              f"use actor.head=pooled, or give the model that attribute")
+        layout = "output_major" if is_continuous(model) else "group_major"
+        sizes.update(coordinate_groups=tuple(groups), group_layout=layout)
+    return DeepSetsActor(state_dim, n_actions, **sizes)

@@ -76,7 +76,7 @@ class Reinforce(CollectorAlgorithm):
             raise ConfigError("trainer: trainer=reinforce takes discrete actions and this env's are continuous; use "
                               "trainer=ppo (a TanhNormal policy)")
         particles_key, log_weights_key = belief_keys(cfg)
-        self.actor = build_actor(cfg, model.state_dim, model.n_actions)
+        self.actor = build_actor(cfg, model.state_dim, model.n_actions, model)
         self.policy = make_deepsets_policy(self.actor, particles_key=particles_key, log_weights_key=log_weights_key)
         if t.baseline == "learned":
             self.critic, critic_keys = build_critic(cfg, model, "belief")

@@ -54,8 +54,17 @@ FRAMES_ROWS = (
 """``--rows frames``: PPO on SIR beliefs for 1.44M frames, 36% more than the default job's; with
 ``--curve-every``, success against frames."""
 
+COORDINATE_ROWS = (
+    ("PPO on SIR beliefs, per-coordinate head", ("filter=sir_rough", "trainer.warm_start_iterations=0",
+                                                 "actor.head=per_coordinate")),
+    ("default job, per-coordinate head", ("actor.head=per_coordinate",)),
+)
+"""``--rows coordinates``: the policy's outputs from one network shared by the action groups
+(``actor.head=per_coordinate``: each pair of pushes scored from its own coordinate's particles and the
+pooled belief), on SIR beliefs and in the default job."""
+
 ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS, "starts": START_ROWS, "half": HALF_ROWS,
-            "frames": FRAMES_ROWS}
+            "frames": FRAMES_ROWS, "coordinates": COORDINATE_ROWS}
 """The trained rows ``--rows`` picks by name."""
 
 SCRIPTED_FILTERS = ("escort_train", "sir_rough")
