@@ -254,6 +254,7 @@ class ActorConfig:
     encoder_layers: int = _f(2, ge=1)
     summary: bool = _f(False)
     head: str = _f("pooled", choices=["pooled", "per_coordinate"])
+    group_hidden: int = _f(16, ge=1)
 
 
 def check_ray_installed(value: str) -> str | None:

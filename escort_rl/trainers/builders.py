@@ -300,5 +300,6 @@ def build_actor(cfg: DictConfig, state_dim: int, n_actions: int, model=None) -> 
                               f"action_coordinates (the state coordinates each group of actions acts on); "
                               f"use actor.head=pooled, or give the model that attribute")
         layout = "output_major" if is_continuous(model) else "group_major"
-        sizes.update(coordinate_groups=tuple(groups), group_layout=layout)
+        hidden = OmegaConf.select(cfg, "actor.group_hidden", default=16)
+        sizes.update(coordinate_groups=tuple(groups), group_layout=layout, group_hidden=int(hidden))
     return DeepSetsActor(state_dim, n_actions, **sizes)

@@ -58,3 +58,72 @@ def test_policy_writes_integer_actions_and_log_probs():
     assert ((out["action"] >= 0) & (out["action"] < 10)).all()
     expected = torch.distributions.Categorical(logits=out["logits"]).log_prob(out["action"])
     torch.testing.assert_close(out["action_log_prob"], expected)
+
+
+# ---------------------------------------------------------------- outputs per group of coordinates
+GROUPS = tuple((i, 5 + i) for i in range(5))  # Light-Dark's (x_i, v_i)
+
+
+def _group_outputs_by_hand(actor, particles, log_weights):
+    """The per-group head written out: ``g_c(c_j + e_j, ρ(…))`` with ``c_j`` the weighted mean of
+    ``φ_c`` over the particles' coordinates of group ``j``; ``[B, G, m]``."""
+    z = (particles - actor.input_loc) / actor.input_scale
+    w = torch.softmax(log_weights, -1)
+    rows = []
+    for j, coords in enumerate(GROUPS):
+        c = (w[..., None] * actor.encode_group(z[..., list(coords)])).sum(-2) + actor.group_embedding[j]
+        rows.append(actor.group_head(torch.cat([c, actor.pool(particles, log_weights)], -1)))
+    return torch.stack(rows, -2)
+
+
+def test_group_head_is_one_network_per_group_in_action_order():
+    torch.manual_seed(0)
+    actor = DeepSetsActor(10, 10, hidden=8, input_loc=1.0, input_scale=2.0, coordinate_groups=GROUPS)
+    torch.nn.init.normal_(actor.group_embedding)
+    x, lw = torch.randn(3, 7, 10), torch.randn(3, 7)
+    by_hand = _group_outputs_by_hand(actor, x, lw)  # [3, 5, 2]
+    # discrete: actions 2j and 2j+1 are group j's two outputs
+    torch.testing.assert_close(actor(x, lw), by_hand.flatten(-2))
+    cont = DeepSetsActor(10, 10, hidden=8, input_loc=1.0, input_scale=2.0, coordinate_groups=GROUPS,
+                         group_layout="output_major")
+    cont.load_state_dict(actor.state_dict())
+    # continuous: [loc_1..loc_5, scale_1..scale_5]
+    torch.testing.assert_close(cont(x, lw), by_hand.transpose(-1, -2).flatten(-2))
+
+
+def test_group_head_reads_only_its_group_besides_the_pooled_belief():
+    """Changing group 3's coordinates moves group 0's outputs only through the pooled context: with the
+    context's network fixed to zero, they do not move at all."""
+    torch.manual_seed(1)
+    actor = DeepSetsActor(10, 10, hidden=8, coordinate_groups=GROUPS)
+    with torch.no_grad():
+        for p in actor.rho.parameters():
+            p.zero_()
+    x = torch.randn(2, 9, 10)
+    y = x.clone()
+    y[..., [3, 8]] += torch.randn(2, 9, 2)
+    out_x, out_y = actor(x, None), actor(y, None)
+    torch.testing.assert_close(out_x[:, :6], out_y[:, :6])
+    assert not torch.allclose(out_x[:, 6:8], out_y[:, 6:8])
+
+
+@given(n=st.integers(1, 12), seed=st.integers(0, 10_000))
+@settings(max_examples=20, deadline=None)
+def test_group_head_is_permutation_invariant(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    actor = DeepSetsActor(10, 10, hidden=8, coordinate_groups=GROUPS)
+    x, lw = torch.randn(2, n, 10, generator=g), torch.randn(2, n, generator=g)
+    perm = torch.randperm(n, generator=g)
+    torch.testing.assert_close(actor(x, lw), actor(x[:, perm], lw[:, perm]), rtol=1e-5, atol=1e-5)
+
+
+def test_group_head_bad_groups_name_the_argument():
+    import pytest
+
+    for groups, fragment in ((((0, 5), (1,)), "same number"), (((0, 10),), "state indices"),
+                             (((0, 5), (1, 6), (2, 7)), "must divide")):
+        with pytest.raises(ValueError, match="coordinate_groups") as info:
+            DeepSetsActor(10, 10, hidden=8, coordinate_groups=groups)
+        assert fragment in str(info.value)
+    with pytest.raises(ValueError, match="group_layout"):
+        DeepSetsActor(10, 10, hidden=8, coordinate_groups=GROUPS, group_layout="rows")
