@@ -57,11 +57,13 @@ FRAMES_ROWS = (
 COORDINATE_ROWS = (
     ("PPO on SIR beliefs, per-coordinate head", ("filter=sir_rough", "trainer.warm_start_iterations=0",
                                                  "actor.head=per_coordinate")),
-    ("default job, per-coordinate head", ("actor.head=per_coordinate",)),
+    ("per-coordinate head, 8 SIR + 8 ESCORT iterations", ("actor.head=per_coordinate", "trainer.iterations=16",
+                                                          "trainer.warm_start_iterations=8")),
 )
 """``--rows coordinates``: the policy's outputs from one network shared by the action groups
 (``actor.head=per_coordinate``: each pair of pushes scored from its own coordinate's particles and the
-pooled belief), on SIR beliefs and in the default job."""
+pooled belief), on SIR beliefs for the default job's 33 iterations, and in a job of half as many frames
+with half of them on ESCORT beliefs (8 iterations on SIR beliefs, then 8 on ESCORT's: 512,000 frames)."""
 
 ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS, "starts": START_ROWS, "half": HALF_ROWS,
             "frames": FRAMES_ROWS, "coordinates": COORDINATE_ROWS}
