@@ -11,6 +11,7 @@
 - ``pytest --seed-offset K`` shifts every such seed by ``K``, and the ``seed_offset`` fixture hands
   ``K`` to tests that draw from a window of seeds (they start it at ``K``): tests written on these
   fixtures must pass for any offset.
+- :func:`actor_of` (import it): the untrained actor of a run's overrides, to load its checkpoints into.
 - :func:`one_line_error` (import it): the one-line message of the error a call raises.
 - :data:`DRIFT_MODEL_SOURCE` (import it): a user's model module as source text, for `--model` tests.
 - :data:`TINY_TRAIN`, :func:`tiny_overrides` and the ``tiny_config`` fixture: the default training job
@@ -29,6 +30,18 @@ TINY_TRAIN = ["trainer=reinforce", "trainer.num_envs=4", "env.max_steps=12", "nu
               "trainer.minibatch_size=64", "trainer.checkpoint_every=1", "filter.compile=false"]
 """The default job's filter (ESCORT) at a tiny size; eager, because compiling in every test process would
 dominate the test time (``tests/belief/test_escort.py`` checks that compiled and eager updates agree)."""
+
+
+def actor_of(overrides):
+    """The actor a run of ``overrides`` trains (the config's head and sizes, for its model), untrained: to
+    load a run's checkpoint into."""
+    from escort_rl.config import compose
+    from escort_rl.modules import policy_outputs
+    from escort_rl.trainers.builders import build_actor, build_model
+
+    cfg = compose(list(overrides))
+    model = build_model(cfg.env)
+    return build_actor(cfg, model.state_dim, policy_outputs(model)[0], model)
 
 
 def config_error(overrides) -> str:

@@ -253,7 +253,7 @@ class ActorConfig:
     hidden: int = _f(MISSING, ge=1)
     encoder_layers: int = _f(2, ge=1)
     summary: bool = _f(False)
-    head: str = _f("pooled", choices=["pooled", "per_coordinate"])
+    head: str = _f("auto", choices=["auto", "pooled", "per_coordinate"])
     group_hidden: int = _f(16, ge=1)
 
 

@@ -289,12 +289,15 @@ def deepsets_sizes(cfg: DictConfig, state_dim: int | None = None) -> dict:
                 periodic_dims=list(periodic), summary=actor.summary)
 
 
-def build_actor(cfg: DictConfig, state_dim: int, n_actions: int, model=None) -> DeepSetsActor:
+def build_actor(cfg: DictConfig, state_dim: int, n_actions: int, model) -> DeepSetsActor:
     """A :class:`DeepSetsActor` of the ``actor`` group's sizes (:func:`deepsets_sizes`). With
-    ``actor.head=per_coordinate`` its outputs come per group of ``model.action_coordinates``."""
+    ``actor.head=per_coordinate`` its outputs come per group of ``model.action_coordinates``; with
+    ``auto`` (the default) too where the model declares them, else from the pooled head. A saved config
+    without the key (a run from before the heads) has the pooled head."""
     sizes = deepsets_sizes(cfg, state_dim)
-    if OmegaConf.select(cfg, "actor.head", default="pooled") == "per_coordinate":
-        groups = getattr(model, "action_coordinates", None)
+    head = OmegaConf.select(cfg, "actor.head", default="pooled")
+    groups = getattr(model, "action_coordinates", None)
+    if head == "per_coordinate" or (head == "auto" and groups is not None):
         if groups is None:
             raise ConfigError(f"actor.head=per_coordinate: the model {type(model).__name__} declares no "
                               f"action_coordinates (the state coordinates each group of actions acts on); "

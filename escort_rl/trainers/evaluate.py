@@ -276,7 +276,7 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
 
 
 def _training_sentence(training: dict | None) -> str:
-    """`` Trained on 960000 frames of sir_rough, 96000 of escort_train (7.1 minutes).``"""
+    """`` Trained on 256000 frames of sir_rough, 256000 of escort_train (7.1 minutes).``"""
     if not training or not training.get("frames_by_filter"):
         return ""
     parts = [f"{frames} frames of {name}" if i == 0 else f"{frames} of {name}"

@@ -99,8 +99,8 @@ class PPOParams(BeliefTrainerParams):
     """PPO (:class:`escort_rl.trainers.ppo.PPO`): TorchRL's ``ClipPPOLoss`` with GAE, minibatch
     epochs from a replay buffer. An iteration runs ``env.max_steps`` steps in every env (episodes
     reset on their own inside it), as ``env.max_steps / rollout_steps`` PPO updates on batches of
-    ``num_envs × rollout_steps`` frames. The defaults are the default job's: 30 iterations on SIR
-    beliefs (the warm start), then 3 on the run's filter.
+    ``num_envs × rollout_steps`` frames. The defaults are the default job's: 8 iterations on SIR
+    beliefs (the warm start), then 8 on the run's filter (512,000 frames, half on each).
 
     Attributes:
         rollout_steps: steps per env in one PPO batch (64 × 125 = 8000 frames).
@@ -134,12 +134,12 @@ class PPOParams(BeliefTrainerParams):
             index, so a resumed run continues on the same schedule.
     """
 
-    iterations: int = param(33, ge=1)
+    iterations: int = param(16, ge=1)
     num_envs: int = param(64, ge=1)
     entropy_coef: float = param(0.001, ge=0)  # 0.01 kept the policy near 1.9 nats; both learn alike
     exploring_starts: bool = param(True)
     warm_start_filter: Optional[str] = param("sir_rough", check=check_filter_name)
-    warm_start_iterations: int = param(30, ge=0)
+    warm_start_iterations: int = param(8, ge=0)
     rollout_steps: int = param(125, ge=1)
     gae_lambda: float = param(0.95, ge=0, le=1)
     clip_epsilon: float = param(0.2, gt=0)

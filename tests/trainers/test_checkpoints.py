@@ -19,6 +19,7 @@ import pytest
 import torch
 import yaml
 
+from conftest import actor_of
 from escort_rl.cli import main
 from escort_rl.config import ConfigError, compose
 from escort_rl.modules import DeepSetsActor
@@ -50,7 +51,7 @@ def _cli_train(*args: str) -> None:
 
 
 def _actor() -> DeepSetsActor:
-    return DeepSetsActor(10, 10, hidden=16, encoder_layers=1)
+    return actor_of(TINY)
 
 
 def _actor_params(run: Path) -> dict:

@@ -33,7 +33,7 @@ def test_a_loaded_policy_acts_as_the_trained_one_in_a_fresh_process(tmp_path):
     cfg = compose(tiny_overrides("trainer.iterations=1", f"output_dir={run}"))
     train(cfg, progress=False)
     model = build_model(cfg.env)
-    trained = build_actor(cfg, model.state_dim, model.n_actions)
+    trained = build_actor(cfg, model.state_dim, model.n_actions, model)
     load_checkpoint(run, actor=trained)  # the actor as training left it
     g = torch.Generator().manual_seed(0)
     particles = model.initial_belief((6,), int(cfg.num_particles), g)

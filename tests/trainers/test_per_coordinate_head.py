@@ -45,3 +45,21 @@ def test_a_trained_group_head_loads_as_it_was_saved(tmp_path):
     logits = policy(td)["logits"]
     assert logits.shape == (4, 10) and torch.isfinite(logits).all()
     assert policy.module[0].module.groups is not None
+
+
+def test_auto_takes_the_groups_where_the_model_declares_them():
+    for env, grouped in (("lightdark10d", True), ("linear_gaussian", False)):
+        cfg = compose([f"env={env}", "actor.hidden=8"])
+        assert cfg.actor.head == "auto"
+        actor, _ = build_policy(cfg, build_model(cfg.env))
+        assert (actor.groups is not None) == grouped, env
+
+
+def test_a_saved_config_from_before_the_heads_has_the_pooled_head():
+    from omegaconf import OmegaConf
+
+    cfg = compose(["actor.hidden=8"])
+    saved = OmegaConf.to_container(cfg)
+    del saved["actor"]["head"], saved["actor"]["group_hidden"]
+    actor, _ = build_policy(OmegaConf.create(saved), build_model(cfg.env))
+    assert actor.groups is None

@@ -97,7 +97,7 @@ def _params(run) -> dict:
     from escort_rl.trainers.builders import build_actor, build_critic
 
     cfg = OmegaConf.create(load_checkpoint(run)["config"])
-    actor, (critic, _) = build_actor(cfg, 10, 10), build_critic(cfg, LightDark10D(), "state")
+    actor, (critic, _) = build_actor(cfg, 10, 10, LightDark10D()), build_critic(cfg, LightDark10D(), "state")
     load_checkpoint(run, actor=actor, critic=critic)
     return {**{f"a.{k}": v for k, v in actor.state_dict().items()},
             **{f"c.{k}": v for k, v in critic.state_dict().items()}}

@@ -20,7 +20,7 @@ def test_remote_collectors_get_the_policy_weights_and_stack_their_batches(local_
 
     cfg = compose(tiny_overrides("filter=sir", "collector.backend=ray", "collector.workers=2"))
     model = build_model(cfg.env)
-    policy = make_deepsets_policy(build_actor(cfg, model.state_dim, model.n_actions), *belief_keys(cfg))
+    policy = make_deepsets_policy(build_actor(cfg, model.state_dim, model.n_actions, model), *belief_keys(cfg))
     steps = int(cfg.env.max_steps)
     collector = make_collector(cfg, lambda n, s: env_factory(cfg, n, seed=s), policy, 4 * steps, False)
     try:

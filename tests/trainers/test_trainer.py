@@ -12,6 +12,7 @@ import pytest
 import torch
 from torchrl.checkpoint import CheckpointRotation
 
+from conftest import actor_of
 from escort_rl.cli import main
 from escort_rl.config import ConfigError, compose
 from escort_rl.modules import DeepSetsActor
@@ -50,7 +51,7 @@ def test_corrupt_checkpoint_gives_one_line_error(tmp_path, capsys):
         if f.is_file() and f.suffix in (".memmap", ".json"):
             f.write_bytes(b"\x00garbage")
     with pytest.raises(CheckpointLoadError, match=f"^checkpoint: '{ckpt}' is damaged \\(actor: "):
-        load_checkpoint(ckpt, actor=DeepSetsActor(10, 10, hidden=16, encoder_layers=1))
+        load_checkpoint(ckpt, actor=actor_of(TINY))
     assert main(["evaluate", "--checkpoint", str(run), "--episodes", "2"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"error: checkpoint: no intact checkpoint left under '{run}'") and "\n" not in err
@@ -62,7 +63,7 @@ def test_missing_checkpoint_path(capsys):
 
 
 def _actor_params(run: Path) -> dict:
-    actor = DeepSetsActor(10, 10, hidden=16, encoder_layers=1)
+    actor = actor_of(TINY)
     load_checkpoint(run, actor=actor)
     return {k: v.clone() for k, v in actor.state_dict().items()}
 
@@ -123,7 +124,7 @@ def test_two_collector_workers_and_learned_baseline(tmp_path):
     assert all(h["episodes"] == 4 for h in history)  # 4 envs split over 2 workers, one episode each
     assert all(math.isfinite(h["loss_actor"]) for h in history)
     critic = DeepSetsActor(10, 1, hidden=16, encoder_layers=1)
-    load_checkpoint(run, actor=DeepSetsActor(10, 10, hidden=16, encoder_layers=1), critic=critic)
+    load_checkpoint(run, actor=actor_of(TINY), critic=critic)
 
 
 def test_evaluate_writes_reports(tmp_path):
