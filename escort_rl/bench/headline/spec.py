@@ -72,12 +72,15 @@ COORDINATE_ROWS = (
                                                  "actor.head=per_coordinate", "trainer.iterations=33")),
     ("per-coordinate head, 8 SIR + 8 ESCORT iterations", ("actor.head=per_coordinate", "trainer.iterations=16",
                                                           "trainer.warm_start_iterations=8")),
+    ("per-coordinate head, 8 + 8 iterations, linear lr", ("actor.head=per_coordinate", "trainer.iterations=16",
+                                                          "trainer.warm_start_iterations=8",
+                                                          "trainer.lr_schedule=linear")),
 )
 """``--rows coordinates``: the policy's outputs from one network shared by the action groups
 (``actor.head=per_coordinate``: each pair of pushes scored from its own coordinate's particles and the
 pooled belief), on SIR beliefs for 33 iterations (1.06M frames, the earlier default job's), and in a job of
 half as many frames with half of them on ESCORT beliefs (8 iterations on SIR beliefs, then 8 on ESCORT's:
-512,000 frames; the default job since)."""
+512,000 frames; the default job since), with a constant and a linearly falling learning rate."""
 
 ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS, "starts": START_ROWS, "half": HALF_ROWS,
             "frames": FRAMES_ROWS, "coordinates": COORDINATE_ROWS}
