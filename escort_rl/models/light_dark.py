@@ -299,6 +299,13 @@ class LightDark10D(HasParams, AdditiveGaussianTransition):
         eps = torch.randn(pos.shape, generator=generator, device=pos.device, dtype=pos.dtype)
         return seen + self.observation_std(pos).unsqueeze(-1) * eps
 
+    def _pair_coordinates(self, t: Tensor) -> tuple[Tensor, Tensor]:
+        """The coordinates the swaps exchange, as strided views: ``(t_0, t_2, …)`` and ``(t_1, t_3, …)``
+        ``[*S, n_pairs]`` of ``t`` ``[*S, n_pos]`` (pair ``k`` swaps coordinates ``2k`` and ``2k + 1``).
+        Slices, not index tensors: compiled, the score's arithmetic then runs vectorised."""
+        end = 2 * len(self._swap_i)
+        return t[..., 0:end:2], t[..., 1:end:2]
+
     def _swap_errors(self, o: Tensor, pos: Tensor) -> Tensor:
         """Squared errors ``‖o - P_k x‖²`` for the events {no swap, swap(1,2), swap(3,4), ...}: a
         swapped one differs from the unswapped one only in its two swapped coordinates.
@@ -306,9 +313,10 @@ class LightDark10D(HasParams, AdditiveGaussianTransition):
         diff = o - pos  # [*S, n_pos]
         sq = diff * diff
         sq_id = sq.sum(-1, keepdim=True)
-        i, j = self._swap_i, self._swap_j
-        cross = (o[..., i] - pos[..., j]) ** 2 + (o[..., j] - pos[..., i]) ** 2  # [*S, n_pairs]
-        return torch.cat([sq_id, sq_id - sq[..., i] - sq[..., j] + cross], dim=-1)
+        (o_i, o_j), (x_i, x_j), (sq_i, sq_j) = self._pair_coordinates(o), self._pair_coordinates(pos), \
+            self._pair_coordinates(sq)
+        cross = (o_i - x_j) ** 2 + (o_j - x_i) ** 2  # [*S, n_pairs]
+        return torch.cat([sq_id, sq_id - sq_i - sq_j + cross], dim=-1)
 
     def observation_log_prob(self, o: Tensor, s_next: Tensor, a: Tensor) -> Tensor:
         """``log O(o | s')``: in the dark, the mixture over {no swap, swap(1,2), swap(3,4)}.
@@ -349,11 +357,11 @@ class LightDark10D(HasParams, AdditiveGaussianTransition):
         posterior = posterior / posterior.sum(-1, keepdim=True)  # faster than ATen's on rows of 3
         w = torch.where(dark, posterior, self._no_swap)  # [*S, 3]
         # ō = Σ_k w_k P_k o: swap k moves w_k·(o_j - o_i) into coordinate i and its opposite into j
-        i, j = self._swap_i, self._swap_j
-        shift = w[..., 1:] * (o[..., j] - o[..., i])  # [*S, n_pairs]
-        seen = o.expand(torch.broadcast_shapes(o.shape, pos.shape)).clone()
-        seen[..., i] += shift
-        seen[..., j] -= shift
+        o_i, o_j = self._pair_coordinates(o)
+        shift = w[..., 1:] * (o_j - o_i)  # [*S, n_pairs]
+        pairs = torch.stack([o_i + shift, o_j - shift], dim=-1).flatten(-2)  # [*S, 2·n_pairs]
+        rest = o[..., pairs.shape[-1]:]
+        seen = torch.cat([pairs, rest.expand(*pairs.shape[:-1], rest.shape[-1])], dim=-1)
         mean_err = (w * errs).sum(-1)
         d_var_coef = 0.5 * mean_err / var**2 - 0.5 * self.n_pos / var  # ∂ log O / ∂v
         grad_pos = (seen - pos) / var.unsqueeze(-1) - (self.sigma_base**2 * d_var_coef).unsqueeze(-1) * d_light

@@ -82,8 +82,14 @@ pooled belief), on SIR beliefs for 33 iterations (1.06M frames, the earlier defa
 half as many frames with half of them on ESCORT beliefs (8 iterations on SIR beliefs, then 8 on ESCORT's:
 512,000 frames; the default job since), with a constant and a linearly falling learning rate."""
 
+OWN_FILTER_ROWS = (
+    ("ESCORT beliefs only, 16 iterations", ("trainer.warm_start_iterations=0",)),
+)
+"""``--rows own_filter``: the default job's 16 iterations (512,000 frames) all on its own filter's beliefs, with no
+SIR warm start, so that the policy never meets the shift from SIR's beliefs to ESCORT's."""
+
 ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS, "starts": START_ROWS, "half": HALF_ROWS,
-            "frames": FRAMES_ROWS, "coordinates": COORDINATE_ROWS}
+            "frames": FRAMES_ROWS, "coordinates": COORDINATE_ROWS, "own_filter": OWN_FILTER_ROWS}
 """The trained rows ``--rows`` picks by name."""
 
 SCRIPTED_FILTERS = ("escort_train", "sir_rough")
