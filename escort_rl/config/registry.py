@@ -27,6 +27,7 @@ REGISTRY: dict[str, dict[str, str]] = {
         "lightdark10d_continuous": "escort_rl.models.LightDark10DContinuous",
         "kidnapped20d": "escort_rl.models.KidnappedRobot20D",
         "mtt20d": "escort_rl.models.MultiTargetTracking20D",
+        "hidden_goal": "escort_rl.models.HiddenGoal",
         "linear_gaussian": "escort_rl.models.LinearGaussian",
         "lightdark1d": "escort_rl.models.LightDark1D",
         "popgym_cartpole": "escort_rl.models.POPGymCartPole",

@@ -2,6 +2,7 @@
 Light-Dark planning problem (``LightDark1D``, not one of the benchmark domains). Each model owns its
 parameters in one frozen dataclass, ``<Model>Params``."""
 
+from escort_rl.models.hidden_goal import HiddenGoal, HiddenGoalParams
 from escort_rl.models.kidnapped_robot import KidnappedRobot20D, KidnappedRobot20DParams
 from escort_rl.models.light_dark import LightDark10D, LightDark10DParams
 from escort_rl.models.light_dark_1d import LightDark1D, LightDark1DParams
@@ -20,8 +21,9 @@ DOMAINS = {"lightdark10d": LightDark10D, "kidnapped20d": KidnappedRobot20D, "mtt
 # Every domain with a gymnasium id (escort_rl/envs/registration.py): the paper's and their variants.
 GYM_DOMAINS = {**DOMAINS, "lightdark10d_continuous": LightDark10DContinuous}
 
-__all__ = ["DOMAINS", "GYM_DOMAINS", "KidnappedRobot20D", "KidnappedRobot20DParams", "LightDark10D",
-           "LightDark10DContinuous", "LightDark10DParams", "LightDark1D", "LightDark1DParams", "LinearGaussian",
-           "LinearGaussianParams", "MultiTargetTracking20D", "MultiTargetTracking20DParams", "POMDPModel",
-           "POPGymCartPole", "POPGymCartPoleParams", "POPGymPendulum", "POPGymPendulumParams", "TaskSpaces",
-           "check_model", "has_goal", "popgym_model_class", "position_dims", "position_error", "velocity_dims"]
+__all__ = ["DOMAINS", "GYM_DOMAINS", "HiddenGoal", "HiddenGoalParams", "KidnappedRobot20D",
+           "KidnappedRobot20DParams", "LightDark10D", "LightDark10DContinuous", "LightDark10DParams", "LightDark1D",
+           "LightDark1DParams", "LinearGaussian", "LinearGaussianParams", "MultiTargetTracking20D",
+           "MultiTargetTracking20DParams", "POMDPModel", "POPGymCartPole", "POPGymCartPoleParams", "POPGymPendulum",
+           "POPGymPendulumParams", "TaskSpaces", "check_model", "has_goal", "popgym_model_class", "position_dims",
+           "position_error", "velocity_dims"]

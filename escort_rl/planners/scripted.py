@@ -32,6 +32,11 @@ Per domain (:func:`scripted_controller_for`):
   them (the collision penalty costs reward, not success) and does not aim the camera (the heading is
   the chosen direction). The targets' belief therefore does not affect its actions; only the belief
   over the agent's own position and velocity does.
+- :class:`~escort_rl.models.HiddenGoal`: :class:`HeaviestModeController`, which reads the whole belief,
+  not its mean (the mean of a belief split among candidate goals lies between them, where no goal is):
+  it commits to the heaviest mode's goal, or, with ``confidence > 0``, goes to the beacon first while no
+  mode weighs that much. Committing at once reaches the goal in about ``1/M`` of the episodes (at a
+  wrong candidate nothing the agent sees tells it so): the baseline a learner beats by looking first.
 - :class:`~escort_rl.models.KidnappedRobot20D`: no scripted controller. The domain has no goal, its
   reward is ``−1`` every step whatever the action, and ``is_terminal`` is always False: the task is
   localisation, and a controller that "drives the belief-mean position toward the goal" has no goal
@@ -55,6 +60,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
+from escort_rl.models.hidden_goal import HiddenGoal
 from escort_rl.models.kidnapped_robot import KidnappedRobot20D
 from escort_rl.models.light_dark import LightDark10D
 from escort_rl.models.light_dark_continuous import LightDark10DContinuous
@@ -65,6 +71,7 @@ DEFAULT_GAIN_V = 3.0
 
 __all__ = [
     "DEFAULT_GAIN_V",
+    "HeaviestModeController",
     "LightDarkContinuousPD",
     "LightDarkPD",
     "MultiTargetPD",
@@ -208,6 +215,52 @@ class MultiTargetPD:
         return direction_action(u, self.model.action_directions)
 
 
+class HeaviestModeController:
+    """The hidden goal (:class:`~escort_rl.models.HiddenGoal`): push toward the goal of the heaviest mode,
+    or toward the beacon while no mode weighs ``confidence`` (in ``[0, 1]``; 0, the default, always commits).
+
+    A mode is a candidate goal: each particle belongs to the candidate nearest its goal coordinates
+    (``model.mode_of``), the heaviest candidate's weighted mean goal is the target, and the push goes to
+    the coordinate where the target is farthest from the belief's mean position (:func:`pd_action` with no
+    velocity). Called on a belief, ``particles [*B, N, 2d]`` and ``log_weights [*B, N]`` (or ``None``:
+    equal weights) -> int64 ``[*B]``; ``reads_belief`` tells :class:`ScriptedBeliefController` to pass it.
+
+    Example:
+        >>> m = HiddenGoal(dim=3, modes=2)
+        >>> HeaviestModeController(m)(m.initial_belief((4,), 50), None).shape
+        torch.Size([4])
+    """
+
+    reads_belief = True
+
+    def __init__(self, model: HiddenGoal, confidence: float = 0.0) -> None:
+        if not 0.0 <= float(confidence) <= 1.0:
+            raise ValueError(f"HeaviestModeController.confidence: must lie in [0, 1], got {confidence!r}")
+        self.model, self.confidence = model, float(confidence)
+
+    def mode_weights(self, particles: Tensor, log_weights: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        """The normalised weights ``[*B, N]``, each particle's mode ``[*B, N]`` and each mode's share of the
+        belief ``[*B, M]`` (rows sum to 1)."""
+        w = (torch.full(particles.shape[:-1], 1.0 / particles.shape[-2], dtype=particles.dtype,
+                        device=particles.device) if log_weights is None
+             else torch.softmax(log_weights.to(particles.dtype), dim=-1))
+        mode = self.model.mode_of(particles[..., self.model.dim:])
+        shares = torch.zeros(*particles.shape[:-2], self.model.candidate_goals.shape[0], dtype=particles.dtype,
+                             device=particles.device).scatter_add_(-1, mode, w)
+        return w, mode, shares
+
+    def __call__(self, particles: Tensor, log_weights: Tensor | None) -> Tensor:
+        d = self.model.dim
+        w, mode, shares = self.mode_weights(particles, log_weights)
+        top_share, top = shares.max(-1)  # [*B]
+        in_top = (mode == top.unsqueeze(-1)).to(particles.dtype) * w  # [*B, N]
+        goal = (in_top.unsqueeze(-1) * particles[..., d:]).sum(-2) / in_top.sum(-1, keepdim=True).clamp_min(1e-12)
+        beacon = self.model.beacon.to(particles.dtype).expand_as(goal)
+        target = torch.where((top_share < self.confidence).unsqueeze(-1), beacon, goal)  # [*B, d]
+        position = (w.unsqueeze(-1) * particles[..., :d]).sum(-2)
+        return pd_action(position, torch.zeros_like(position), target, gain_v=0.0)
+
+
 def scripted_controller_for(model, gain_v: float = DEFAULT_GAIN_V) -> Callable[[Tensor], Tensor]:
     """The scripted controller of ``model``'s domain: a callable from a state estimate ``[*B, d]`` to
     actions int64 ``[*B]`` (float ``[*B, action_dim]`` for continuous actions).
@@ -215,6 +268,8 @@ def scripted_controller_for(model, gain_v: float = DEFAULT_GAIN_V) -> Callable[[
     - :class:`~escort_rl.models.LightDark10D` -> :class:`LightDarkPD`;
     - :class:`~escort_rl.models.LightDark10DContinuous` -> :class:`LightDarkContinuousPD` (real actions);
     - :class:`~escort_rl.models.MultiTargetTracking20D` -> :class:`MultiTargetPD`;
+    - :class:`~escort_rl.models.HiddenGoal` -> :class:`HeaviestModeController` committing at once (it has
+      no velocity: ``gain_v`` does not apply);
     - :class:`~escort_rl.models.KidnappedRobot20D` -> ``ValueError``: the domain has no goal, a
       constant reward and no terminal state, so there is nothing for a goal-seeking rule to do;
     - anything else -> ``ValueError``.
@@ -226,6 +281,8 @@ def scripted_controller_for(model, gain_v: float = DEFAULT_GAIN_V) -> Callable[[
         return LightDarkPD(model, gain_v)
     if isinstance(model, MultiTargetTracking20D):
         return MultiTargetPD(model, gain_v)
+    if isinstance(model, HiddenGoal):
+        return HeaviestModeController(model)
     name = type(model).__name__
     if isinstance(model, KidnappedRobot20D):
         raise ValueError(
@@ -235,7 +292,7 @@ def scripted_controller_for(model, gain_v: float = DEFAULT_GAIN_V) -> Callable[[
         )
     raise ValueError(
         f"scripted_controller_for: no scripted controller for {name}; supported models are "
-        "LightDark10D and MultiTargetTracking20D"
+        "LightDark10D, LightDark10DContinuous, MultiTargetTracking20D and HiddenGoal"
     )
 
 
@@ -251,15 +308,21 @@ class _ScriptedPolicy(TensorDictModuleBase):
         self.gain_v = _check_gain(gain_v)
         self.controller = controller if controller is not None else scripted_controller_for(model, gain_v)
 
-    def _act(self, tensordict: TensorDictBase, estimate: Tensor) -> TensorDictBase:
-        action = self.controller(estimate)
+    def _act(self, tensordict: TensorDictBase, particles: Tensor, log_weights: Tensor | None) -> TensorDictBase:
+        """The controller's action on the belief (``particles [*B, N, d]``, ``log_weights [*B, N]`` or
+        ``None``): on the belief itself for a controller that ``reads_belief``, else on its mean."""
+        if getattr(self.controller, "reads_belief", False):
+            action = self.controller(particles, log_weights)
+        else:
+            action = self.controller(belief_mean(particles, log_weights))
         action = action.to(torch.float32) if is_continuous(self.model) else action.to(torch.int64)
-        tensordict.set(self.action_key, action.reshape(*estimate.shape[:-1], *action_shape(self.model)))
+        tensordict.set(self.action_key, action.reshape(*particles.shape[:-2], *action_shape(self.model)))
         return tensordict
 
 
 class ScriptedBeliefController(_ScriptedPolicy):
-    """Acts on the weighted mean of a particle belief with the domain's scripted controller.
+    """Acts on a particle belief with the domain's scripted controller: on its weighted mean, or on the
+    belief itself for a controller that reads it (``reads_belief``, e.g. :class:`HeaviestModeController`).
 
     Keys (``*B`` the tensordict's batch shape): reads ``particles_key`` ``[*B, N, d]`` and, when
     present, ``log_weights_key`` ``[*B, N]`` (the mean is ``Σ_n softmax(log w)_n x_n``; without log
@@ -296,7 +359,7 @@ class ScriptedBeliefController(_ScriptedPolicy):
         if log_weights is not None and log_weights.shape != particles.shape[:-1]:
             raise ValueError(f"{self.log_weights_key}: expected shape {tuple(particles.shape[:-1])}, "
                              f"got {tuple(log_weights.shape)}")
-        return self._act(tensordict, belief_mean(particles, log_weights))
+        return self._act(tensordict, particles, log_weights)
 
 
 class TrueStateController(_ScriptedPolicy):
@@ -319,4 +382,4 @@ class TrueStateController(_ScriptedPolicy):
         d = self.model.state_dim
         if state.shape[-1:] != (d,):
             raise ValueError(f"{self.state_key}: expected shape [*B, {d}], got {tuple(state.shape)}")
-        return self._act(tensordict, state)
+        return self._act(tensordict, state.unsqueeze(-2), None)  # the true state as a one-particle belief

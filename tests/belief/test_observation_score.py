@@ -8,6 +8,7 @@ import torch
 
 from escort_rl.belief import ESCORTFilter
 from escort_rl.models import (
+    HiddenGoal,
     KidnappedRobot20D,
     LightDark1D,
     LightDark10D,
@@ -21,6 +22,7 @@ MODELS = {
     "lightdark10d": LightDark10D,
     "kidnapped20d": KidnappedRobot20D,
     "mtt20d": MultiTargetTracking20D,
+    "hidden-goal-near-beacon": lambda: HiddenGoal(dim=4, modes=4, beacon_distance=0.3),
     # three soft x-bins, so the middle-bin (log cosh) branch of the zone gradient is exercised too
     "mtt20d-3x2-zones": lambda: MultiTargetTracking20D(
         zone_x_edges=(3.0, 7.0), zone_grid=(("clear", "confusion", "limited"), ("confusion", "blind", "clear"))),

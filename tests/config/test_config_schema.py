@@ -43,7 +43,7 @@ def test_default_config_is_typed():
 
 def test_the_options_are_the_yaml_files():
     assert set(ENVS) == {"lightdark10d", "lightdark10d_continuous", "kidnapped20d", "mtt20d", "linear_gaussian",
-                         "popgym_cartpole", "popgym_pendulum", "popgym", "custom"}
+                         "popgym_cartpole", "popgym_pendulum", "popgym", "custom", "hidden_goal"}
     assert {"sir", "enkf", "svgd", "escort", "escort_nocorr", "escort_train"} <= set(FILTERS)
     assert set(TRAINERS) == {"reinforce", "ppo", "dvrl_a2c", "recurrent_ppo"}
 
@@ -400,7 +400,7 @@ def test_build_errors_name_the_group():
         build_model(OmegaConf.create({"name": "lightdark10d", "model": {"foo": 1}}))
     with pytest.raises(ConfigError, match="^env.model._target_: cannot import 'escort_rl.models.Nope'"):
         build_model(OmegaConf.create({"name": "lightdark10d", "model": {"_target_": "escort_rl.models.Nope"}}))
-    with pytest.raises(ConfigError, match="^env.name: unknown model 'x'; choose one of kidnapped20d, "):
+    with pytest.raises(ConfigError, match="^env.name: unknown model 'x'; choose one of hidden_goal, kidnapped20d, "):
         build_model(OmegaConf.create({"name": "x", "model": {}}))
 
 

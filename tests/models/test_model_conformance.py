@@ -26,6 +26,7 @@ import torch
 
 import escort_rl.models as models
 from escort_rl.models import (
+    HiddenGoal,
     KidnappedRobot20D,
     LightDark1D,
     LightDark10D,
@@ -50,6 +51,8 @@ MODELS = {
     "lightdark10d-continuous": LightDark10DContinuous,  # real actions [*B, 5]
     "popgym-cartpole": lambda: POPGymCartPole(obs_noise=0.2),
     "popgym-pendulum": lambda: POPGymPendulum(obs_noise=0.2),  # real actions [*B, 1]
+    "hidden-goal": HiddenGoal,
+    "hidden-goal-dim12-modes6": lambda: HiddenGoal(dim=12, modes=6, beacon_distance=0.5),  # near the beacon
 }
 SHAPES = [(), (3,), (2, 4)]
 SHAPE_IDS = ["unbatched", "3", "2x4"]

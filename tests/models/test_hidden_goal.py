@@ -1,0 +1,136 @@
+"""The hidden-goal family (:class:`escort_rl.models.HiddenGoal`): its densities against brute force at low
+dimension, its prior's modes, its knobs, and the controller that commits to the heaviest mode."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from conftest import hoeffding
+from escort_rl.config import ConfigError, compose
+from escort_rl.models import HiddenGoal, check_model
+from escort_rl.planners.scripted import HeaviestModeController, scripted_controller_for
+
+
+def test_sizes_and_candidates():
+    m = HiddenGoal(dim=6, modes=5)
+    assert (m.state_dim, m.obs_dim, m.n_actions) == (12, 12, 12)
+    expected = torch.zeros(5, 6)
+    for j, (axis, sign) in enumerate([(0, 1), (0, -1), (1, 1), (1, -1), (2, 1)]):
+        expected[j, axis] = sign * m.params.goal_distance
+    assert torch.equal(m.candidate_goals, expected)
+    assert torch.equal(m.beacon, torch.tensor([0.0] * 5 + [-m.params.beacon_distance]))
+    check_model(m)
+
+
+def test_too_many_modes_are_refused_naming_the_field():
+    with pytest.raises(ConfigError, match=r"HiddenGoal\.modes: at most 2·\(dim − 1\) = 4"):
+        HiddenGoal(dim=3, modes=5)
+
+
+def test_config_builds_the_family_at_any_size():
+    from escort_rl.trainers.builders import build_model
+
+    m = build_model(compose(["env=hidden_goal", "env.model.dim=20", "env.model.modes=8"]).env, "cpu")
+    assert isinstance(m, HiddenGoal) and m.state_dim == 40 and m.candidate_goals.shape == (8, 20)
+
+
+def test_observation_density_integrates_to_one_on_a_grid(per_test_generator):
+    """Brute force at d = 2 (a 4-D observation): the density summed over a grid covering ±6σ of every
+    coordinate is 1, at a state near the beacon (where the goal's reading carries the goal)."""
+    m = HiddenGoal(dim=2, modes=2, beacon_distance=0.5)
+    s = m.initial_state((), per_test_generator)
+    s[:2] = m.beacon + 0.3
+    p = m.params
+    x, z = s[:2], s[2:]
+    centre = torch.cat([x, m.signal(x) * z]).double()
+    half = torch.tensor([6 * p.position_obs_std] * 2 + [6 * p.goal_obs_std] * 2, dtype=torch.float64)
+    axes = [torch.linspace(float(c - h), float(c + h), 41, dtype=torch.float64) for c, h in zip(centre, half)]
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 4)
+    cell = math.prod(float(a[1] - a[0]) for a in axes)
+    m64 = HiddenGoal(dim=2, modes=2, beacon_distance=0.5)
+    m64.beacon = m64.beacon.double()
+    total = torch.exp(m64.observation_log_prob(grid, s.double(), torch.tensor(0))).sum() * cell
+    assert total.item() == pytest.approx(1.0, abs=2e-3)
+
+
+def test_observations_follow_the_density(per_test_generator):
+    """Draws of ``observe`` have the mean ``(x, ℓ(x) z)`` and the per-coordinate spread the density says,
+    within 5 standard errors."""
+    m = HiddenGoal(dim=3, modes=4, beacon_distance=1.0)
+    s = m.initial_state((), per_test_generator)
+    s[:3] = m.beacon + torch.tensor([0.4, -0.2, 0.5])
+    n = 20000
+    o = m.observe(s.expand(n, 6), torch.zeros(n, dtype=torch.long), per_test_generator)
+    p = m.params
+    mean = torch.cat([s[:3], m.signal(s[:3]) * s[3:]])
+    std = torch.tensor([p.position_obs_std] * 3 + [p.goal_obs_std] * 3)
+    assert ((o.mean(0) - mean).abs() < 5 * std / math.sqrt(n)).all()
+    assert ((o.std(0) / std - 1).abs() < 5 / math.sqrt(2 * n)).all()
+
+
+def test_the_goal_reading_is_noise_far_from_the_beacon():
+    """Far from the beacon every candidate explains an observation as well as the true goal does: the
+    posterior keeps the prior's modes."""
+    m = HiddenGoal(dim=5, modes=4, beacon_distance=6.0)
+    x = torch.zeros(5)
+    o = torch.cat([x, torch.zeros(5)])
+    states = torch.cat([x.expand(4, 5), m.candidate_goals], dim=-1)
+    lp = m.observation_log_prob(o, states, torch.zeros(4, dtype=torch.long))
+    assert (lp - lp[0]).abs().max() < 1e-3
+    near = torch.cat([m.beacon, m.candidate_goals[2]])  # at the beacon, reading goal 2 exactly
+    lp = m.observation_log_prob(near, torch.cat([m.beacon.expand(4, 5), m.candidate_goals], -1),
+                                torch.zeros(4, dtype=torch.long))
+    assert lp.argmax() == 2 and (lp[2] - lp).sort().values[1] > 20
+
+
+def test_the_prior_weighs_every_mode_equally(per_test_generator):
+    m = HiddenGoal(dim=4, modes=6)
+    n = 30000
+    b = m.initial_belief((), n, per_test_generator)
+    shares = torch.bincount(m.mode_of(b[:, 4:]), minlength=6).float() / n
+    assert (shares - 1 / 6).abs().max() < hoeffding(n)
+    assert (b[:, :4].abs() <= m.params.start_spread).all()
+
+
+def test_the_controller_commits_to_the_heaviest_mode():
+    m = HiddenGoal(dim=3, modes=4)
+    g = torch.Generator().manual_seed(0)
+    belief = m.initial_belief((), 200, g)
+    belief[:, :3] = 0.0
+    goal_mode = m.mode_of(belief[:, 3:])
+    log_w = torch.where(goal_mode == 3, 0.0, -3.0)  # mode 3 (goal −r e_1) the heaviest
+    assert HeaviestModeController(m)(belief, log_w).item() == 3  # push coordinate 1 down
+    # below the confidence, it heads for the beacon (−β e_2): push coordinate 2 down
+    assert HeaviestModeController(m, confidence=0.99)(belief, log_w).item() == 5
+    assert isinstance(scripted_controller_for(m), HeaviestModeController)
+
+
+def test_with_the_true_state_the_controller_always_arrives():
+    """Full information (the true state as a one-particle belief): every episode reaches its goal in
+    about ``r / step`` pushes."""
+    m = HiddenGoal(dim=5, modes=8)
+    g = torch.Generator().manual_seed(1)
+    s = m.initial_state((64,), g)
+    done = torch.zeros(64, dtype=torch.bool)
+    control = HeaviestModeController(m)
+    for _ in range(20):
+        s = torch.where(done.unsqueeze(-1), s, m.transition(s, control(s.unsqueeze(-2), None), g))
+        done |= m.is_terminal(s)
+    assert done.all()
+
+
+def test_a_belief_policy_passes_the_belief_to_the_controller():
+    from torchrl.envs import TransformedEnv
+
+    from escort_rl.belief import SIRFilter
+    from escort_rl.envs import POMDPEnv
+    from escort_rl.planners import ScriptedBeliefController
+    from escort_rl.transforms import BeliefTransform
+
+    m = HiddenGoal(dim=3, modes=2)
+    env = TransformedEnv(POMDPEnv(m, batch_size=(4,), seed=0), BeliefTransform(m, SIRFilter(), 32))
+    td = env.rollout(5, ScriptedBeliefController(m), break_when_any_done=False)
+    assert td["action"].shape == (4, 5) and td["action"].dtype == torch.int64
