@@ -54,6 +54,7 @@ BENCHMARKS = (
     "escort_rl.bench.curves",
     "escort_rl.bench.calibration",
     "escort_rl.bench.decisions",
+    "escort_rl.bench.hidden_goal",
     "escort_rl.bench.adaptive_stop",
     "escort_rl.bench.planner_budget",
     "escort_rl.bench.compare",
