@@ -159,19 +159,21 @@ def hidden_goal_markdown(result: dict) -> str:
 
 def run_hidden_goal(dims=(5, 10), modes: int = 4, filters=tuple(FILTER_ROWS), episodes: int = 100,
                     particles: int = 100, seed: int = 30000, steps: int | None = None, overrides=(),
-                    output="outputs/bench/hidden_goal", backend=None, threads: int = 1) -> dict:
-    """Every filter of ``filters`` (names of :data:`FILTER_ROWS`) with both :data:`CONTROLLERS` at each of
-    ``dims``; writes ``hidden_goal.md`` and ``hidden_goal.json`` into ``output``."""
+                    output="outputs/bench/hidden_goal", backend=None, threads: int = 1, own_filters=()) -> dict:
+    """Every filter of ``filters`` (names of :data:`FILTER_ROWS`) and of ``own_filters`` (``(label,
+    overrides)`` pairs) with both :data:`CONTROLLERS` at each of ``dims``; writes ``hidden_goal.md`` and
+    ``hidden_goal.json`` into ``output``."""
     unknown = [f for f in filters if f not in FILTER_ROWS]
     if unknown:
         raise ValueError(f"--filters: unknown {', '.join(unknown)}; choose among {', '.join(FILTER_ROWS)}")
+    rows = {**{f: FILTER_ROWS[f] for f in filters}, **dict(own_filters)}
     for name, value in (("episodes", episodes), ("particles", particles), ("modes", modes)):
         if value < 1:
             raise ValueError(f"--{name}: must be >= 1, got {value}")
-    cells = [HiddenGoalCell(label=f"{f}, {c}", overrides=(*overrides, *FILTER_ROWS[f]), confidence=conf, dim=dim,
+    cells = [HiddenGoalCell(label=f"{f}, {c}", overrides=(*overrides, *rows[f]), confidence=conf, dim=dim,
                             modes=modes, particles=particles, episodes=episodes, seed=seed, steps=steps,
                             threads=threads)
-             for dim in dims for f in filters for c, conf in CONTROLLERS.items()]
+             for dim in dims for f in rows for c, conf in CONTROLLERS.items()]
     for cell in cells:
         cell.config()  # a bad override or size fails here, before anything runs
     t0 = time.perf_counter()
@@ -179,7 +181,7 @@ def run_hidden_goal(dims=(5, 10), modes: int = 4, filters=tuple(FILTER_ROWS), ep
                         on_result=lambda c, r: print(f"dim {r['dim']:>3} {r['label']:>28}: success "
                                                      f"{mean_se(r['success'])[0]:.3f}", flush=True))
     result = {"episodes": episodes, "particles": particles, "seed": seed, "modes": modes, "dims": list(dims),
-              "filters": {f: list(FILTER_ROWS[f]) for f in filters}, "rows": results}
+              "filters": {f: list(o) for f, o in rows.items()}, "rows": results}
     write_results(Path(output), "hidden_goal", result, hidden_goal_markdown(result), time.perf_counter() - t0)
     return result
 
@@ -194,7 +196,10 @@ def register(subparsers) -> None:
     options.add_overrides_argument(p, "Hydra overrides under every row, e.g. env.model.beacon_distance=5")
     p.add_argument("--dims", type=int, nargs="+", default=None, help="env.model.dim values (default: 5 10)")
     p.add_argument("--modes", type=int, default=4, help="env.model.modes (default: 4)")
-    p.add_argument("--filters", nargs="+", default=None, help=f"filters among {', '.join(FILTER_ROWS)} (default: all)")
+    p.add_argument("--filters", nargs="+", default=None, help=f"filters among {', '.join(FILTER_ROWS)} (default: all, "
+                   "or none with --add-filter)")
+    options.add_labelled_option(p, "--add-filter", "a filter configuration of your own",
+                                "'escort smoothed' filter=escort_train filter.prior=smoothed")
     p.add_argument("--episodes", type=int, default=None, help="episodes per row (default: 100)")
     p.add_argument("--particles", type=int, default=None, metavar="N", help="N where a row does not set it "
                    "(default: 100)")
@@ -211,8 +216,11 @@ def main(args) -> None:
     full = dict(episodes=100, steps=None, particles=100, dims=(5, 10), filters=tuple(FILTER_ROWS))
     pick = QUICK if args.quick else full
     kw = {k: getattr(args, k) if getattr(args, k) is not None else pick[k] for k in full}
+    own = options.labelled(args.add_filter, "--add-filter")
+    if own and args.filters is None:
+        kw["filters"] = ()
     run_hidden_goal(modes=args.modes, seed=args.seed, overrides=tuple(args.overrides), output=args.output,
-                    backend=backend_from_args(args), threads=args.threads or 1, **kw)
+                    backend=backend_from_args(args), threads=args.threads or 1, own_filters=own, **kw)
 
 
 __all__ = ["CONTROLLERS", "FILTER_ROWS", "HiddenGoalCell", "hidden_goal_markdown", "mode_probes", "run_hidden_goal"]

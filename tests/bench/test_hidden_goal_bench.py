@@ -44,3 +44,12 @@ def test_escort_rows_run_with_overrides_under_them(tmp_path):
     rows = json.loads((tmp_path / "hidden_goal.json").read_text())["rows"]
     assert [r["filter"] for r in rows] == ["escort_train", "escort_train"]
     assert all("filter.compile=false" in r["overrides"] for r in rows)
+
+
+def test_a_filter_of_ones_own(tmp_path):
+    argv = ["bench", "hidden-goal", "--add-filter", "sir systematic", "filter=sir", "filter.resampling=systematic",
+            "--dims", "3", "--episodes", "2", "--steps", "3", "--particles", "12", "--output", str(tmp_path)]
+    assert main(argv) == 0
+    result = json.loads((tmp_path / "hidden_goal.json").read_text())
+    assert [r["label"] for r in result["rows"]] == ["sir systematic, commit", "sir systematic, look first"]
+    assert result["filters"] == {"sir systematic": ["filter=sir", "filter.resampling=systematic"]}
