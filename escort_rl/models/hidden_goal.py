@@ -89,7 +89,7 @@ class HiddenGoal(AdditiveGaussianTransition, HasParams):
     Example:
         >>> m = HiddenGoal(dim=5, modes=4)
         >>> m.state_dim, m.obs_dim, m.n_actions, tuple(m.candidate_goals.shape)
-        (10, 10, 10, 4)
+        (10, 10, 10, (4, 5))
     """
 
     Params = HiddenGoalParams
