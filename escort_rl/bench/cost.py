@@ -238,6 +238,8 @@ def register(subparsers) -> None:
                       help="skip (d, N, B) with B·N² above this (1e7 skips N=1000 at B=32 on a CPU)")
     cost.add_argument("--training", type=int, nargs="+", default=[], metavar="B",
                       help="also measure PPO training frames/s on SIR, SVGD and ESCORT beliefs at these batch sizes")
+    cost.add_argument("--training-overrides", nargs="+", default=[], metavar="OVERRIDE",
+                      help="config overrides of every training row, e.g. actor.head=pooled (default: none)")
     cost.add_argument("--training-steps", type=int, default=100,
                       help="episode length of the training rows (3 iterations of B x this many frames)")
     cost.add_argument("--warmup", action="store_true",
@@ -278,5 +280,5 @@ def main(args) -> None:
         from escort_rl.bench.training_cost import training_cost_rows
 
         result.update(training_cost_rows(args.training, out / "training_runs", args.training_steps,
-                                         args.warmup, progress=print))
+                                         args.warmup, progress=print, overrides=tuple(args.training_overrides)))
     write_results(out, "cost", result, cost_markdown(result))

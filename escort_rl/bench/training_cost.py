@@ -55,7 +55,8 @@ def training_throughput(filter_name: str, num_envs: int, output_dir: str | Path,
     frames = history[-1]["frames"] - history[0]["frames"]
     seconds = sum(h["seconds"] for h in timed)
     return {"filter": filter_name, "B": num_envs, "frames": frames, "seconds": seconds,
-            "frames_per_second": frames / seconds, "first_iteration_seconds": history[0]["seconds"]}
+            "frames_per_second": frames / seconds, "first_iteration_seconds": history[0]["seconds"],
+            "overrides": list(overrides)}
 
 
 def first_compiled_update_seconds(num_envs: int = 64, num_particles: int = 100) -> float:

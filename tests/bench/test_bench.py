@@ -128,6 +128,7 @@ def test_training_cost_rows_measure_every_filter(tmp_path, monkeypatch):
     rows = result["training"]
     assert [r["filter"] for r in rows] == list(TRAINING_FILTERS) and result["warmup"] is None
     assert all(r["B"] == 2 and r["frames"] == 2 * 4 and r["frames_per_second"] > 0 for r in rows)
+    assert all(r["overrides"] == ["num_particles=8"] for r in rows)  # recorded with the row
     table = cost_markdown(result)
     assert "| 2 | sir |" in table and "| 1.000 |" in table and "| 2 | escort |" in table
     from escort_rl.bench.training_cost import training_throughput
