@@ -238,6 +238,12 @@ class HeaviestModeController:
             raise ValueError(f"HeaviestModeController.confidence: must lie in [0, 1], got {confidence!r}")
         self.model, self.confidence = model, float(confidence)
 
+    @property
+    def rule(self) -> str:
+        """What it does, in words (the evaluation's summary names it)."""
+        look = (f", after the beacon while no mode weighs {self.confidence:g}" if self.confidence > 0 else "")
+        return f"toward the goal of the heaviest mode of the same filter's belief{look}"
+
     def mode_weights(self, particles: Tensor, log_weights: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         """The normalised weights ``[*B, N]``, each particle's mode ``[*B, N]`` and each mode's share of the
         belief ``[*B, M]`` (rows sum to 1)."""

@@ -241,6 +241,7 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
     if scripted is not None:
         rows["scripted"] = policy_summary(cfg, model, scripted, episodes, seed, desc=bar("scripted"))[0]
         rows["scripted_gain"] = scripted_gain(cfg)
+        rows["scripted_rule"] = getattr(scripted.controller, "rule", None)  # None: the PD rule at scripted_gain
     in_own_env = {"make": make, "estimates": estimates} if model_free else {}
     rows["random"] = policy_summary(cfg, model, None, episodes, seed, **in_own_env, desc=bar("random"))[0]
     beliefs = planned_beliefs(cfg)
@@ -273,6 +274,12 @@ def evaluate(checkpoint: str | Path, episodes: int | None = None, output: str | 
                                position_error=trained_error)
     (out / "summary.md").write_text(_markdown(result))
     return result
+
+
+def _scripted_rule(r: dict) -> str:
+    """What the scripted row ran: ``metrics.json``'s ``scripted_rule``, or the PD rule at ``scripted_gain``."""
+    return r.get("scripted_rule") or (f"the domain's PD controller (velocity gain {r['scripted_gain']:g}) on the "
+                                      "belief mean of the same filter")
 
 
 def _training_sentence(training: dict | None) -> str:
@@ -312,8 +319,7 @@ def _markdown(r: dict) -> str:
         f"Checkpoint `{r['checkpoint']}` ({r.get('trainer', 'reinforce')}) after {r['trained_iterations']} "
         f"iterations ({r.get('frames', 0)} frames); {r['episodes']} episodes with env seed {r['eval_seed']}, "
         f"the same for every policy; trained policy {'greedy' if r['greedy'] else 'sampled'}. "
-        + (f"scripted: the domain's PD controller (velocity gain {r['scripted_gain']:g}) on the belief mean of the "
-           "same filter. " if "scripted" in r else "")
+        + (f"scripted: {_scripted_rule(r)}. " if "scripted" in r else "")
         + "Mean ± standard error; — where the model has no goal or no state."
         + _training_sentence(r.get("training")),
         "",

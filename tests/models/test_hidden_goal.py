@@ -106,6 +106,8 @@ def test_the_controller_commits_to_the_heaviest_mode():
     # below the confidence, it heads for the beacon (−β e_2): push coordinate 2 down
     assert HeaviestModeController(m, confidence=0.99)(belief, log_w).item() == 5
     assert isinstance(scripted_controller_for(m), HeaviestModeController)
+    assert HeaviestModeController(m).rule == "toward the goal of the heaviest mode of the same filter's belief"
+    assert HeaviestModeController(m, confidence=0.9).rule.endswith("after the beacon while no mode weighs 0.9")
 
 
 def test_with_the_true_state_the_controller_always_arrives():
