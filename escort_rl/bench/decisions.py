@@ -32,7 +32,7 @@ import torch
 
 from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
-from escort_rl.reporting.paths import write_results
+from escort_rl.reporting.paths import safe_name, write_results
 from escort_rl.reporting.plots import plot_curves
 from escort_rl.reporting.stats import format_mean_se, mean_se
 
@@ -77,8 +77,7 @@ class DecisionCell(Cell):
     near: float = 1.0
 
     def key(self) -> str:
-        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in self.label)
-        return f"{self.domain}/{safe}"
+        return f"{self.domain}/{safe_name(self.label)}"
 
     def spec(self) -> dict:
         """The cell's fields and the config they compose to: a changed config file is a new cell."""

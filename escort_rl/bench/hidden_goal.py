@@ -31,7 +31,7 @@ import torch
 
 from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, make_backend, run_cells
-from escort_rl.reporting.paths import write_results
+from escort_rl.reporting.paths import safe_name, write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
 
 FILTER_ROWS: dict[str, tuple[str, ...]] = {
@@ -66,8 +66,7 @@ class HiddenGoalCell(Cell):
     steps: int | None = None
 
     def key(self) -> str:
-        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in self.label)
-        return f"dim{self.dim}-modes{self.modes}/{safe}"
+        return f"dim{self.dim}-modes{self.modes}/{safe_name(self.label)}"
 
     def spec(self) -> dict:
         from omegaconf import OmegaConf

@@ -8,6 +8,16 @@ from pathlib import Path
 from escort_rl.reporting.metadata import with_metadata
 
 
+def safe_name(label: str) -> str:
+    """``label`` as a file name: letters, digits, ``-``, ``_`` and ``.``; others become ``_``.
+
+    Example:
+        >>> safe_name("sir N=1000, look first")
+        'sir_N_1000__look_first'
+    """
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)
+
+
 def display_path(path: Path) -> str:
     """The path relative to the working directory when it lies below it (reports stay portable)."""
     try:

@@ -8,12 +8,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from escort_rl.bench.core.runner import Cell
+from escort_rl.reporting.paths import safe_name
 from escort_rl.reporting.stats import mean_se
-
-
-def safe_name(label: str) -> str:
-    """``label`` as a file name: letters, digits, ``-``, ``_`` and ``.``; others become ``_``."""
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)
 
 
 def row_overrides(base, row) -> list[str]:

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from escort_rl.bench.core.runner import Cell
+from escort_rl.reporting.paths import safe_name
 
 
 def task_overrides(task: str) -> tuple[str, ...]:
@@ -38,11 +39,6 @@ def frames_per_iteration(cfg) -> int:
         return envs * steps
     rollout = min(int(rollout), steps)
     return envs * rollout * -(-steps // rollout)
-
-
-def safe_name(label: str) -> str:
-    """``label`` as a file name: letters, digits, ``-``, ``_`` and ``.``; others become ``_``."""
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)
 
 
 @dataclass(frozen=True, kw_only=True)
