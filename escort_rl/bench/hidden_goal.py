@@ -121,11 +121,9 @@ def mode_probes(model, controller, particles: torch.Tensor, log_weights: torch.T
         x, lw, s = particles[:, t][running], log_weights[:, t][running], truth[:, t][running]
         if x.shape[0] == 0:
             continue
-        w, mode, shares = controller.mode_weights(x, lw)
+        shares = controller.mode_weights(x, lw)[2]
+        goal = controller.heaviest_goal(x, lw)[1]
         true_mode = model.mode_of(s[..., d:])
-        top = shares.argmax(-1)
-        in_top = (mode == top.unsqueeze(-1)).to(x.dtype) * w
-        goal = (in_top.unsqueeze(-1) * x[..., d:]).sum(-2) / in_top.sum(-1, keepdim=True).clamp_min(1e-12)
         out[f"true_mode@{step}"] = shares.gather(-1, true_mode.unsqueeze(-1)).squeeze(-1).double().tolist()
         out[f"modes_held@{step}"] = (shares >= 0.05).sum(-1).double().tolist()
         out[f"goal_error@{step}"] = torch.linalg.vector_norm(goal - s[..., d:], dim=-1).double().tolist()

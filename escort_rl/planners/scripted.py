@@ -255,15 +255,21 @@ class HeaviestModeController:
                              device=particles.device).scatter_add_(-1, mode, w)
         return w, mode, shares
 
-    def __call__(self, particles: Tensor, log_weights: Tensor | None) -> Tensor:
-        d = self.model.dim
+    def heaviest_goal(self, particles: Tensor, log_weights: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+        """The heaviest mode's share ``[*B]``, the weighted mean goal of its particles ``[*B, d]``, and the
+        normalised weights ``[*B, N]``."""
         w, mode, shares = self.mode_weights(particles, log_weights)
-        top_share, top = shares.max(-1)  # [*B]
+        top_share, top = shares.max(-1)
         in_top = (mode == top.unsqueeze(-1)).to(particles.dtype) * w  # [*B, N]
-        goal = (in_top.unsqueeze(-1) * particles[..., d:]).sum(-2) / in_top.sum(-1, keepdim=True).clamp_min(1e-12)
+        total = in_top.sum(-1, keepdim=True).clamp_min(1e-12)
+        goal = (in_top.unsqueeze(-1) * particles[..., self.model.dim:]).sum(-2) / total
+        return top_share, goal, w
+
+    def __call__(self, particles: Tensor, log_weights: Tensor | None) -> Tensor:
+        top_share, goal, w = self.heaviest_goal(particles, log_weights)
         beacon = self.model.beacon.to(particles.dtype).expand_as(goal)
         target = torch.where((top_share < self.confidence).unsqueeze(-1), beacon, goal)  # [*B, d]
-        position = (w.unsqueeze(-1) * particles[..., :d]).sum(-2)
+        position = (w.unsqueeze(-1) * particles[..., : self.model.dim]).sum(-2)
         return pd_action(position, torch.zeros_like(position), target, gain_v=0.0)
 
 
