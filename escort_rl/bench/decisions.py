@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench.core import options
-from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, run_cells
+from escort_rl.bench.core.runner import CellStore, ConfigCell, backend_from_args, run_cells
 from escort_rl.reporting.paths import safe_name, write_results
 from escort_rl.reporting.plots import plot_curves
 from escort_rl.reporting.stats import format_mean_se, mean_se
@@ -64,7 +64,7 @@ def parse_row(name: str) -> tuple[str, tuple[str, ...]]:
 
 
 @dataclass(frozen=True, kw_only=True)
-class DecisionCell(Cell):
+class DecisionCell(ConfigCell):
     """One row: the scripted controller on one filter configuration, closed loop."""
 
     label: str
@@ -78,12 +78,6 @@ class DecisionCell(Cell):
 
     def key(self) -> str:
         return f"{self.domain}/{safe_name(self.label)}"
-
-    def spec(self) -> dict:
-        """The cell's fields and the config they compose to: a changed config file is a new cell."""
-        from omegaconf import OmegaConf
-
-        return {**super().spec(), "config": OmegaConf.to_container(self.config(), resolve=True)}
 
     def config(self):
         from escort_rl.config import compose

@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from escort_rl.bench.core import options
-from escort_rl.bench.core.runner import Cell, CellStore, backend_from_args, make_backend, run_cells
+from escort_rl.bench.core.runner import CellStore, ConfigCell, backend_from_args, make_backend, run_cells
 from escort_rl.reporting.paths import safe_name, write_results
 from escort_rl.reporting.stats import format_mean_se, mean_se
 
@@ -52,7 +52,7 @@ QUICK = dict(episodes=4, steps=12, filters=("sir", "escort_train"), particles=30
 
 
 @dataclass(frozen=True, kw_only=True)
-class HiddenGoalCell(Cell):
+class HiddenGoalCell(ConfigCell):
     """One row: a filter configuration and a controller, closed loop, on ``episodes`` seeded episodes."""
 
     label: str
@@ -67,11 +67,6 @@ class HiddenGoalCell(Cell):
 
     def key(self) -> str:
         return f"dim{self.dim}-modes{self.modes}/{safe_name(self.label)}"
-
-    def spec(self) -> dict:
-        from omegaconf import OmegaConf
-
-        return {**super().spec(), "config": OmegaConf.to_container(self.config(), resolve=True)}
 
     def config(self):
         from escort_rl.config import compose

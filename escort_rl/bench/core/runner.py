@@ -75,6 +75,19 @@ class Cell:
         return {"num_cpus": self.threads, "num_gpus": 1 if str(self.device).startswith("cuda") else 0}
 
 
+class ConfigCell(Cell):
+    """A cell that runs a composed config (:meth:`config`): its result depends on that config, so its spec
+    holds the config resolved, and a changed config file makes a new cell even with the same fields."""
+
+    def config(self):
+        raise NotImplementedError
+
+    def spec(self) -> dict:
+        from omegaconf import OmegaConf
+
+        return {**super().spec(), "config": OmegaConf.to_container(self.config(), resolve=True)}
+
+
 def execute_cell(cell: Cell) -> dict:
     """Run ``cell`` with its torch thread count (restored afterwards); the result gets the cell's
     wall-clock seconds under ``timing.cell_seconds``. Module-level, so every backend can ship it."""

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from escort_rl.bench.core.runner import Cell
+from escort_rl.bench.core.runner import Cell, ConfigCell
 from escort_rl.reporting.paths import safe_name
 from escort_rl.reporting.stats import mean_se
 
@@ -102,7 +102,7 @@ class TrainedCell(Cell):
 
 
 @dataclass(frozen=True, kw_only=True)
-class FixedPolicyCell(Cell):
+class FixedPolicyCell(ConfigCell):
     """The scripted controller at velocity gain ``gain`` on the belief of ``filter`` (``gain=None``:
     uniform-random actions), on ``episodes`` episodes from env seed ``eval_seed``; ``overrides`` are
     the run's sizes."""
@@ -117,11 +117,6 @@ class FixedPolicyCell(Cell):
         from escort_rl.config import compose
 
         return compose(row_overrides(self.overrides, (f"filter={self.filter}",)))
-
-    def spec(self) -> dict:
-        from omegaconf import OmegaConf
-
-        return {**super().spec(), "config": OmegaConf.to_container(self.config(), resolve=True)}
 
     def key(self) -> str:
         policy = "random" if self.gain is None else f"scripted-gain{self.gain:g}"
