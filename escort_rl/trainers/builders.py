@@ -15,6 +15,8 @@ from escort_rl.config.errors import first_line
 from escort_rl.envs import POMDPEnv
 from escort_rl.models.protocol import is_continuous
 from escort_rl.modules import DeepSetsActor, DeepSetsCritic, make_deepsets_policy, policy_outputs
+from escort_rl.planners import ScriptedBeliefController
+from escort_rl.planners.scripted import DEFAULT_GAIN_V
 from escort_rl.transforms import ActionRepeat, BeliefTransform
 
 
@@ -306,3 +308,22 @@ def build_actor(cfg: DictConfig, state_dim: int, n_actions: int, model) -> DeepS
         hidden = OmegaConf.select(cfg, "actor.group_hidden", default=16)
         sizes.update(coordinate_groups=tuple(groups), group_layout=layout, group_hidden=int(hidden))
     return DeepSetsActor(state_dim, n_actions, **sizes)
+
+
+def scripted_gain(cfg) -> float:
+    """The scripted controller's velocity gain for ``cfg``'s env: ``env.scripted_gain`` (the best of a
+    sweep, stored in the env group), else the controller's default (also for a config saved before
+    the key existed)."""
+    gain = OmegaConf.select(cfg, "env.scripted_gain", default=None)
+    return DEFAULT_GAIN_V if gain is None else float(gain)
+
+
+def scripted_policy(cfg, model, action_key: str = "action"):
+    """The domain's scripted controller at :func:`scripted_gain` on the belief of ``cfg``'s filter, writing
+    ``action_key``, or ``None`` where the domain has none (Kidnapped Robot: no goal to drive to)."""
+    particles_key, log_weights_key = belief_keys(cfg)
+    try:
+        return ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key,
+                                        action_key=action_key, gain_v=scripted_gain(cfg))
+    except ValueError:
+        return None

@@ -16,12 +16,10 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from escort_rl.config import ConfigError, registry
 from escort_rl.config.schema import check_output_dir
 from escort_rl.models import TaskSpaces, has_goal, position_dims, position_error, velocity_dims
-from escort_rl.planners import ScriptedBeliefController
-from escort_rl.planners.scripted import DEFAULT_GAIN_V
 from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
 from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
-from escort_rl.trainers.builders import belief_keys, build_model, make_env
+from escort_rl.trainers.builders import belief_keys, build_model, make_env, scripted_gain, scripted_policy
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 from escort_rl.trainers.resume import run_config
 from escort_rl.trainers.training import algorithm
@@ -159,25 +157,6 @@ def trained_policy(cfg, checkpoint):
     is the DeepSets policy in the env with ``cfg``'s belief filter; DVRL's, its policy with its state
     primer and its readout's estimate; recurrent PPO's, its GRU on raw observations."""
     return registry.resolve("trainer", algorithm(cfg)).trained_policy(cfg, checkpoint)
-
-
-def scripted_gain(cfg) -> float:
-    """The scripted controller's velocity gain for ``cfg``'s env: ``env.scripted_gain`` (the best of a
-    sweep, stored in the env group), else the controller's default (also for a config saved before
-    the key existed)."""
-    gain = OmegaConf.select(cfg, "env.scripted_gain", default=None)
-    return DEFAULT_GAIN_V if gain is None else float(gain)
-
-
-def scripted_policy(cfg, model):
-    """The domain's scripted controller at :func:`scripted_gain` on the belief mean of ``cfg``'s filter,
-    or ``None`` where the domain has none (Kidnapped Robot: no goal to drive to)."""
-    particles_key, log_weights_key = belief_keys(cfg)
-    try:
-        return ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key,
-                                        gain_v=scripted_gain(cfg))
-    except ValueError:
-        return None
 
 
 def planned_beliefs(cfg) -> list[str]:

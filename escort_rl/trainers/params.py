@@ -132,6 +132,12 @@ class PPOParams(BeliefTrainerParams):
             from ``lr`` at the first update to ``lr / updates`` at the last, over all ``iterations``
             (PPO's annealing, as in Stable-Baselines3 and CleanRL). It is a function of the update's
             index, so a resumed run continues on the same schedule.
+        kickstart_coef: the weight ``λ₀`` of a teacher term (kickstarting, Schmitt et al. 2018): each Adam
+            step also minimises ``λ_i · E[−log π_θ(a_teacher | b)]``, where ``a_teacher`` is the env's
+            scripted controller's action on the same belief (at ``env.scripted_gain``). ``0``: no teacher.
+        kickstart_iterations: ``λ_i = λ₀ · (1 − i / kickstart_iterations)`` at iteration ``i`` (0-based),
+            and 0 from then on: the learner starts from the hand rule's behaviour and PPO alone shapes
+            the policy by the end.
     """
 
     iterations: int = param(16, ge=1)
@@ -152,6 +158,18 @@ class PPOParams(BeliefTrainerParams):
     update_particles: Optional[int] = param(25, ge=1)
     max_importance_ratio: Optional[float] = param(None, gt=1)
     lr_schedule: str = param("constant", choices=["constant", "linear"])
+    kickstart_coef: float = param(0.0, ge=0)
+    kickstart_iterations: int = param(8, ge=1)
+
+    def kickstart_weight(self, index: int) -> float:
+        """The teacher term's weight at iteration ``index`` (0-based).
+
+        Examples:
+            >>> p = PPOParams(kickstart_coef=1.0, kickstart_iterations=4)
+            >>> [p.kickstart_weight(i) for i in range(5)]
+            [1.0, 0.75, 0.5, 0.25, 0.0]
+        """
+        return float(self.kickstart_coef) * max(0.0, 1.0 - index / self.kickstart_iterations)
 
     def lr_at(self, update: int, updates: int) -> float:
         """Adam's rate at update ``update`` (0-based) of ``updates`` in the whole run.

@@ -41,7 +41,9 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from escort_rl.trainers.algorithm import trainer_params
-from escort_rl.trainers.builders import belief_keys, build_critic, build_policy, env_factory
+from escort_rl.config import ConfigError
+from escort_rl.models.protocol import check_action_box, is_continuous
+from escort_rl.trainers.builders import belief_keys, build_critic, build_policy, env_factory, scripted_policy
 from escort_rl.trainers.params import PPOParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
 
@@ -70,6 +72,10 @@ def make_ppo_loss(policy, critic, cfg: DictConfig, critic_keys: list | None = No
     loss = clip_ppo_loss(policy, value, p)
     loss.make_value_estimator(ValueEstimators.GAE, gamma=p.gamma, lmbda=p.gae_lambda)
     return loss
+
+
+TEACHER_ACTION = "teacher_action"
+"""The key of the kickstart teacher's action in a training batch."""
 
 
 class PPOBase(CollectorAlgorithm):
@@ -227,6 +233,17 @@ class PPO(PPOBase):
         self.minibatch = max(1, self.frames_per_batch // self.params.minibatches)
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(self.frames_per_batch),
                                    sampler=SamplerWithoutReplacement(), batch_size=self.minibatch)
+        self.teacher = self._teacher(cfg, model) if self.params.kickstart_coef > 0 else None
+        self.kickstart = 0.0  # this iteration's teacher weight
+
+    @staticmethod
+    def _teacher(cfg: DictConfig, model):
+        """The kickstart teacher: the env's scripted controller on the belief, writing ``teacher_action``."""
+        teacher = scripted_policy(cfg, model, action_key=TEACHER_ACTION)
+        if teacher is None:
+            raise ConfigError(f"trainer.kickstart_coef: env '{cfg.env.name}' has no scripted controller to learn "
+                              "from; set trainer.kickstart_coef=0")
+        return teacher
 
     @property
     def components(self) -> dict:
@@ -236,8 +253,16 @@ class PPO(PPOBase):
         """The belief envs (:func:`escort_rl.trainers.builders.make_env`) with ``trainer.action_repeat``."""
         return env_factory(cfg, num_envs, seed=seed, action_repeat=self.repeat)
 
+    def iteration(self, index: int, seed: int) -> dict:
+        self.kickstart = self.params.kickstart_weight(index) if self.teacher is not None else 0.0
+        return {**super().iteration(index, seed), "kickstart_weight": self.kickstart}
+
     def fill(self, batch):
-        """The batch's frames (:meth:`subsample_particles`) in the replay buffer."""
+        """The batch's frames (:meth:`subsample_particles`) in the replay buffer, with the teacher's action
+        on each frame's whole belief while the kickstart weight is above 0."""
+        if self.kickstart > 0:
+            with torch.no_grad():
+                self.teacher(batch)
         self.buffer.empty()
         self.buffer.extend(self.subsample_particles(batch).reshape(-1))
         return self.buffer
@@ -245,6 +270,21 @@ class PPO(PPOBase):
     def minibatches(self, source):
         """One epoch's minibatches: ``minibatches`` shuffled draws of frames without replacement."""
         return (source.sample() for _ in range(self.params.minibatches))
+
+    def total_loss(self, minibatch, out):
+        """PPO's loss, plus the kickstart term ``λ_i · E[−log π_θ(a_teacher | b)]`` while ``λ_i > 0``
+        (logged as ``loss_kickstart``, unweighted)."""
+        total = super().total_loss(minibatch, out)
+        if self.kickstart <= 0:
+            return total
+        teacher_action = minibatch[TEACHER_ACTION]
+        if is_continuous(self.model):  # inside the box: a TanhNormal's density at its edge is 0
+            low, high = (b.to(teacher_action) for b in check_action_box(self.model))
+            margin = 1e-3 * (high - low)
+            teacher_action = torch.minimum(torch.maximum(teacher_action, low + margin), high - margin)
+        imitation = -self.policy.get_dist(minibatch).log_prob(teacher_action).mean()
+        out["loss_kickstart"] = imitation.detach()
+        return total + self.kickstart * imitation
 
     def subsample_particles(self, batch):
         """The batch the epochs train on: with ``trainer.update_particles = M`` below the belief's

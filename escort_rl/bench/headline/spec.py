@@ -96,9 +96,18 @@ HORIZON_ROWS = (
 and with a smaller entropy bonus, so that the policy that hovers near the goal in the dark sees the cost of not
 finishing, or settles on one action there."""
 
+KICKSTART_ROWS = (
+    ("default job, kickstarted over the warm start", ("trainer.kickstart_coef=1.0", "trainer.kickstart_iterations=8")),
+    ("default job, kickstarted over the whole run", ("trainer.kickstart_coef=1.0", "trainer.kickstart_iterations=16")),
+)
+"""``--rows kickstart``: the default job with the scripted controller as a teacher (``trainer.kickstart_coef``: each
+Adam step also minimises the policy's cross-entropy to the controller's action on the same belief, with a weight
+falling linearly from 1 to 0 over the first 8 iterations, the SIR warm start, or over all 16), so that the learner
+starts from the hand rule's behaviour and PPO improves on it."""
+
 ROW_SETS = {"headline": TRAINED_ROWS, "ablation": ABLATION_ROWS, "starts": START_ROWS, "half": HALF_ROWS,
             "frames": FRAMES_ROWS, "coordinates": COORDINATE_ROWS, "own_filter": OWN_FILTER_ROWS,
-            "horizon": HORIZON_ROWS}
+            "horizon": HORIZON_ROWS, "kickstart": KICKSTART_ROWS}
 """The trained rows ``--rows`` picks by name."""
 
 SCRIPTED_FILTERS = ("escort_train", "sir_rough")
