@@ -141,6 +141,10 @@ class Algorithm(ABC):
         """:meth:`belief_of` this run's iteration ``index``."""
         return self.belief_of(self.cfg, self.params, index)
 
+    def plan_note(self) -> str:
+        """What the run's plan line adds after the filters of its iterations (e.g. a teacher); ``""``: nothing."""
+        return ""
+
     @abstractmethod
     def close(self) -> None:
         """Shut the algorithm's collectors and envs down (called once, also after a failure)."""

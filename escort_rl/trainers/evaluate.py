@@ -9,7 +9,6 @@ import time
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
@@ -19,7 +18,7 @@ from escort_rl.models import TaskSpaces, has_goal, position_dims, position_error
 from escort_rl.reporting.metadata import with_metadata
 from escort_rl.reporting.paths import display_path
 from escort_rl.reporting.plots import plot_belief_projection, plot_learning_curve
-from escort_rl.trainers.builders import belief_keys, build_model, make_env, scripted_gain, scripted_policy
+from escort_rl.trainers.builders import build_model, make_env, scripted_gain, scripted_policy
 from escort_rl.trainers.checkpointing import load_checkpoint, resolve_checkpoint
 from escort_rl.trainers.resume import run_config
 from escort_rl.trainers.training import algorithm

@@ -34,15 +34,15 @@ import time
 from abc import abstractmethod
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.modules import ValueOperator
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from escort_rl.trainers.algorithm import trainer_params
 from escort_rl.config import ConfigError
 from escort_rl.models.protocol import check_action_box, is_continuous
+from escort_rl.trainers.algorithm import trainer_params
 from escort_rl.trainers.builders import belief_keys, build_critic, build_policy, env_factory, scripted_policy
 from escort_rl.trainers.params import PPOParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
@@ -76,6 +76,21 @@ def make_ppo_loss(policy, critic, cfg: DictConfig, critic_keys: list | None = No
 
 TEACHER_ACTION = "teacher_action"
 """The key of the kickstart teacher's action in a training batch."""
+
+
+def kickstart_teacher(cfg: DictConfig, model, params: PPOParams):
+    """The policy PPO kickstarts from (``trainer.teacher``), writing :data:`TEACHER_ACTION`, or ``None``: the
+    env's scripted controller on the belief for ``scripted``, and for ``auto`` where the env group sets
+    ``scripted_teacher``; ``None`` for ``none`` or a zero ``kickstart_coef``."""
+    if params.teacher == "none" or params.kickstart_coef == 0:
+        return None
+    if params.teacher == "auto" and not OmegaConf.select(cfg, "env.scripted_teacher", default=False):
+        return None
+    teacher = scripted_policy(cfg, model, action_key=TEACHER_ACTION)
+    if teacher is None:
+        raise ConfigError(f"trainer.teacher: env '{cfg.env.name}' has no scripted controller to learn from; set "
+                          "trainer.teacher=none")
+    return teacher
 
 
 class PPOBase(CollectorAlgorithm):
@@ -233,17 +248,17 @@ class PPO(PPOBase):
         self.minibatch = max(1, self.frames_per_batch // self.params.minibatches)
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(self.frames_per_batch),
                                    sampler=SamplerWithoutReplacement(), batch_size=self.minibatch)
-        self.teacher = self._teacher(cfg, model) if self.params.kickstart_coef > 0 else None
+        self.teacher = kickstart_teacher(cfg, model, self.params)
         self.kickstart = 0.0  # this iteration's teacher weight
 
-    @staticmethod
-    def _teacher(cfg: DictConfig, model):
-        """The kickstart teacher: the env's scripted controller on the belief, writing ``teacher_action``."""
-        teacher = scripted_policy(cfg, model, action_key=TEACHER_ACTION)
-        if teacher is None:
-            raise ConfigError(f"trainer.kickstart_coef: env '{cfg.env.name}' has no scripted controller to learn "
-                              "from; set trainer.kickstart_coef=0")
-        return teacher
+    def plan_note(self) -> str:
+        if self.teacher is None:
+            return ""
+        p = self.params
+        span = p.kickstart_iterations or p.iterations
+        return (f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling to 0 by iteration "
+                f"{span + 1}" if span < p.iterations else
+                f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling linearly over the run")
 
     @property
     def components(self) -> dict:

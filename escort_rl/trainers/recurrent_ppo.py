@@ -131,9 +131,9 @@ def validate_recurrent_ppo_config(cfg: DictConfig) -> None:
     if t.update_particles is not None:
         raise ConfigError("trainer.update_particles: trainer=recurrent_ppo reads raw observations, no particles, "
                           f"got {t.update_particles}; set it to null")
-    if t.kickstart_coef > 0:
-        raise ConfigError("trainer.kickstart_coef: trainer=recurrent_ppo has no belief for a scripted teacher to "
-                          f"act on, got {t.kickstart_coef}; set it to 0")
+    if t.teacher != "none":
+        raise ConfigError("trainer.teacher: trainer=recurrent_ppo has no belief for a scripted teacher to act on, "
+                          f"got {t.teacher}; set it to none")
     per_worker = int(t.num_envs) // int(cfg.collector.workers)
     if int(t.minibatches) > int(t.num_envs):
         raise ConfigError(f"trainer.minibatches: minibatches are whole env rows, so at most trainer.num_envs "

@@ -465,7 +465,7 @@ def run_training(cfg: DictConfig, algorithm: Algorithm, resume_state: dict | Non
         print(f"{desc}: the run in {run_dir} has finished its {n_iter} iterations; nothing to train (raise "
               "trainer.iterations to train it further)", flush=True)
         return run_dir
-    plan = describe_plan(training_plan([algorithm.belief_at(i) for i in range(n_iter)]))
+    plan = describe_plan(training_plan([algorithm.belief_at(i) for i in range(n_iter)])) + algorithm.plan_note()
     start = f"resuming at iteration {state['iteration'] + 1} of {n_iter}; " if state["iteration"] else ""
     print(f"{desc}: {start}{plan}", flush=True)
     rotation = CheckpointRotation(checkpoint_dir(run_dir), keep_last=int(cfg.trainer.keep_checkpoints))

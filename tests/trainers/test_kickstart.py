@@ -1,0 +1,141 @@
+"""Kickstarting (``trainer.kickstart_coef``): PPO's loss plus the cross-entropy to the scripted controller's
+action on the same belief, with a weight that falls to 0 over ``trainer.kickstart_iterations``."""
+
+import math
+
+import pytest
+import torch
+
+from escort_rl.config import ConfigError, compose
+from escort_rl.models import KidnappedRobot20D, LightDark10D
+from escort_rl.trainers.algorithm import trainer_params
+from escort_rl.trainers.builders import make_env
+from escort_rl.trainers.checkpointing import load_checkpoint
+from escort_rl.trainers.params import PPOParams
+from escort_rl.trainers.ppo import PPO, TEACHER_ACTION, kickstart_teacher
+from escort_rl.trainers.training import train
+
+TINY = ["trainer=ppo", "filter=sir", "trainer.warm_start_filter=null", "trainer.num_envs=4",
+        "trainer.rollout_steps=12", "env.max_steps=12", "num_particles=8", "actor.hidden=16",
+        "trainer.minibatches=2", "trainer.epochs=2", "trainer.critic_input=belief", "trainer.update_particles=null"]
+
+
+def _ppo_and_batch(*overrides: str):
+    """A tiny PPO with a kickstart teacher and one batch ``[E, T]`` its own policy collected."""
+    torch.manual_seed(0)
+    cfg = compose([*TINY, "trainer.teacher=scripted", *overrides])
+    ppo = PPO(cfg, LightDark10D())
+    env = make_env(cfg, 4, seed=3)
+    try:
+        with torch.no_grad():
+            batch = env.rollout(12, ppo.policy, break_when_any_done=False)
+    finally:
+        env.close()
+    return ppo, batch
+
+
+def _agreement(ppo, batch) -> float:
+    """How often the policy's most probable action is the teacher's, over ``batch``'s frames."""
+    with torch.no_grad():
+        ppo.teacher(batch)
+        greedy = ppo.policy.get_dist(batch).probs.argmax(-1)
+    return float((greedy == batch[TEACHER_ACTION]).double().mean())
+
+
+def test_the_teacher_term_is_the_weighted_cross_entropy_to_the_controllers_action():
+    ppo, batch = _ppo_and_batch()
+    try:
+        ppo.kickstart = 0.25
+        ppo.estimate_advantages(batch)
+        ppo.teacher(batch)
+        frames = batch.reshape(-1)
+        out = ppo.loss_terms(frames)
+        base = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+        cross_entropy = -ppo.policy.get_dist(frames).log_prob(frames[TEACHER_ACTION]).mean()
+        total = ppo.total_loss(frames, out)
+        assert float(total) == pytest.approx(float(base + 0.25 * cross_entropy), rel=1e-6)
+        assert float(out["loss_kickstart"]) == pytest.approx(float(cross_entropy), rel=1e-6)
+        ppo.kickstart = 0.0
+        assert float(ppo.total_loss(frames, ppo.loss_terms(frames))) == pytest.approx(float(base), rel=1e-6)
+    finally:
+        ppo.close()
+
+
+def test_kickstarted_updates_make_the_policy_act_as_the_teacher():
+    """Updates with a large teacher weight take the greedy policy from chance agreement with the controller
+    (about 1 in 10 actions) to most of its actions on the frames it trained on; the same updates without the
+    teacher do not."""
+    agreement = {}
+    for weight in (0.0, 10.0):
+        ppo, batch = _ppo_and_batch("trainer.entropy_coef=0", "trainer.lr=0.003")
+        try:
+            ppo.kickstart = weight
+            for _ in range(60):
+                ppo.update(batch.clone())
+            agreement[weight] = _agreement(ppo, batch)
+        finally:
+            ppo.close()
+    assert agreement[10.0] >= 0.8, agreement
+    assert agreement[0.0] <= 0.6, agreement
+
+
+def test_the_weight_falls_per_iteration_and_is_logged(tmp_path):
+    run = tmp_path / "run"
+    train(compose([*TINY, "trainer.iterations=3", "trainer.kickstart_coef=2.0", "trainer.kickstart_iterations=2",
+                   "trainer.teacher=scripted",
+                   f"output_dir={run}"]), progress=False)
+    history = load_checkpoint(run)["trainer_state"]["history"]
+    assert [h["kickstart_weight"] for h in history] == [2.0, 1.0, 0.0]
+    assert all(math.isfinite(h["loss_kickstart"]) for h in history[:2])
+    assert "loss_kickstart" not in history[2]  # no teacher term once its weight is 0
+
+
+def test_the_continuous_teacher_term_is_finite_at_the_edge_of_the_box():
+    """The continuous controller's action is often clipped to the box's edge, where a TanhNormal's density is 0;
+    the term reads it just inside."""
+    torch.manual_seed(0)
+    cfg = compose([*TINY, "env=lightdark10d_continuous", "trainer.teacher=scripted"])
+    from escort_rl.models import LightDark10DContinuous
+
+    ppo = PPO(cfg, LightDark10DContinuous())
+    env = make_env(cfg, 4, seed=3)
+    try:
+        with torch.no_grad():
+            batch = env.rollout(12, ppo.policy, break_when_any_done=False)
+        ppo.kickstart = 1.0
+        ppo.estimate_advantages(batch)
+        ppo.teacher(batch)
+        frames = batch.reshape(-1)
+        high = ppo.model.action_high
+        assert bool((frames[TEACHER_ACTION].abs() >= high).any())  # some actions on the edge
+        total = ppo.total_loss(frames, ppo.loss_terms(frames))
+        assert math.isfinite(float(total))
+    finally:
+        env.close()
+        ppo.close()
+
+
+def test_a_teacher_without_a_controller_is_refused():
+    with pytest.raises(ConfigError, match="trainer.teacher: env 'kidnapped20d' has no scripted controller"):
+        PPO(compose([*TINY, "env=kidnapped20d", "trainer.teacher=scripted"]), KidnappedRobot20D())
+
+
+@pytest.mark.parametrize("overrides, teaches", [
+    ([], True),  # Light-Dark's group marks its controller a teacher
+    (["trainer.teacher=none"], False),
+    (["trainer.kickstart_coef=0"], False),
+    (["env.scripted_teacher=false"], False),
+    (["env=kidnapped20d"], False),  # no controller, and its group marks none
+])
+def test_auto_kickstarts_where_the_env_group_marks_a_teacher(overrides, teaches):
+    cfg = compose([*TINY, *overrides])
+    model = KidnappedRobot20D() if "env=kidnapped20d" in overrides else LightDark10D()
+    assert (kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer)) is not None) is teaches
+
+
+def test_recurrent_ppo_refuses_a_teacher():
+    from escort_rl.trainers.recurrent_ppo import validate_recurrent_ppo_config
+
+    cfg = compose(["trainer=recurrent_ppo", "trainer.teacher=scripted"])
+    with pytest.raises(ConfigError, match="trainer.teacher: trainer=recurrent_ppo"):
+        validate_recurrent_ppo_config(cfg)
