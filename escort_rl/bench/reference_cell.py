@@ -32,14 +32,18 @@ class ReferenceCell(Cell):
     base_seed: int = 0
     sample: int = SAMPLE
     folder: str = ""
+    replicate: int = 0
+    """``r > 0``: an independent reference on the same trajectories (:func:`reference_posterior`'s ``replicate``)."""
 
     def key(self) -> str:
         return (f"reference/{self.domain}/N{self.particles}-M{self.sample}-T{self.steps}-"
-                f"seeds{self.seeds[0]}-{self.seeds[-1]}")
+                f"seeds{self.seeds[0]}-{self.seeds[-1]}" + (f"-r{self.replicate}" if self.replicate else ""))
 
     def spec(self) -> dict:
         spec = super().spec()
         spec.pop("folder")
+        if not self.replicate:  # the first reference keeps the spec (and saved file) it had before replicates
+            spec.pop("replicate")
         return spec
 
     def model(self):
@@ -50,7 +54,8 @@ class ReferenceCell(Cell):
 
     def posterior(self, model, traj: dict, seeds: list[int]) -> dict:
         """The reference's tensors (:func:`reference_posterior`; a subclass may compute another)."""
-        return reference_posterior(model, traj, seeds, self.particles, self.base_seed, self.sample, name=self.domain)
+        return reference_posterior(model, traj, seeds, self.particles, self.base_seed, self.sample, name=self.domain,
+                                   replicate=self.replicate)
 
     def run(self) -> dict:
         from escort_rl.bench.trajectories import generate_trajectories

@@ -225,7 +225,8 @@ def _stack(steps: list[dict]) -> dict:
 
 
 def reference_posterior(model, traj: dict, seeds: list[int], particles: int, base_seed: int = 0,
-                        sample: int = SAMPLE, chunk_rows: int = CHUNK_ROWS, name: str = "") -> dict:
+                        sample: int = SAMPLE, chunk_rows: int = CHUNK_ROWS, name: str = "",
+                        replicate: int = 0) -> dict:
     """The reference of ``seeds`` on the shared trajectories ``traj`` (see the module docstring).
 
     Returns per part ``mean`` ``[S, T+1, dp]``, ``cov`` ``[S, T+1, dp, dp]``, ``sample``
@@ -235,7 +236,9 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
     repeated for each). Chunks of seeds (at most ``chunk_rows // particles`` each) filter one
     after another, each with its own generators seeded by its first seed. ``name`` (the domain's)
     seeds the directions of the sliced W1. A chunk of at least :data:`COMPILE_ROWS` rows runs the
-    model compiled.
+    model compiled. ``replicate = r > 0`` draws an independent reference (its prior draw, its filter's and
+    its subsample's random streams are the ``r``-th), on the same trajectories and directions: the distance
+    between two replicates measures the reference's own error.
     """
 
     parts = state_parts(model)
@@ -247,9 +250,10 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
     for lo in range(0, len(seeds), per_chunk):
         block = list(seeds[lo:lo + per_chunk])
         rows = slice(lo, lo + len(block))
-        belief, _ = initial_beliefs(filt, model, block, particles, base_seed, kind="reference-belief")
-        g = torch.Generator().manual_seed(derived_seed("reference-filter", base_seed, block[0]))
-        gs = torch.Generator().manual_seed(derived_seed("reference-sample", base_seed, block[0]))
+        tag = f"/{int(replicate)}" if replicate else ""
+        belief, _ = initial_beliefs(filt, model, block, particles, base_seed, kind=f"reference-belief{tag}")
+        g = torch.Generator().manual_seed(derived_seed(f"reference-filter{tag}", base_seed, block[0]))
+        gs = torch.Generator().manual_seed(derived_seed(f"reference-sample{tag}", base_seed, block[0]))
         steps = [step_summary(belief.particles, belief.log_weights, parts, sample, gs)]
         before = []  # the ESS fraction of each update's weights before resampling, mean over the chunk
         for t in range(traj["actions"].shape[1]):

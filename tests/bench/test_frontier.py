@@ -55,6 +55,31 @@ def test_a_degenerate_reference_gives_no_advice():
     assert advice(result).startswith("No advice: the reference (an SIR filter) kept a median ESS of 1 particles")
 
 
+def test_the_reference_error_is_zero_against_itself_and_positive_between_independent_runs():
+    from escort_rl.bench.frontier.run import reference_error
+    from escort_rl.bench.trajectories import generate_trajectories
+    from escort_rl.metrics.reference import Reference, reference_posterior
+    from escort_rl.models import LightDark10D
+
+    model = LightDark10D()
+    traj = generate_trajectories(model, 3, [0, 1], 0)
+    first, again, second = (Reference(reference_posterior(model, traj, [0, 1], 400, replicate=r, name="ld"))
+                            for r in (0, 0, 1))
+    same, other = reference_error(first, again, 3, "position"), reference_error(first, second, 3, "position")
+    assert same["mean"][0] == 0 and same["w1"][0] == 0  # the same draws: no distance
+    assert other["mean"][0] > 0 and other["w1"][0] > 0
+
+
+def test_the_advice_names_the_rows_the_reference_cannot_rank_below_its_pick():
+    from escort_rl.bench.frontier.report import advice
+
+    row = {"method": "sir", "base": "sir", "particles": 100, "num_steps": 0, "settings": []}
+    result = {"model": "env:linear_gaussian", "model_args": [], "compile": False, "metric": "w1", "rows": [
+        {**row, "error": 0.1}], "budgets": [{"ms": 10.0, "best": "sir N=100", "error": 0.1,
+                                             "not_separated": ["enkf N=100"]}]}
+    assert "The reference cannot rank it above enkf N=100 (within its own error of it)." in advice(result)
+
+
 def test_a_variant_is_a_row_of_its_own_and_leaves_the_filters_cells_alone(tmp_path, capsys):
     from escort_rl.bench.frontier.cells import FrontierCell, parse_variant
 
@@ -99,7 +124,11 @@ def test_bench_frontier_on_a_users_own_model_class(tmp_path, monkeypatch, capsys
     assert main(argv) == 0
     result = json.loads((out / "frontier.json").read_text())
     assert result["reference"] == "SIR with 500 particles" and result["model_name"] == "Drift"
-    assert len(result["rows"]) == 3 and list((out / "reference").rglob("*.pt"))
+    assert len(result["rows"]) == 3 and len(list((out / "reference").rglob("*.pt"))) == 2  # two independent runs
+    error = result["reference_error"]  # the distance between them: the reference's own error
+    assert set(error) == {"w1", "mean", "cov", "mmd2"} and error["w1"][0] > 0 and math.isfinite(error["w1"][1])
+    assert all("not_separated" in b for b in result["budgets"])
+    assert "The reference's own error, measured" in (out / "frontier.md").read_text()
     capsys.readouterr()
     assert main(["bench", "frontier", "--model", "my_models:Nope", "--quick", "--output", str(out)]) == 2
     assert "--model: cannot import my_models:Nope" in capsys.readouterr().err

@@ -52,13 +52,29 @@ def advice(result: dict, budget_ms: float = 10.0) -> str:
         best = fits[-1]
         row = next((r for r in rows if label(r) == best["best"]), None)
         command = "" if row is None else f" Train on it: `{train_command(result, row)}`"
+        tied = best.get("not_separated") or []
+        caveat = (f" The reference cannot rank it above {', '.join(tied)} (within its own error of it)."
+                  if tied else "")
         return (f"At {budget_ms:g} ms per update, use {best['best']} ({METRIC_NAMES[result['metric']]} "
-                f"{best['error']:.3g} to the reference).{command}")
+                f"{best['error']:.3g} to the reference).{caveat}{command}")
     if not rows:
         return "No filter kept a finite belief."
     cheapest = min(rows, key=lambda r: r["ms_per_update"])
     return (f"No filter fits {budget_ms:g} ms per update here; the cheapest is {label(cheapest)} at "
             f"{cheapest['ms_per_update']:.3g} ms: `{train_command(result, cheapest)}`.")
+
+
+def reference_error_lines(result: dict) -> list[str]:
+    """The reference's own error (the distance between two independent SIR references of the same
+    posterior), per metric, and what it means for the ranking; empty for an exact reference."""
+    error = result.get("reference_error")
+    if not error:
+        return []
+    cells = ", ".join(f"{METRIC_NAMES[m]} {format_mean_se(v, 4)}" for m, v in error.items())
+    return [f"The reference's own error, measured: two independent runs of it sit at {cells} from each other "
+            "(averaged over steps 1..T, mean ± s.e. over seeds). Two rows whose distances to it differ by less "
+            "than that, plus twice the s.e. of the difference, are not ranked: the table lists them as not "
+            "separated.", ""]
 
 
 def paired_lines(result: dict, a: str = "escort", b: str = "svgd") -> list[str]:
@@ -98,13 +114,16 @@ def frontier_markdown(result: dict) -> str:
            + (" **Below 1% of its particles: the reference is a few points, and distances to it are not a "
               "posterior's.**" if result['reference_ess']['fraction'] < 0.01 else ""), ""]
           if result.get("reference_ess") else []),
+        *reference_error_lines(result),
         "**" + advice(result) + "**", "",
         "## Closest filter at each time budget", "",
-        f"| budget (ms per update) | filter | {METRIC_NAMES[metric]} |", "| --- | --- | --- |",
+        f"| budget (ms per update) | filter | {METRIC_NAMES[metric]} | not separated from it by the reference |",
+        "| --- | --- | --- | --- |",
     ]
     for b in result["budgets"]:
         lines.append(f"| {b['ms']:g} | {b['best'] or '— (none fits)'} | "
-                     f"{'—' if b['error'] is None else format(b['error'], '.4g')} |")
+                     f"{'—' if b['error'] is None else format(b['error'], '.4g')} | "
+                     f"{', '.join(b.get('not_separated') or []) or '—'} |")
     lines += ["", f"Pareto front ({METRIC_NAMES[metric]} against time): " + ", ".join(result["front"]) + ".", "",
               *[f"On {METRIC_NAMES[m]} instead: " + ", ".join(f) + "." for m, f in result.get("fronts", {}).items()
                 if m != metric], *paired_lines(result), "",

@@ -4,7 +4,10 @@ model has no exact posterior, then one cell per (filter, N, K), on any backend o
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
+
+import torch
 
 from escort_rl.bench.core.runner import CellStore, InProcessBackend, run_cells
 from escort_rl.bench.frontier.cells import (
@@ -89,7 +92,7 @@ def run_frontier(spec: FrontierSpec, backend=None, progress=None) -> dict:
     store = CellStore(spec.output / "cells") if spec.output is not None else None
     backend = backend or InProcessBackend()
     try:
-        reference, folder, reference_kind, reference_ess = _reference(spec, built, backend, store)
+        reference, folder, reference_kind, reference_ess, ref_error = _reference(spec, built, backend, store)
         cells = frontier_cells(spec, reference, folder)
         on_result = (lambda c, r: progress(_row(c, r, spec.metric, part))) if progress else None
         results = run_cells(cells, backend, store, desc="frontier cells", on_result=on_result)
@@ -101,38 +104,91 @@ def run_frontier(spec: FrontierSpec, backend=None, progress=None) -> dict:
     fronts = {m: [p[0] for p in pareto_front([(label(r), r["ms_per_update"], _error(r, part, m)) for r in rows])]
               for m in METRICS}
     best = best_at_budgets(points, BUDGETS_MS)
+    floor = ref_error[spec.metric][0] if ref_error else 0.0
     return {"model": spec.model, "model_args": list(spec.model_args), "model_name": type(built).__name__,
             "state_dim": built.state_dim, "obs_dim": built.obs_dim, "reference": reference_kind, "part": part,
-            "reference_ess": reference_ess,
+            "reference_ess": reference_ess, "reference_error": ref_error,
             "variants": {k: [m, list(a)] for k, m, a in spec.variants}, "metric": spec.metric,
             "seeds": spec.seeds, "steps": spec.steps, "compile": spec.compile, "threads": spec.threads,
             "rows": rows, "front": [p[0] for p in front], "fronts": fronts,
-            "budgets": [{"ms": b, "best": None if p is None else p[0], "error": None if p is None else p[2]}
+            "budgets": [{"ms": b, "best": None if p is None else p[0], "error": None if p is None else p[2],
+                         "not_separated": [] if p is None else not_separated(rows, p[0], b, floor, part, spec.metric)}
                         for b, p in zip(BUDGETS_MS, best)]}
 
 
-def _reference(spec: FrontierSpec, built, backend, store) -> tuple[tuple, str, str, dict | None]:
+def not_separated(rows: list[dict], best: str, budget_ms: float, floor: float, part: str, metric: str) -> list[str]:
+    """The rows within ``budget_ms`` that the reference cannot rank below ``best``: a row whose distance
+    exceeds the best's by at most the reference's own error ``floor`` plus twice the s.e. of the difference
+    (seeds unpaired), ``|e_r − e_b| ≤ floor + 2·√(se_r² + se_b²)``.
+
+    Example:
+        >>> row = lambda name, ms, e, se: {"method": name, "particles": 10, "num_steps": 0, "ms_per_update": ms,
+        ...                                "failed": None, "summary": {"x/w1": (e, se)}}
+        >>> rows = [row("sir", 1.0, 0.10, 0.01), row("enkf", 1.0, 0.12, 0.01), row("svgd", 1.0, 0.30, 0.01)]
+        >>> not_separated(rows, "sir N=10", 5.0, floor=0.01, part="x", metric="w1")
+        ['enkf N=10']
+    """
+    by_label = {label(r): r for r in rows if r.get("failed") is None}
+    if best not in by_label:
+        return []
+    e_best, se_best = by_label[best]["summary"][f"{part}/{metric}"][:2]
+    out = []
+    for name, r in by_label.items():
+        e, se = r["summary"][f"{part}/{metric}"][:2]
+        if name != best and r["ms_per_update"] <= budget_ms and math.isfinite(e) \
+                and e - e_best <= floor + 2.0 * math.hypot(se, se_best):
+            out.append(name)
+    return out
+
+
+def _reference_cell(spec: FrontierSpec, folder: str, gaussian_sum: bool, replicate: int = 0) -> FrontierReferenceCell:
+    return FrontierReferenceCell(domain=model_label(spec.model, spec.model_args),
+                                 particles=0 if gaussian_sum else int(spec.reference_particles),
+                                 steps=spec.steps, seeds=tuple(range(spec.seeds)), base_seed=spec.base_seed,
+                                 folder=folder, model_spec=spec.model, model_args=spec.model_args,
+                                 threads=spec.threads, exact=gaussian_sum, replicate=replicate)
+
+
+def _computed(cell: FrontierReferenceCell, backend, store) -> dict:
+    """``cell``'s saved result, or its result computed now (also where the saved file is missing or damaged)."""
+    ref = store.load(cell) if store is not None else None
+    if ref is None or not cell.valid(ref):
+        [ref] = run_cells([cell], backend, None, desc="frontier reference")
+        if store is not None:
+            store.save(cell, ref)
+    return ref
+
+
+def reference_error(first: Reference, second: Reference, steps: int, part: str) -> dict:
+    """The distance between two independent references of the same posterior, per metric: averaged over
+    steps 1..T per seed, then ``[mean, s.e.]`` over seeds. Two rows whose distances to the reference differ
+    by less than this cannot be told apart by it."""
+    per_step = [first.compare_reference(second, t) for t in range(1, steps + 1)]
+    return {m: list(mean_se(torch.stack([d[f"{part}/{m}"] for d in per_step], 1).mean(1).tolist()))
+            for m in METRICS}
+
+
+def _reference(spec: FrontierSpec, built, backend, store) -> tuple[tuple, str, str, dict | None, dict | None]:
     """The reference the cells read, where the model has no exact posterior (a SIR one, or the exact
-    Gaussian sum of a model that has one): ``(reference, folder, what it is, its ESS or None)``."""
+    Gaussian sum of a model that has one): ``(reference, folder, what it is, its ESS or None, its own error or
+    None)``. A SIR reference is computed twice, independently, and its error is the distance between the two
+    (:func:`reference_error`); the cells read the first."""
+    from escort_rl.metrics.reference import state_parts
+
     gaussian_sum = callable(getattr(built, "exact_posterior_init", None))
     if has_exact_posterior(built) and not gaussian_sum:
-        return (), "", "exact", None
+        return (), "", "exact", None, None
     folder = str((spec.output if spec.output is not None else Path(".")) / "reference")
-    ref_cell = FrontierReferenceCell(domain=model_label(spec.model, spec.model_args),
-                                     particles=0 if gaussian_sum else int(spec.reference_particles),
-                                     steps=spec.steps, seeds=tuple(range(spec.seeds)), base_seed=spec.base_seed,
-                                     folder=folder, model_spec=spec.model, model_args=spec.model_args,
-                                     threads=spec.threads, exact=gaussian_sum)
-    ref = store.load(ref_cell) if store is not None else None
-    if ref is None or not ref_cell.valid(ref):  # a missing or damaged file is computed again
-        [ref] = run_cells([ref_cell], backend, None, desc="frontier reference")
-        if store is not None:
-            store.save(ref_cell, ref)
+    ref = _computed(_reference_cell(spec, folder, gaussian_sum), backend, store)
     reference = (ref["file"], ref["hash"])
     if gaussian_sum:
         dropped = Reference.load(Path(folder) / ref["file"], ref["hash"]).data["dropped_mass"]
         kind = (f"exact (a Gaussian sum of up to {getattr(built, 'max_components', '?')} components; "
                 f"mass pruned per update: max {float(dropped.max()):.2g}, mean {float(dropped[:, 1:].mean()):.2g})")
-        return reference, folder, kind, None
+        return reference, folder, kind, None, None
     ess = reference_ess_summary(Path(folder) / ref["file"], ref["hash"], spec.reference_particles)
-    return reference, folder, f"SIR with {spec.reference_particles} particles", ess
+    twin = _computed(_reference_cell(spec, folder, gaussian_sum, replicate=1), backend, store)
+    error = reference_error(Reference.load(Path(folder) / ref["file"], ref["hash"]),
+                            Reference.load(Path(folder) / twin["file"], twin["hash"]), spec.steps,
+                            next(iter(state_parts(built))))
+    return reference, folder, f"SIR with {spec.reference_particles} particles", ess, error
