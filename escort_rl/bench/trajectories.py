@@ -3,7 +3,8 @@ filtering them.
 
 For each domain and seed one trajectory is drawn with a seeded generator: the true start state from
 ``model.initial_state``, actions from a fixed behaviour policy (uniform random actions, seeded per
-seed), states from ``model.transition`` and observations from ``model.observe``. Episodes are not cut
+seed, or the model's own ``behaviour_action`` where it has one), states from ``model.transition`` and
+observations from ``model.observe``. Episodes are not cut
 at terminal states: every trajectory has the same horizon. Every method then filters the *same*
 action/observation sequence from the *same* prior particles: seed ``s``'s prior is drawn by
 ``filt.init`` with a generator of its own, and the per-seed priors are stacked into one batch
@@ -53,8 +54,17 @@ def position_error_label(model) -> str:
     return f"‖E_b[s[{dims}]] − s_true[{dims}]‖₂"
 
 
+def behaviour_policy(model) -> str:
+    """What the shared trajectories' actions are on ``model``: its ``behaviour_description`` where it has its
+    own ``behaviour_action``, else :data:`BEHAVIOUR_POLICY`."""
+    if callable(getattr(model, "behaviour_action", None)):
+        return str(getattr(model, "behaviour_description", "the model's own behaviour_action"))
+    return BEHAVIOUR_POLICY
+
+
 def generate_trajectory(model, steps: int, seed: int, base_seed: int = 0) -> dict:
-    """One seeded trajectory under the behaviour policy (uniform random actions).
+    """One seeded trajectory under the behaviour policy (:func:`behaviour_policy`: uniform random actions, or
+    the model's ``behaviour_action(s, generator)``).
 
     Returns ``states`` ``[T+1, d]`` (index 0 is the start), ``actions`` ``[T]`` (int64) and
     ``observations`` ``[T, obs_dim]`` (``observations[t]`` is seen after ``actions[t]``).
@@ -62,8 +72,9 @@ def generate_trajectory(model, steps: int, seed: int, base_seed: int = 0) -> dic
     g = torch.Generator().manual_seed(derived_seed("trajectory", base_seed, seed))
     s = model.initial_state((), g)
     states, actions, observations = [s], [], []
+    own = getattr(model, "behaviour_action", None)
     for _ in range(steps):
-        a = random_action(model, (), g)
+        a = own(s, g) if callable(own) else random_action(model, (), g)
         s = model.transition(s, a, g)
         o = model.observe(s, a, g)
         states.append(s)

@@ -65,8 +65,13 @@ COMPARE_ROWS = 40_000_000
 
 
 def state_parts(model) -> dict[str, tuple[int, ...]]:
-    """``{"position": dims, "velocity": dims}`` of ``model`` (a part with no dims is left out)."""
+    """The model's own ``state_parts`` where it declares them (e.g. the hidden goal's ``goal`` before its
+    ``position``), else ``{"position": dims, "velocity": dims}`` (a part with no dims is left out)."""
     from escort_rl.models import position_dims, velocity_dims
+
+    declared = getattr(model, "state_parts", None)
+    if isinstance(declared, dict) and declared:
+        return {str(k): tuple(int(i) for i in v) for k, v in declared.items()}
 
     parts = {"position": position_dims(model), "velocity": velocity_dims(model)}
     return {k: v for k, v in parts.items() if v}

@@ -118,6 +118,25 @@ class HiddenGoal(AdditiveGaussianTransition, HasParams):
         for a in range(2 * d):
             self._pushes[a, a // 2] = p.step if a % 2 == 0 else -p.step
 
+    # ------------------------------------------------------------------ for the benchmarks
+    @property
+    def state_parts(self) -> dict[str, tuple[int, ...]]:
+        """The parts the benchmarks compare beliefs on: the goal first (the multi-modal part), then the position."""
+        return {"goal": self.goal_dims, "position": self.position_dims}
+
+    behaviour_description = ("toward the beacon: each step, with probability 1/2, the push along the beacon's axis "
+                             "toward it, else a uniform random action; the goal's modes fade as the agent nears it")
+
+    def behaviour_action(self, s: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """The benchmarks' behaviour policy (:attr:`behaviour_description`) in state ``s`` ``[2d]`` -> int64
+        ``[]``: the walk toward the beacon, slowed by random steps, so that a trajectory's posterior over the
+        goal goes from the prior's ``M`` modes to one over some ``2β / step`` steps."""
+        d = self.dim
+        toward = 2 * (d - 1) + int(bool(s[d - 1] > self.beacon[d - 1]))  # push the last axis toward the beacon
+        coin, draw = torch.rand(2, generator=generator, device=self.device)
+        return torch.tensor(toward if coin < 0.5 else min(int(draw * self.n_actions), self.n_actions - 1),
+                            dtype=torch.int64, device=self.device)
+
     # ------------------------------------------------------------------ the beacon
     def signal(self, x: Tensor) -> Tensor:
         """``ℓ(x) = exp(−‖x − b‖² / (2 w²))`` in ``(0, 1]``: how much of the goal the sensor sees at

@@ -54,7 +54,11 @@ class POMDPModel(Protocol):
     Optional, used by evaluation and benchmarks (see :func:`position_error`): ``position_dims``
     (the state indices of the position), ``velocity_dims`` (of the velocity, see
     :func:`velocity_dims`), ``position_error(estimate, truth)`` (a domain's own error,
-    e.g. the mean over several targets), ``distance_to_goal(s)``.
+    e.g. the mean over several targets), ``distance_to_goal(s)``; ``state_parts``, a dict of named groups of
+    state indices on which the benchmarks compare beliefs with a reference (default: the position and the
+    velocity; the first part is the frontier's), and ``behaviour_action(s [d], generator)`` -> an action, the
+    behaviour policy of the benchmarks' shared trajectories (default: uniform random actions), with
+    ``behaviour_description``, a sentence saying what it does.
 
     Optional, used by policies (``actor.head=per_coordinate``): ``action_coordinates``, ``G`` tuples of
     ``k`` state indices, the coordinates that each group of actions acts on; discrete actions come in

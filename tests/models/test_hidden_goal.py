@@ -136,3 +136,21 @@ def test_a_belief_policy_passes_the_belief_to_the_controller():
     env = TransformedEnv(POMDPEnv(m, batch_size=(4,), seed=0), BeliefTransform(m, SIRFilter(), 32))
     td = env.rollout(5, ScriptedBeliefController(m), break_when_any_done=False)
     assert td["action"].shape == (4, 5) and td["action"].dtype == torch.int64
+
+
+def test_the_benchmarks_compare_the_goal_first_and_walk_toward_the_beacon():
+    """The shared trajectories of the benchmarks walk toward the beacon (half the steps push the beacon's axis
+    toward it), so the beacon's signal grows along them, and the reference compares the goal part first."""
+    from escort_rl.bench.trajectories import behaviour_policy, generate_trajectories
+    from escort_rl.metrics.reference import state_parts
+
+    model = HiddenGoal(dim=4, modes=4)
+    assert list(state_parts(model)) == ["goal", "position"] and state_parts(model)["goal"] == (4, 5, 6, 7)
+    assert behaviour_policy(model).startswith("toward the beacon")
+    traj = generate_trajectories(model, 12, list(range(8)), 0)
+    signal = model.signal(traj["states"][..., :4])  # [8, 13]
+    assert float(signal[:, 0].max()) < 0.1 and float(signal[:, 8:].mean()) > 0.3
+    actions = traj["actions"]
+    assert ((actions >= 0) & (actions < model.n_actions)).all()
+    toward = (actions == 2 * 3 + 1).double().mean()  # the push down the last axis, toward b = −β e_3
+    assert 0.4 < float(toward) < 0.85  # about 1/2 + 1/16

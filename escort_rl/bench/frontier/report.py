@@ -104,7 +104,8 @@ def frontier_markdown(result: dict) -> str:
         f"# Accuracy against time per update: {result['model_name']} ({result['model']}"
         + (" " + " ".join(result["model_args"]) if result["model_args"] else "") + ")", "",
         f"d = {result['state_dim']}, obs_dim = {result['obs_dim']}; {result['seeds']} seeds × {result['steps']} steps "
-        f"of shared trajectories (uniform random actions); reference: {result['reference']}. Distances to the "
+        f"of shared trajectories ({result.get('behaviour_policy', 'uniform random actions')}); reference: "
+        f"{result['reference']}. Distances to the "
         f"reference on the state part `{part}`, averaged over steps 1..T, mean ± s.e. over seeds. Time: ms per "
         f"update of one belief (the {result['seeds']} seeds' beliefs updated as one batch, the first update "
         f"excluded), {result['threads']} torch thread(s)"

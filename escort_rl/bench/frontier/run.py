@@ -19,6 +19,7 @@ from escort_rl.bench.frontier.cells import (
 )
 from escort_rl.bench.frontier.pareto import best_at_budgets, pareto_front
 from escort_rl.bench.frontier.spec import METRICS, FrontierSpec
+from escort_rl.bench.trajectories import behaviour_policy
 from escort_rl.metrics.reference import Reference, has_exact_posterior
 from escort_rl.reporting.stats import mean_se
 
@@ -107,7 +108,7 @@ def run_frontier(spec: FrontierSpec, backend=None, progress=None) -> dict:
     floor = ref_error[spec.metric][0] if ref_error else 0.0
     return {"model": spec.model, "model_args": list(spec.model_args), "model_name": type(built).__name__,
             "state_dim": built.state_dim, "obs_dim": built.obs_dim, "reference": reference_kind, "part": part,
-            "reference_ess": reference_ess, "reference_error": ref_error,
+            "reference_ess": reference_ess, "reference_error": ref_error, "behaviour_policy": behaviour_policy(built),
             "variants": {k: [m, list(a)] for k, m, a in spec.variants}, "metric": spec.metric,
             "seeds": spec.seeds, "steps": spec.steps, "compile": spec.compile, "threads": spec.threads,
             "rows": rows, "front": [p[0] for p in front], "fronts": fronts,
