@@ -48,13 +48,26 @@ from escort_rl.trainers.params import PPOParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
 
 
+class ClipPPOLossKeepingDist(ClipPPOLoss):
+    """TorchRL's ``ClipPPOLoss`` that keeps the policy's distribution from its last forward pass
+    (``last_dist``), so that another term on the same minibatch (the kickstart's cross-entropy to a teacher)
+    reads it instead of running the actor a second time."""
+
+    last_dist = None
+
+    def _log_weight(self, tensordict, adv_shape):
+        out = super()._log_weight(tensordict, adv_shape)
+        self.last_dist = out[1]
+        return out
+
+
 def clip_ppo_loss(policy, value, params: PPOParams) -> ClipPPOLoss:
     """TorchRL's ``ClipPPOLoss`` with ``params``' clip, coefficients and importance cap
     (``max_importance_ratio``), a smooth-L1 critic loss and normalised advantages, reading the
     log-probability the policy wrote (``action_log_prob``). The caller sets its value estimator."""
     p = params
     cap = p.max_importance_ratio
-    loss = ClipPPOLoss(policy, value, clip_epsilon=p.clip_epsilon, entropy_coeff=p.entropy_coef,
+    loss = ClipPPOLossKeepingDist(policy, value, clip_epsilon=p.clip_epsilon, entropy_coeff=p.entropy_coef,
                        critic_coeff=p.critic_coef, loss_critic_type="smooth_l1",
                        normalize_advantage=True, max_importance_ratio=None if cap is None else float(cap))
     loss.set_keys(sample_log_prob="action_log_prob")
@@ -297,7 +310,10 @@ class PPO(PPOBase):
             low, high = (b.to(teacher_action) for b in check_action_box(self.model))
             margin = 1e-3 * (high - low)
             teacher_action = torch.minimum(torch.maximum(teacher_action, low + margin), high - margin)
-        imitation = -self.policy.get_dist(minibatch).log_prob(teacher_action).mean()
+        dist = self.loss.last_dist  # the distribution of the loss's own forward on this minibatch
+        if dist is None or tuple(dist.batch_shape)[: teacher_action.dim()] != tuple(minibatch.batch_size):
+            dist = self.policy.get_dist(minibatch)
+        imitation = -dist.log_prob(teacher_action).mean()
         out["loss_kickstart"] = imitation.detach()
         return total + self.kickstart * imitation
 
