@@ -28,7 +28,8 @@ def register(subparsers) -> None:
                    help="the scripted controller's velocity gains searched (default: "
                    f"{' '.join(f'{g:g}' for g in full.gains)})")
     p.add_argument("--rows", choices=sorted(ROW_SETS), default="headline",
-                   help="the trained rows: headline (the default job and PPO on SIR beliefs), ablation (the "
+                   help="the trained rows: headline (the default job and PPO on SIR beliefs), default (the default job "
+                   "alone), ablation (the "
                    "learner's changes one at a time), starts (the default job with half its training starts "
                    "in the evaluation's box), half (half the frames on ESCORT beliefs), frames (PPO on SIR beliefs "
                    "for 1.44M frames), coordinates (the policy's outputs per action group), own_filter (all 16 "
