@@ -118,7 +118,8 @@ starts and the per-coordinate head PPO uses, 16 full episodes (8,000 frames) per
 steps: 2.05M frames, four times the default job's. A pilot at 64 steps (512,000 frames, one seed) reached the goal
 in 19% of the evaluation's episodes, still climbing."""
 
-ROW_SETS = {"headline": TRAINED_ROWS, "default": TRAINED_ROWS[:1], "ablation": ABLATION_ROWS, "starts": START_ROWS, "half": HALF_ROWS,
+ROW_SETS = {"headline": TRAINED_ROWS, "default": TRAINED_ROWS[:1], "ablation": ABLATION_ROWS, "starts": START_ROWS,
+            "half": HALF_ROWS,
             "frames": FRAMES_ROWS, "coordinates": COORDINATE_ROWS, "own_filter": OWN_FILTER_ROWS,
             "horizon": HORIZON_ROWS, "teacher": TEACHER_ROWS,
             "reinforce": REINFORCE_ROWS}
