@@ -78,8 +78,8 @@ class HiddenGoalCell(ConfigCell):
 
     def run(self) -> dict:
         from escort_rl.planners.scripted import HeaviestModeController, ScriptedBeliefController
-        from escort_rl.trainers.builders import build_model
-        from escort_rl.trainers.evaluate import belief_keys, first_episode_metrics, run_episodes
+        from escort_rl.trainers.builders import belief_keys, build_model
+        from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes
 
         cfg = self.config()
         model = build_model(cfg.env, cfg.device)

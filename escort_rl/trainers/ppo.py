@@ -111,8 +111,9 @@ class PPOBase(CollectorAlgorithm):
     recurrent PPO.
 
     A subclass builds its networks, then calls ``super().__init__(cfg, model, policy, loss,
-    repeat)`` with ``policy`` (what the collector runs; it writes ``action`` and
-    ``action_log_prob``) and ``loss`` (a ``ClipPPOLoss`` with GAE as its value estimator). This sets
+    repeat, teacher)`` with ``policy`` (what the collector runs; it writes ``action`` and
+    ``action_log_prob``), ``teacher`` (the kickstart teacher of :func:`kickstart_teacher`, or ``None``)
+    and ``loss`` (a ``ClipPPOLoss`` with GAE as its value estimator). This sets
     the optimiser (Adam over ``loss.parameters()``), the batch sizes and the collectors. The hooks:
 
     - :meth:`make_env_factory` ``(cfg, num_envs, seed)``: a picklable zero-argument factory of the
@@ -128,7 +129,7 @@ class PPOBase(CollectorAlgorithm):
     never past one episode), ``batches`` (PPO updates per iteration), ``frames_per_batch``
     (``num_envs × rollout_steps``), ``epochs`` (this iteration's, see :meth:`epochs_for`)."""
 
-    def __init__(self, cfg: DictConfig, model, policy, loss: ClipPPOLoss, repeat: int = 1) -> None:
+    def __init__(self, cfg: DictConfig, model, policy, loss: ClipPPOLoss, repeat: int = 1, teacher=None) -> None:
         super().__init__(cfg, model, lambda c: make_collector(
             c, lambda n, s: self.make_env_factory(c, n, s), self.policy, self.frames_per_batch,
             reset_at_each_iter=False))
@@ -140,6 +141,8 @@ class PPOBase(CollectorAlgorithm):
         self.rollout_steps = min(p.rollout_steps, decisions)  # never past one episode
         self.batches = -(-decisions // self.rollout_steps)  # PPO updates per iteration
         self.frames_per_batch = p.num_envs * self.rollout_steps
+        self.teacher = teacher  # the kickstart teacher (kickstart_teacher), or None
+        self.kickstart = 0.0  # this iteration's teacher weight
 
     def epochs_for(self, index: int) -> int:
         """The epochs of iteration ``index``'s updates: ``trainer.warm_start_epochs`` during the warm
@@ -154,6 +157,15 @@ class PPOBase(CollectorAlgorithm):
         lr = self.params.lr_at(update, int(self.params.iterations) * self.batches)
         for group in self.optimizer.param_groups:
             group["lr"] = lr
+
+    def plan_note(self) -> str:
+        if self.teacher is None:
+            return ""
+        p = self.params
+        span = p.kickstart_iterations or p.iterations
+        return (f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling to 0 by iteration "
+                f"{span + 1}" if span < p.iterations else
+                f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling linearly over the run")
 
     # ------------------------------------------------------------------ the hooks
     @abstractmethod
@@ -182,8 +194,22 @@ class PPOBase(CollectorAlgorithm):
         return self.loss(minibatch)
 
     def total_loss(self, minibatch, out):
-        """What one Adam step minimises."""
-        return out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+        """What one Adam step minimises: PPO's loss, plus the kickstart term ``λ_i · E[−log π_θ(a_teacher | b)]``
+        while ``λ_i > 0`` (logged as ``loss_kickstart``, unweighted)."""
+        total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+        if self.kickstart <= 0:
+            return total
+        teacher_action = minibatch[TEACHER_ACTION]
+        if is_continuous(self.model):  # inside the box: a TanhNormal's density at its edge is 0
+            low, high = (b.to(teacher_action) for b in check_action_box(self.model))
+            margin = 1e-3 * (high - low)
+            teacher_action = torch.minimum(torch.maximum(teacher_action, low + margin), high - margin)
+        dist = getattr(self.loss, "last_dist", None)  # the distribution of the loss's own forward on this minibatch
+        if dist is None or tuple(dist.batch_shape)[: teacher_action.dim()] != tuple(minibatch.batch_size):
+            dist = self.policy.get_dist(minibatch)
+        imitation = -dist.log_prob(teacher_action).mean()
+        out["loss_kickstart"] = imitation.detach()
+        return total + self.kickstart * imitation
 
     # ------------------------------------------------------------------ the shared update
     def update(self, batch) -> dict:
@@ -195,6 +221,9 @@ class PPOBase(CollectorAlgorithm):
         (a TanhNormal's log-probability of an action at the edge of its box can overflow). Raises
         ``FloatingPointError`` when no step of the update was finite."""
         self.estimate_advantages(batch)
+        if self.kickstart > 0:  # the teacher's action on each frame's whole belief, before any subsampling
+            with torch.no_grad():
+                self.teacher(batch)
         source = self.fill(batch)
         sums: dict[str, float] = {}
         steps = skipped = 0
@@ -224,6 +253,7 @@ class PPOBase(CollectorAlgorithm):
     def iteration(self, index: int, seed: int) -> dict:
         collector = self.collectors.for_iteration(index)
         self.epochs = self.epochs_for(index)
+        self.kickstart = self.params.kickstart_weight(index) if self.teacher is not None else 0.0
         collector.set_seed(seed)
         collector.reset()
         stats, seen, collect_s, frames = {}, [], 0.0, 0
@@ -242,8 +272,9 @@ class PPOBase(CollectorAlgorithm):
             if int(self.cfg.collector.workers) > 1:
                 self.collectors.update_policy_weights()
         episodes = episode_stats(torch.cat(seen, dim=1), self.model)
+        teacher = {"kickstart_weight": self.kickstart} if self.teacher is not None else {}
         return {"frames": frames, **episodes, **stats, "fps": frames / max(collect_s, 1e-9),
-                "lr": self.optimizer.param_groups[0]["lr"]}
+                "lr": self.optimizer.param_groups[0]["lr"], **teacher}
 
 
 class PPO(PPOBase):
@@ -257,22 +288,11 @@ class PPO(PPOBase):
         self.actor, policy = build_policy(cfg, model)  # the policy is what the collector runs
         self.critic, critic_keys = build_critic(cfg, model, params.critic_input)
         loss = make_ppo_loss(policy, self.critic, cfg, critic_keys)
-        super().__init__(cfg, model, policy, loss, repeat=params.action_repeat)
+        super().__init__(cfg, model, policy, loss, repeat=params.action_repeat,
+                         teacher=kickstart_teacher(cfg, model, params))
         self.minibatch = max(1, self.frames_per_batch // self.params.minibatches)
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(self.frames_per_batch),
                                    sampler=SamplerWithoutReplacement(), batch_size=self.minibatch)
-        self.teacher = kickstart_teacher(cfg, model, self.params)
-        self.kickstart = 0.0  # this iteration's teacher weight
-
-    def plan_note(self) -> str:
-        if self.teacher is None:
-            return ""
-        p = self.params
-        span = p.kickstart_iterations or p.iterations
-        return (f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling to 0 by iteration "
-                f"{span + 1}" if span < p.iterations else
-                f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling linearly over the run")
-
     @property
     def components(self) -> dict:
         return {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
@@ -281,16 +301,8 @@ class PPO(PPOBase):
         """The belief envs (:func:`escort_rl.trainers.builders.make_env`) with ``trainer.action_repeat``."""
         return env_factory(cfg, num_envs, seed=seed, action_repeat=self.repeat)
 
-    def iteration(self, index: int, seed: int) -> dict:
-        self.kickstart = self.params.kickstart_weight(index) if self.teacher is not None else 0.0
-        return {**super().iteration(index, seed), "kickstart_weight": self.kickstart}
-
     def fill(self, batch):
-        """The batch's frames (:meth:`subsample_particles`) in the replay buffer, with the teacher's action
-        on each frame's whole belief while the kickstart weight is above 0."""
-        if self.kickstart > 0:
-            with torch.no_grad():
-                self.teacher(batch)
+        """The batch's frames (:meth:`subsample_particles`) in the replay buffer."""
         self.buffer.empty()
         self.buffer.extend(self.subsample_particles(batch).reshape(-1))
         return self.buffer
@@ -298,24 +310,6 @@ class PPO(PPOBase):
     def minibatches(self, source):
         """One epoch's minibatches: ``minibatches`` shuffled draws of frames without replacement."""
         return (source.sample() for _ in range(self.params.minibatches))
-
-    def total_loss(self, minibatch, out):
-        """PPO's loss, plus the kickstart term ``λ_i · E[−log π_θ(a_teacher | b)]`` while ``λ_i > 0``
-        (logged as ``loss_kickstart``, unweighted)."""
-        total = super().total_loss(minibatch, out)
-        if self.kickstart <= 0:
-            return total
-        teacher_action = minibatch[TEACHER_ACTION]
-        if is_continuous(self.model):  # inside the box: a TanhNormal's density at its edge is 0
-            low, high = (b.to(teacher_action) for b in check_action_box(self.model))
-            margin = 1e-3 * (high - low)
-            teacher_action = torch.minimum(torch.maximum(teacher_action, low + margin), high - margin)
-        dist = self.loss.last_dist  # the distribution of the loss's own forward on this minibatch
-        if dist is None or tuple(dist.batch_shape)[: teacher_action.dim()] != tuple(minibatch.batch_size):
-            dist = self.policy.get_dist(minibatch)
-        imitation = -dist.log_prob(teacher_action).mean()
-        out["loss_kickstart"] = imitation.detach()
-        return total + self.kickstart * imitation
 
     def subsample_particles(self, batch):
         """The batch the epochs train on: with ``trainer.update_particles = M`` below the belief's
