@@ -167,6 +167,11 @@ class PPOParams(BeliefTrainerParams):
     kickstart_coef: float = param(1.0, ge=0)
     kickstart_iterations: Optional[int] = param(None, ge=1)
 
+    @property
+    def kickstart_span(self) -> int:
+        """``K``: the iterations over which the teacher's weight falls to 0 (``kickstart_iterations``, else all)."""
+        return int(self.kickstart_iterations or self.iterations)
+
     def kickstart_weight(self, index: int) -> float:
         """The teacher term's weight at iteration ``index`` (0-based), where the run has a teacher.
 
@@ -177,8 +182,7 @@ class PPOParams(BeliefTrainerParams):
             >>> PPOParams(iterations=2).kickstart_weight(1)
             0.5
         """
-        span = self.kickstart_iterations or self.iterations
-        return float(self.kickstart_coef) * max(0.0, 1.0 - index / span)
+        return float(self.kickstart_coef) * max(0.0, 1.0 - index / self.kickstart_span)
 
     def lr_at(self, update: int, updates: int) -> float:
         """Adam's rate at update ``update`` (0-based) of ``updates`` in the whole run.

@@ -162,7 +162,7 @@ class PPOBase(CollectorAlgorithm):
         if self.teacher is None:
             return ""
         p = self.params
-        span = p.kickstart_iterations or p.iterations
+        span = p.kickstart_span
         return (f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling to 0 by iteration "
                 f"{span + 1}" if span < p.iterations else
                 f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling linearly over the run")
@@ -293,6 +293,7 @@ class PPO(PPOBase):
         self.minibatch = max(1, self.frames_per_batch // self.params.minibatches)
         self.buffer = ReplayBuffer(storage=LazyTensorStorage(self.frames_per_batch),
                                    sampler=SamplerWithoutReplacement(), batch_size=self.minibatch)
+
     @property
     def components(self) -> dict:
         return {"actor": self.actor, "critic": self.critic, "optimizer": self.optimizer}
