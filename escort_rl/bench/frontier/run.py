@@ -93,7 +93,7 @@ def run_frontier(spec: FrontierSpec, backend=None, progress=None) -> dict:
     store = CellStore(spec.output / "cells") if spec.output is not None else None
     backend = backend or InProcessBackend()
     try:
-        reference, folder, reference_kind, reference_ess, ref_error = _reference(spec, built, backend, store)
+        reference, folder, reference_kind, reference_ess, ref_error = _reference(spec, built, part, backend, store)
         cells = frontier_cells(spec, reference, folder)
         on_result = (lambda c, r: progress(_row(c, r, spec.metric, part))) if progress else None
         results = run_cells(cells, backend, store, desc="frontier cells", on_result=on_result)
@@ -169,13 +169,12 @@ def reference_error(first: Reference, second: Reference, steps: int, part: str) 
             for m in METRICS}
 
 
-def _reference(spec: FrontierSpec, built, backend, store) -> tuple[tuple, str, str, dict | None, dict | None]:
+def _reference(spec: FrontierSpec, built, part: str, backend,
+               store) -> tuple[tuple, str, str, dict | None, dict | None]:
     """The reference the cells read, where the model has no exact posterior (a SIR one, or the exact
     Gaussian sum of a model that has one): ``(reference, folder, what it is, its ESS or None, its own error or
     None)``. A SIR reference is computed twice, independently, and its error is the distance between the two
-    (:func:`reference_error`); the cells read the first."""
-    from escort_rl.metrics.reference import state_parts
-
+    (:func:`reference_error`) on the front's state ``part``; the cells read the first."""
     gaussian_sum = callable(getattr(built, "exact_posterior_init", None))
     if has_exact_posterior(built) and not gaussian_sum:
         return (), "", "exact", None, None
@@ -190,6 +189,5 @@ def _reference(spec: FrontierSpec, built, backend, store) -> tuple[tuple, str, s
     ess = reference_ess_summary(Path(folder) / ref["file"], ref["hash"], spec.reference_particles)
     twin = _computed(_reference_cell(spec, folder, gaussian_sum, replicate=1), backend, store)
     error = reference_error(Reference.load(Path(folder) / ref["file"], ref["hash"]),
-                            Reference.load(Path(folder) / twin["file"], twin["hash"]), spec.steps,
-                            next(iter(state_parts(built))))
+                            Reference.load(Path(folder) / twin["file"], twin["hash"]), spec.steps, part)
     return reference, folder, f"SIR with {spec.reference_particles} particles", ess, error
