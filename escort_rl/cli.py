@@ -52,6 +52,7 @@ BENCHMARKS = (
     "escort_rl.bench.synthetic",
     "escort_rl.bench.domains",
     "escort_rl.bench.curves",
+    "escort_rl.bench.gradient_noise",
     "escort_rl.bench.calibration",
     "escort_rl.bench.decisions",
     "escort_rl.bench.hidden_goal",
