@@ -34,8 +34,8 @@ def register(subparsers) -> None:
                    "in the evaluation's box), half (half the frames on ESCORT beliefs), frames (PPO on SIR beliefs "
                    "for 1.44M frames), coordinates (the policy's outputs per action group), own_filter (all 16 "
                    "iterations on ESCORT beliefs), horizon (a longer discount, a smaller entropy bonus), teacher "
-                   "(the default job's teacher for the warm start only, or none) or reinforce (REINFORCE, tuned, "
-                   "at 4x the frames)")
+                   "(the default job's teacher for the warm start only, or none), reinforce (REINFORCE, tuned, "
+                   "at 4x the frames) or mtt (PPO on SIR beliefs as first run on env=mtt20d)")
     p.add_argument("--curve-every", type=int, default=None, metavar="K",
                    help="also evaluate every trained seed's checkpoint of every K-th iteration on the same episodes: "
                    "success against training frames beside the controller's line, in curve.png (default: 0, no curve)")

@@ -118,11 +118,19 @@ starts and the per-coordinate head PPO uses, 16 full episodes (8,000 frames) per
 steps: 2.05M frames, four times the default job's. A pilot at 64 steps (512,000 frames, one seed) reached the goal
 in 19% of the evaluation's episodes, still climbing."""
 
+MTT_ROWS = (
+    ("PPO on SIR beliefs (40 iterations of 100-step batches)", (
+        "filter=sir_rough", "trainer.warm_start_iterations=0", "trainer.rollout_steps=100", "trainer.iterations=40")),
+)
+"""``--rows mtt`` (with ``env=mtt20d``): PPO on SIR beliefs on Multi-Target Tracking 20D as first measured there
+(64 envs × 200 steps an iteration, 512,000 frames, two PPO batches of 100 steps each), on today's learner, beside
+the controller's velocity gain swept on the same filters."""
+
 ROW_SETS = {"headline": TRAINED_ROWS, "default": TRAINED_ROWS[:1], "ablation": ABLATION_ROWS, "starts": START_ROWS,
             "half": HALF_ROWS,
             "frames": FRAMES_ROWS, "coordinates": COORDINATE_ROWS, "own_filter": OWN_FILTER_ROWS,
             "horizon": HORIZON_ROWS, "teacher": TEACHER_ROWS,
-            "reinforce": REINFORCE_ROWS}
+            "reinforce": REINFORCE_ROWS, "mtt": MTT_ROWS}
 """The trained rows ``--rows`` picks by name."""
 
 SCRIPTED_FILTERS = ("escort_train", "sir_rough")
