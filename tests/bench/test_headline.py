@@ -107,3 +107,40 @@ def test_a_curve_evaluates_every_kept_checkpoint_and_averages_seeds_at_common_fr
     assert "against training frames" in md and (tmp_path / "curve.png").is_file()
     with pytest.raises(ValueError, match=r"^--curve-every: give 0"):
         HeadlineSpec(curve_every=-1)
+
+
+def test_own_rows_each_meet_the_controller_on_their_own_belief(tmp_path):
+    # --row replaces the named rows; the controller runs on each belief a row acts on (here SIR at two particle
+    # counts, on the hidden goal) and pairs with that row only; the GRU reads no belief and is paired with none.
+    from escort_rl.bench.headline.cli import spec_from_args
+    from escort_rl.bench.headline.report import headline_markdown
+    from escort_rl.cli import _parser
+
+    gru = ["trainer=recurrent_ppo", "trainer.iterations=1", "trainer.num_envs=4", "trainer.rollout_steps=10",
+           "trainer.minibatches=2", "trainer.epochs=1", "trainer.hidden=8"]
+    args = _parser().parse_args(["bench", "headline", "--quick", "--seeds", "1", "--episodes", "2", "--gains", "1",
+                                 "--output", str(tmp_path), "env=hidden_goal",
+                                 "--row", "PPO on SIR N=24", "filter=sir", "num_particles=24",
+                                 "trainer.warm_start_iterations=0",
+                                 "--row", "PPO on SIR", "filter=sir", "trainer.warm_start_iterations=0",
+                                 "--row", "GRU", *gru])
+    spec = spec_from_args(args)
+    assert spec.scripted_filters is None and [label for label, _ in spec.rows] == ["PPO on SIR N=24", "PPO on SIR",
+                                                                                   "GRU"]
+    result = run_headline(spec, make_backend("inprocess"))
+    rows = {r["policy"]: r for r in result["rows"]}
+    assert rows["PPO on SIR N=24"]["filter"] == "filter=sir num_particles=24"
+    assert rows["PPO on SIR"]["filter"] == "filter=sir"
+    assert rows["GRU"]["filter"].startswith("none") and "vs_scripted" not in rows["GRU"]
+    assert all("vs_scripted" in rows[p] for p in ("PPO on SIR N=24", "PPO on SIR"))
+    scripted = [r for r in result["rows"] if r["kind"] == "scripted"]
+    assert [r["filter"] for r in scripted] == ["filter=sir num_particles=24", "filter=sir"]
+    assert "| PPO on SIR N=24 | scripted controller (gain 1) on filter=sir num_particles=24 |" in headline_markdown(
+        result)
+
+
+def test_rows_with_no_belief_need_the_controller_s_beliefs_named(tmp_path):
+    spec = HeadlineSpec.quick(seeds=1, episodes=2, gains=(1.0,), output=tmp_path, scripted_filters=None,
+                              rows=(("GRU", ("trainer=recurrent_ppo",)),))
+    with pytest.raises(ValueError, match=r"^--scripted-on: no trained row acts on a filter's belief"):
+        run_headline(spec, make_backend("inprocess"))

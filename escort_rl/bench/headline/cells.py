@@ -21,6 +21,36 @@ def row_overrides(base, row) -> list[str]:
     return merge_override_lists(list(base), list(row))
 
 
+BELIEF_KEYS = ("filter", "num_particles")
+"""The config keys that make a belief: the filter group and its particle count."""
+
+
+def belief_overrides(belief: str) -> tuple[str, ...]:
+    """A belief of the table as the overrides that pick it: a filter config name (``escort_train``) is
+    ``("filter=escort_train",)``; a belief written as overrides (``"filter=sir num_particles=3000"``, space
+    separated) is those.
+
+    Examples:
+        >>> belief_overrides("sir_rough")
+        ('filter=sir_rough',)
+        >>> belief_overrides("filter=sir num_particles=3000")
+        ('filter=sir', 'num_particles=3000')
+    """
+    words = tuple(belief.split())
+    return words if any("=" in w for w in words) else (f"filter={belief}",)
+
+
+def belief_identity(config: dict) -> str:
+    """What a composed config's belief is (its :data:`BELIEF_KEYS`, resolved; ``filter.compile`` left out: it
+    changes the time, not the belief), as one comparable string: a trained row and a scripted controller act
+    on the same belief when theirs are equal."""
+    import json
+
+    belief = {k: config.get(k) for k in BELIEF_KEYS}
+    belief["filter"] = {k: v for k, v in (belief["filter"] or {}).items() if k != "compile"}
+    return json.dumps(belief, sort_keys=True, default=str)
+
+
 def per_episode(metrics: dict) -> dict:
     """The per-episode lists the table aggregates: success, final distance (NaN without a goal),
     return and env steps."""
@@ -103,9 +133,9 @@ class TrainedCell(Cell):
 
 @dataclass(frozen=True, kw_only=True)
 class FixedPolicyCell(ConfigCell):
-    """The scripted controller at velocity gain ``gain`` on the belief of ``filter`` (``gain=None``:
-    uniform-random actions), on ``episodes`` episodes from env seed ``eval_seed``; ``overrides`` are
-    the run's sizes."""
+    """The scripted controller at velocity gain ``gain`` on the belief ``filter`` (a filter config name,
+    or the overrides that pick the belief: :func:`belief_overrides`; ``gain=None``: uniform-random
+    actions), on ``episodes`` episodes from env seed ``eval_seed``; ``overrides`` are the run's sizes."""
 
     filter: str
     gain: float | None
@@ -116,11 +146,11 @@ class FixedPolicyCell(ConfigCell):
     def config(self):
         from escort_rl.config import compose
 
-        return compose(row_overrides(self.overrides, (f"filter={self.filter}",)))
+        return compose(row_overrides(self.overrides, belief_overrides(self.filter)))
 
     def key(self) -> str:
         policy = "random" if self.gain is None else f"scripted-gain{self.gain:g}"
-        return f"fixed/{self.filter}/{policy}-seed{self.eval_seed}"
+        return f"fixed/{safe_name(self.filter)}/{policy}-seed{self.eval_seed}"
 
     def run(self) -> dict:
         from escort_rl.planners import ScriptedBeliefController

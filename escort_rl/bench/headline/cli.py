@@ -36,6 +36,13 @@ def register(subparsers) -> None:
                    "iterations on ESCORT beliefs), horizon (a longer discount, a smaller entropy bonus), teacher "
                    "(the default job's teacher for the warm start only, or none), reinforce (REINFORCE, tuned, "
                    "at 4x the frames) or mtt (PPO on SIR beliefs as first run on env=mtt20d)")
+    options.add_labelled_option(p, "--row", "a trained row of your own instead of --rows' set, on top of the "
+                                "default job, paired with the scripted controller on its belief",
+                                '"PPO on SIR N=3000" filter=sir num_particles=3000 trainer.warm_start_iterations=0')
+    p.add_argument("--scripted-on", nargs="+", default=None, metavar="BELIEF",
+                   help="the beliefs the scripted controller runs on: filter config names, or a belief's overrides "
+                   "in one quoted word ('filter=sir num_particles=3000') (default: escort_train sir_rough for the "
+                   "named row sets; with --row, each row's belief)")
     p.add_argument("--curve-every", type=int, default=None, metavar="K",
                    help="also evaluate every trained seed's checkpoint of every K-th iteration on the same episodes: "
                    "success against training frames beside the controller's line, in curve.png (default: 0, no curve)")
@@ -51,7 +58,10 @@ def spec_from_args(args) -> HeadlineSpec:
     if args.gains is not None:
         changes["gains"] = tuple(args.gains)
     overrides = (*base.overrides, *getattr(args, "overrides", ()))
-    changes["rows"] = ROW_SETS[args.rows]
+    own = options.labelled(getattr(args, "row", None), "--row")
+    changes["rows"] = tuple(own) if own else ROW_SETS[args.rows]
+    if own or getattr(args, "scripted_on", None):
+        changes["scripted_filters"] = tuple(args.scripted_on) if getattr(args, "scripted_on", None) else None
     return base.replace(output=Path(args.output), overrides=overrides, **changes)
 
 

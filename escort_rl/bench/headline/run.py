@@ -6,7 +6,14 @@ from __future__ import annotations
 import math
 
 from escort_rl.bench.core.runner import CellStore, run_cells
-from escort_rl.bench.headline.cells import FixedPolicyCell, TrainedCell, row_overrides, safe_name
+from escort_rl.bench.headline.cells import (
+    BELIEF_KEYS,
+    FixedPolicyCell,
+    TrainedCell,
+    belief_identity,
+    row_overrides,
+    safe_name,
+)
 from escort_rl.bench.headline.spec import HeadlineSpec
 from escort_rl.config import compose
 from escort_rl.reporting.stats import mean_se
@@ -95,28 +102,67 @@ def best_gain(results: list[dict]) -> float:
     return min(results, key=score)["gain"]
 
 
+def _plain(cfg) -> dict:
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def policy_reads(config: dict) -> str | None:
+    """What a trained row's policy acts on when it is not a filter's belief (its trainer's
+    ``belief_label``, e.g. the GRU's raw observations), or ``None``: the belief of its config."""
+    from escort_rl.config import registry
+
+    return registry.resolve("trainer", config["trainer"].get("algorithm", "reinforce")).belief_label
+
+
+def row_beliefs(spec: HeadlineSpec) -> tuple[str, ...]:
+    """The beliefs the trained rows act on, each once, in the rows' order: a row's own overrides that pick
+    its belief (``filter=``, ``filter.KEY=``, ``num_particles=``), space-separated, or its filter's config
+    name where it sets none. A row whose policy reads no belief (the GRU) has none."""
+    beliefs, seen = [], set()
+    for _, overrides in spec.rows:
+        cfg = _plain(compose(row_overrides(spec.overrides, overrides)))
+        if policy_reads(cfg) is not None:
+            continue
+        own = [o for o in overrides if o.split("=", 1)[0].split(".", 1)[0] in BELIEF_KEYS]
+        identity = belief_identity(cfg)
+        if identity not in seen:
+            seen.add(identity)
+            beliefs.append(" ".join(own) if own else str(cfg["filter"]["name"]))
+    return tuple(beliefs)
+
+
 def run_headline(spec: HeadlineSpec, backend) -> dict:
     """Run every cell (finished ones are loaded from ``spec.output / "cells"``) and return
     ``{"rows", "selection", "spec"}``: the table's rows in order (trained rows, the scripted
     controller on each filter at its selected gain, random) and the gain search's success rates."""
     store = CellStore(spec.output / "cells")
-    selection = [fixed_cell(spec, f, g, spec.selection_seed) for f in spec.scripted_filters for g in spec.gains]
+    beliefs = spec.scripted_filters if spec.scripted_filters is not None else row_beliefs(spec)
+    if not beliefs:
+        raise ValueError("--scripted-on: no trained row acts on a filter's belief; name the beliefs the scripted "
+                         "controller runs on (a filter config name, or its overrides in one quoted word)")
+    selection = [fixed_cell(spec, f, g, spec.selection_seed) for f in beliefs for g in spec.gains]
     trained = trained_cells(spec)
     results = run_cells([*selection, *trained], backend, store, desc="headline")
-    chosen = {f: best_gain([r for c, r in zip(selection, results) if c.filter == f]) for f in spec.scripted_filters}
-    final = [fixed_cell(spec, f, chosen[f], spec.eval_seed) for f in spec.scripted_filters]
-    final.append(fixed_cell(spec, spec.scripted_filters[-1], None, spec.eval_seed))
+    chosen = {f: best_gain([r for c, r in zip(selection, results) if c.filter == f]) for f in beliefs}
+    final = [fixed_cell(spec, f, chosen[f], spec.eval_seed) for f in beliefs]
+    final.append(fixed_cell(spec, beliefs[-1], None, spec.eval_seed))
     fixed = run_cells(final, backend, store, desc="headline evaluation")
     by_row: dict[str, list[dict]] = {}
     for cell, result in zip(trained, results[len(selection):]):
         by_row.setdefault(cell.label, []).append(result)
     rows = [trained_row(label, by_row[label]) for label, _ in spec.rows]
-    scripted_on = dict(zip(spec.scripted_filters, fixed))
+    scripted_on = {belief_identity(_plain(cell.config())): (cell.filter, result) for cell, result in zip(final, fixed)}
     for row in rows:
-        if row["filter"] in scripted_on:
-            row["vs_scripted"] = paired_difference(by_row[row["policy"]], scripted_on[row["filter"]])
-    rows += [fixed_row(f"scripted controller (gain {chosen[f]:g})", r, "scripted")
-             for f, r in zip(spec.scripted_filters, fixed)]
+        config = by_row[row["policy"]][0]["config"]
+        reads = policy_reads(config)
+        match = scripted_on.get(belief_identity(config)) if reads is None else None
+        row["filter"] = reads or (match[0] if match else row["filter"])
+        if match:
+            row["vs_scripted"] = paired_difference(by_row[row["policy"]], match[1])
+    rows += [fixed_row(f"scripted controller (gain {chosen[f]:g})", {**r, "filter": f}, "scripted")
+             for f, r in zip(beliefs, fixed)]
     rows.append(fixed_row("random", fixed[-1], "random"))
     env = str(compose(row_overrides(spec.overrides, ())).env.name)
     return {"rows": rows, "spec": {"env": env, "seeds": spec.seeds, "episodes": spec.episodes,

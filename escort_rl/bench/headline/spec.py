@@ -134,7 +134,7 @@ ROW_SETS = {"headline": TRAINED_ROWS, "default": TRAINED_ROWS[:1], "ablation": A
 """The trained rows ``--rows`` picks by name."""
 
 SCRIPTED_FILTERS = ("escort_train", "sir_rough")
-"""The beliefs the scripted controller acts on: each trained row's filter."""
+"""The beliefs the scripted controller acts on: each trained row's filter (for the named row sets)."""
 
 _QUICK = dict(seeds=2, episodes=4, gains=(1.0, 3.0),
               overrides=("trainer.iterations=2", "trainer.warm_start_iterations=1", "trainer.num_envs=4",
@@ -153,7 +153,11 @@ class HeadlineSpec:
     ``selection_seed``), then evaluated on the table's episodes (from ``eval_seed``), so that the
     choice does not select on the reported noise. The controller's action (push the dimension of the
     largest ``|k_p·(g − x̂) − k_v·v̂|``) depends on the gains through ``k_v / k_p`` alone, so the grid of
-    velocity gains at ``k_p = 1`` sweeps both; 0 is a pure P rule. ``overrides`` go under every row's own (the
+    velocity gains at ``k_p = 1`` sweeps both; 0 is a pure P rule. ``scripted_filters``: the beliefs the
+    controller acts on, each a filter config name or the overrides that pick the belief, space-separated
+    (``"filter=sir num_particles=3000"``); ``None``: each belief a trained row acts on. A trained row is paired,
+    episode by episode, with the controller on the same belief (filter and particle count).
+    ``overrides`` go under every row's own (the
     smoke run's sizes); ``threads``: torch threads per cell; ``curve_every = k > 0``: every trained seed
     also evaluates its checkpoint of every ``k``-th iteration on the same episodes (success against
     frames, beside the controller's line).
@@ -173,7 +177,7 @@ class HeadlineSpec:
     selection_seed: int = 20000
     gains: tuple[float, ...] = (0.0, 0.125, 0.25, 0.5, 1.0, 2.0, 3.0)
     rows: tuple[tuple[str, tuple[str, ...]], ...] = TRAINED_ROWS
-    scripted_filters: tuple[str, ...] = SCRIPTED_FILTERS
+    scripted_filters: tuple[str, ...] | None = SCRIPTED_FILTERS
     overrides: tuple[str, ...] = ()
     threads: int = 1
     curve_every: int = 0
@@ -189,6 +193,10 @@ class HeadlineSpec:
             raise ValueError(f"--gains: give one or more velocity gains >= 0, got {list(self.gains)}")
         object.__setattr__(self, "gains", tuple(float(g) for g in self.gains))
         object.__setattr__(self, "overrides", tuple(self.overrides))
+        if self.scripted_filters is not None:
+            object.__setattr__(self, "scripted_filters", tuple(self.scripted_filters))
+        if not self.rows:
+            raise ValueError("--row: give at least one trained row")
         object.__setattr__(self, "output", Path(self.output))
 
     @classmethod
