@@ -144,3 +144,35 @@ def test_rows_with_no_belief_need_the_controller_s_beliefs_named(tmp_path):
                               rows=(("GRU", ("trainer=recurrent_ppo",)),))
     with pytest.raises(ValueError, match=r"^--scripted-on: no trained row acts on a filter's belief"):
         run_headline(spec, make_backend("inprocess"))
+
+
+def test_frontier_rows_train_on_each_filter_s_closest_configuration_within_the_budget(tmp_path):
+    import json
+
+    from escort_rl.bench.headline.cli import spec_from_args
+    from escort_rl.cli import _parser
+
+    rows = [dict(method="sir", base="sir", settings=[], particles=100, num_steps=0, ms_per_update=0.3, error=2.0),
+            dict(method="sir", base="sir", settings=[], particles=3000, num_steps=0, ms_per_update=8.0, error=1.0),
+            dict(method="escort_eps", base="escort", settings=["step_size=0.02"], particles=100, num_steps=15,
+                 ms_per_update=9.0, error=0.5),
+            dict(method="escort", base="escort", settings=[], particles=100, num_steps=50, ms_per_update=30.0,
+                 error=0.1),
+            dict(method="enkf", base="enkf", settings=[], particles=100, num_steps=0, ms_per_update=0.5,
+                 error=float("nan"), failed="diverged")]
+    path = tmp_path / "frontier.json"
+    path.write_text(json.dumps({"rows": rows}))
+    args = _parser().parse_args(["bench", "headline", "--frontier-rows", str(path), "10", "--row", "GRU",
+                                 "trainer=recurrent_ppo"])
+    spec = spec_from_args(args)
+    assert spec.rows == (
+        ("PPO on sir N=3000 (closest within 10 ms)", ("filter=sir", "num_particles=3000",
+                                                      "trainer.warm_start_iterations=0")),
+        ("PPO on escort_eps N=100 K=15 (closest within 10 ms)", (
+            "filter=escort", "num_particles=100", "filter.num_steps=15", "filter.step_size=0.02",
+            "trainer.warm_start_iterations=0")),
+        ("GRU", ("trainer=recurrent_ppo",)))
+    assert spec.scripted_filters is None
+    bad = _parser().parse_args(["bench", "headline", "--frontier-rows", str(path), "0.1"])
+    with pytest.raises(ValueError, match=r"^--frontier-rows: no filter of .* updates within 0.1 ms; raise the budget"):
+        spec_from_args(bad)

@@ -79,6 +79,30 @@ def label(row: dict) -> str:
     return f"{row['method']} N={row['particles']}" + (f" K={row['num_steps']}" if iterative else "")
 
 
+def closest_at_budget(result: dict, budget_ms: float) -> list[dict]:
+    """Each filter's row closest to the reference among those that update within ``budget_ms`` ms, from a
+    frontier ``result`` (:func:`run_frontier`, or its ``frontier.json``), in the order the filters first
+    appear; a filter with no finite row within the budget is left out.
+
+    Example:
+        >>> rows = [dict(method="sir", base="sir", particles=100, num_steps=0, ms_per_update=0.3, error=2.0),
+        ...         dict(method="sir", base="sir", particles=1000, num_steps=0, ms_per_update=3.0, error=1.0),
+        ...         dict(method="escort", base="escort", particles=100, num_steps=15, ms_per_update=9.0, error=0.5)]
+        >>> [label(r) for r in closest_at_budget({"rows": rows}, 5.0)]
+        ['sir N=1000']
+    """
+    best: dict[str, dict] = {}
+    for row in result["rows"]:
+        error = row.get("error")
+        if row.get("failed") or error is None or not math.isfinite(error) or row["ms_per_update"] > budget_ms:
+            continue
+        base = row.get("base", row["method"])
+        if base not in best or error < best[base]["error"]:
+            best[base] = row
+    order = list(dict.fromkeys(r.get("base", r["method"]) for r in result["rows"]))
+    return [best[b] for b in order if b in best]
+
+
 def run_frontier(spec: FrontierSpec, backend=None, progress=None) -> dict:
     """Every filter of ``spec`` over its costs on its model; each row's distances to the reference
     (mean ± s.e. over seeds, time-averaged over the steps), its ms per update, and the Pareto front on

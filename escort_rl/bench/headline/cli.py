@@ -8,7 +8,7 @@ from pathlib import Path
 
 from escort_rl.bench.core import options
 from escort_rl.bench.core.runner import backend_from_args
-from escort_rl.bench.headline.spec import DEFAULT_OUTPUT, ROW_SETS, HeadlineSpec
+from escort_rl.bench.headline.spec import DEFAULT_OUTPUT, ROW_SETS, HeadlineSpec, frontier_rows
 from escort_rl.reporting.metadata import with_metadata
 
 
@@ -39,6 +39,9 @@ def register(subparsers) -> None:
     options.add_labelled_option(p, "--row", "a trained row of your own instead of --rows' set, on top of the "
                                 "default job, paired with the scripted controller on its belief",
                                 '"PPO on SIR N=3000" filter=sir num_particles=3000 trainer.warm_start_iterations=0')
+    p.add_argument("--frontier-rows", nargs=2, default=None, metavar=("FRONTIER_JSON", "MS"),
+                   help="instead of --rows' set: PPO on each filter's configuration that a frontier.json (bench "
+                   "frontier) found closest to its reference within MS ms an update; --row adds rows beside them")
     p.add_argument("--scripted-on", nargs="+", default=None, metavar="BELIEF",
                    help="the beliefs the scripted controller runs on: filter config names, or a belief's overrides "
                    "in one quoted word ('filter=sir num_particles=3000') (default: escort_train sir_rough for the "
@@ -59,6 +62,13 @@ def spec_from_args(args) -> HeadlineSpec:
         changes["gains"] = tuple(args.gains)
     overrides = (*base.overrides, *getattr(args, "overrides", ()))
     own = options.labelled(getattr(args, "row", None), "--row")
+    if getattr(args, "frontier_rows", None):
+        path, budget = args.frontier_rows
+        try:
+            budget = float(budget)
+        except ValueError:
+            raise ValueError(f"--frontier-rows: MS must be a number of milliseconds, got '{budget}'") from None
+        own = [*frontier_rows(path, budget), *own]
     changes["rows"] = tuple(own) if own else ROW_SETS[args.rows]
     if own or getattr(args, "scripted_on", None):
         changes["scripted_filters"] = tuple(args.scripted_on) if getattr(args, "scripted_on", None) else None

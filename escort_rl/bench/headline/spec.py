@@ -126,6 +126,30 @@ MTT_ROWS = (
 (64 envs × 200 steps an iteration, 512,000 frames, two PPO batches of 100 steps each), on today's learner, beside
 the controller's velocity gain swept on the same filters."""
 
+def frontier_rows(path: str | Path, budget_ms: float) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """``--frontier-rows PATH MS``: a trained row (PPO, no warm start) on each filter's configuration that a
+    frontier (``frontier.json`` of ``bench frontier``) found closest to its reference within ``MS`` ms an
+    update: equal filter time."""
+    import json
+
+    from escort_rl.bench.frontier.run import closest_at_budget, label
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"--frontier-rows: no frontier result at '{path}'; give the frontier.json of a bench "
+                         "frontier run")
+    picked = closest_at_budget(json.loads(path.read_text()), float(budget_ms))
+    if not picked:
+        raise ValueError(f"--frontier-rows: no filter of '{path}' updates within {budget_ms:g} ms; raise the budget")
+    rows = []
+    for r in picked:
+        overrides = [f"filter={r.get('base', r['method'])}", f"num_particles={r['particles']}",
+                     *([f"filter.num_steps={r['num_steps']}"] if r.get("num_steps") else []),
+                     *(f"filter.{s}" for s in r.get("settings", [])), "trainer.warm_start_iterations=0"]
+        rows.append((f"PPO on {label(r)} (closest within {budget_ms:g} ms)", tuple(overrides)))
+    return tuple(rows)
+
+
 ROW_SETS = {"headline": TRAINED_ROWS, "default": TRAINED_ROWS[:1], "ablation": ABLATION_ROWS, "starts": START_ROWS,
             "half": HALF_ROWS,
             "frames": FRAMES_ROWS, "coordinates": COORDINATE_ROWS, "own_filter": OWN_FILTER_ROWS,
