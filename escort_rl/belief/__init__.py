@@ -1,4 +1,5 @@
-"""Particle beliefs and the filters that update them: SIR, EnKF, SVGD and ESCORT."""
+"""Particle beliefs and the filters that update them: SIR, EnKF, SVGD and ESCORT, and resample-move SMC
+(tempered, with MCMC moves) for references."""
 
 from escort_rl.belief import resampling
 from escort_rl.belief.base import BeliefFilter, validate_update_inputs
@@ -6,6 +7,7 @@ from escort_rl.belief.checks import NonFiniteError
 from escort_rl.belief.enkf import EnKFFilter, EnKFParams
 from escort_rl.belief.escort import ESCORTFilter, ESCORTParams, SVGDFilter, SVGDParams
 from escort_rl.belief.particle_belief import ParticleBelief
+from escort_rl.belief.resample_move import ResampleMoveFilter, ResampleMoveParams
 from escort_rl.belief.sir import SIRFilter, SIRParams
 
 __all__ = [
@@ -18,6 +20,8 @@ __all__ = [
     "SVGDFilter",
     "SVGDParams",
     "ParticleBelief",
+    "ResampleMoveFilter",
+    "ResampleMoveParams",
     "SIRFilter",
     "SIRParams",
     "resampling",
