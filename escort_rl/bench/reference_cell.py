@@ -34,16 +34,21 @@ class ReferenceCell(Cell):
     folder: str = ""
     replicate: int = 0
     """``r > 0``: an independent reference on the same trajectories (:func:`reference_posterior`'s ``replicate``)."""
+    method: str = "sir"
+    """The reference's filter (:func:`reference_posterior`'s ``method``)."""
 
     def key(self) -> str:
         return (f"reference/{self.domain}/N{self.particles}-M{self.sample}-T{self.steps}-"
-                f"seeds{self.seeds[0]}-{self.seeds[-1]}" + (f"-r{self.replicate}" if self.replicate else ""))
+                f"seeds{self.seeds[0]}-{self.seeds[-1]}" + (f"-r{self.replicate}" if self.replicate else "")
+                + (f"-{self.method}" if self.method != "sir" else ""))
 
     def spec(self) -> dict:
         spec = super().spec()
         spec.pop("folder")
         if not self.replicate:  # the first reference keeps the spec (and saved file) it had before replicates
             spec.pop("replicate")
+        if self.method == "sir":  # so does a SIR reference, from before the choice of filter
+            spec.pop("method")
         return spec
 
     def model(self):
@@ -55,7 +60,7 @@ class ReferenceCell(Cell):
     def posterior(self, model, traj: dict, seeds: list[int]) -> dict:
         """The reference's tensors (:func:`reference_posterior`; a subclass may compute another)."""
         return reference_posterior(model, traj, seeds, self.particles, self.base_seed, self.sample, name=self.domain,
-                                   replicate=self.replicate)
+                                   replicate=self.replicate, method=self.method)
 
     def run(self) -> dict:
         from escort_rl.bench.trajectories import generate_trajectories

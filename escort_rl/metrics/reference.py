@@ -42,6 +42,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from escort_rl.belief.resample_move import ResampleMoveFilter
 from escort_rl.belief.resampling import effective_sample_size, systematic
 from escort_rl.belief.seeding import derived_seed, initial_beliefs, tensor_hash
 from escort_rl.belief.sir import SIRFilter
@@ -229,9 +230,16 @@ def _stack(steps: list[dict]) -> dict:
             for k, v in first.items()}
 
 
+REFERENCE_FILTERS = {"sir": lambda: SIRFilter(resample_threshold=0.5), "resample_move": lambda: ResampleMoveFilter()}
+"""The filters a reference posterior may run: name -> a new filter."""
+
+REFERENCE_NAMES = {"sir": "SIR", "resample_move": "resample-move SMC (tempered, with MCMC moves)"}
+"""What each reference filter is called in a report."""
+
+
 def reference_posterior(model, traj: dict, seeds: list[int], particles: int, base_seed: int = 0,
                         sample: int = SAMPLE, chunk_rows: int = CHUNK_ROWS, name: str = "",
-                        replicate: int = 0) -> dict:
+                        replicate: int = 0, method: str = "sir") -> dict:
     """The reference of ``seeds`` on the shared trajectories ``traj`` (see the module docstring).
 
     Returns per part ``mean`` ``[S, T+1, dp]``, ``cov`` ``[S, T+1, dp, dp]``, ``sample``
@@ -243,11 +251,16 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
     seeds the directions of the sliced W1. A chunk of at least :data:`COMPILE_ROWS` rows runs the
     model compiled. ``replicate = r > 0`` draws an independent reference (its prior draw, its filter's and
     its subsample's random streams are the ``r``-th), on the same trajectories and directions: the distance
-    between two replicates measures the reference's own error.
+    between two replicates measures the reference's own error. ``method``: the reference's filter, one of
+    :data:`REFERENCE_FILTERS` (``sir``: SIR resampling at ESS/N < 0.5; ``resample_move``: resample-move SMC
+    with adaptive tempering, whose weights do not collapse onto a few particles when the likelihood is sharp).
     """
 
     parts = state_parts(model)
-    filt = SIRFilter(resample_threshold=0.5)
+    if method not in REFERENCE_FILTERS:
+        raise ValueError(f"--reference-filter: unknown reference filter '{method}'; choose from "
+                         f"{', '.join(REFERENCE_FILTERS)}")
+    filt = REFERENCE_FILTERS[method]()
     per_chunk = max(1, int(chunk_rows) // int(particles))
     if min(per_chunk, len(seeds)) * int(particles) >= COMPILE_ROWS:
         model = _CompiledModel(model)

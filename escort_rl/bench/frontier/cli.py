@@ -10,7 +10,7 @@ from escort_rl.bench.frontier.cells import FILTER_METHODS, parse_variant
 from escort_rl.bench.frontier.spec import DEFAULT_OUTPUT, METRICS, FrontierSpec
 from escort_rl.reporting.metadata import with_metadata
 
-FLAGS = ("seeds", "steps", "reference_particles", "threads")
+FLAGS = ("seeds", "steps", "reference_particles", "reference_filter", "threads")
 """The options that set the spec's field of the same name when given (else ``--quick``'s or the default)."""
 
 
@@ -48,10 +48,21 @@ def register(subparsers) -> None:
     p.add_argument("--reference-particles", type=int, default=None, metavar="N",
                    help="N of the SIR reference for a model without an exact posterior (default: "
                    f"{full.reference_particles})")
+    add_reference_filter_option(p)
     options.add_quick_option(p, quick_help())
     options.add_output_option(p, DEFAULT_OUTPUT, "frontier.json, frontier.md, frontier.png and cells/")
     options.add_runner_options(p, seeds_per_cell=False)
     p.set_defaults(handler=main)
+
+
+def add_reference_filter_option(p) -> None:
+    """``--reference-filter``, shared with ``bench regime-map``."""
+    from escort_rl.metrics.reference import REFERENCE_FILTERS
+
+    p.add_argument("--reference-filter", choices=sorted(REFERENCE_FILTERS), default=None,
+                   help="the reference's filter where the model has no exact posterior: sir, or resample_move "
+                   "(tempered stages that keep ESS/N at 0.5, random-walk Metropolis moves after each; about 10x "
+                   "SIR's cost) (default: sir)")
 
 
 def add_method_options(p) -> None:

@@ -95,7 +95,7 @@ def regime_markdown(result: dict) -> str:
 
 
 def register(subparsers) -> None:
-    from escort_rl.bench.frontier.cli import add_method_options
+    from escort_rl.bench.frontier.cli import add_method_options, add_reference_filter_option
 
     full, quick = RegimeSpec(), RegimeSpec.quick()
     p = subparsers.add_parser("regime-map", help="the frontier over dimension x observation sharpness "
@@ -126,6 +126,7 @@ def register(subparsers) -> None:
     p.add_argument("--reference-particles", type=int, default=None, metavar="N",
                    help="N of the SIR reference where the family has no exact posterior (default: "
                    f"{point.reference_particles}; --quick: {quick_point.reference_particles})")
+    add_reference_filter_option(p)
     options.add_quick_option(p, f"dimensions {_numbers(quick.dims)}, obs_std {_numbers(quick.obs_stds)}, and bench "
                              "frontier's --quick points at each")
     options.add_output_option(p, REGIME_OUTPUT, "regime_map.md, regime_map.json, regime_map.png and a folder per "
@@ -143,7 +144,8 @@ def spec_from_args(args) -> RegimeSpec:
     (:meth:`RegimeSpec.quick`, :meth:`RegimeSpec.full`); each point's settings likewise."""
     from escort_rl.bench.frontier.cli import method_settings
 
-    explicit = {name: getattr(args, name) for name in ("seeds", "steps", "reference_particles", "threads")
+    explicit = {name: getattr(args, name) for name in ("seeds", "steps", "reference_particles", "reference_filter",
+                                                       "threads")
                 if getattr(args, name) is not None}
     point = dict(compile=options.compile_override(args.overrides), **method_settings(args), **explicit)
     axes = {name: getattr(args, flag) for name, flag in (("dims", "dims"), ("obs_stds", "obs_std"))

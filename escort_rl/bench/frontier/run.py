@@ -20,7 +20,7 @@ from escort_rl.bench.frontier.cells import (
 from escort_rl.bench.frontier.pareto import best_at_budgets, pareto_front
 from escort_rl.bench.frontier.spec import METRICS, FrontierSpec
 from escort_rl.bench.trajectories import behaviour_policy
-from escort_rl.metrics.reference import Reference, has_exact_posterior
+from escort_rl.metrics.reference import REFERENCE_NAMES, Reference, has_exact_posterior
 from escort_rl.reporting.stats import mean_se
 
 BUDGETS_MS = (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
@@ -171,7 +171,8 @@ def _reference_cell(spec: FrontierSpec, folder: str, gaussian_sum: bool, replica
                                  particles=0 if gaussian_sum else int(spec.reference_particles),
                                  steps=spec.steps, seeds=tuple(range(spec.seeds)), base_seed=spec.base_seed,
                                  folder=folder, model_spec=spec.model, model_args=spec.model_args,
-                                 threads=spec.threads, exact=gaussian_sum, replicate=replicate)
+                                 threads=spec.threads, exact=gaussian_sum, replicate=replicate,
+                                 method=spec.reference_filter)
 
 
 def _computed(cell: FrontierReferenceCell, backend, store) -> dict:
@@ -214,4 +215,5 @@ def _reference(spec: FrontierSpec, built, part: str, backend,
     twin = _computed(_reference_cell(spec, folder, gaussian_sum, replicate=1), backend, store)
     error = reference_error(Reference.load(Path(folder) / ref["file"], ref["hash"]),
                             Reference.load(Path(folder) / twin["file"], twin["hash"]), spec.steps, part)
-    return reference, folder, f"SIR with {spec.reference_particles} particles", ess, error
+    return reference, folder, f"{REFERENCE_NAMES[spec.reference_filter]} with {spec.reference_particles} particles", \
+        ess, error

@@ -78,6 +78,10 @@ class FrontierSpec:
     """The front's distance, one of :data:`METRICS`."""
     reference_particles: int = 100_000
     """N of the SIR reference for a model without an exact posterior."""
+    reference_filter: str = "sir"
+    """The filter of that reference: ``sir`` or ``resample_move`` (tempered, with MCMC moves:
+    :class:`~escort_rl.belief.ResampleMoveFilter`), a key of
+    :data:`~escort_rl.metrics.reference.REFERENCE_FILTERS`."""
     threads: int = 1
     """Torch threads in each cell."""
     base_seed: int = 0
@@ -111,6 +115,9 @@ class FrontierSpec:
             object.__setattr__(self, "output", Path(self.output))
         check_choices("--methods", self.methods, FILTER_METHODS)
         check_choices("--metric", [self.metric], METRICS, "metric")
+        from escort_rl.metrics.reference import REFERENCE_FILTERS
+
+        check_choices("--reference-filter", [self.reference_filter], tuple(REFERENCE_FILTERS), "reference filter")
         check_choices("particles", list(self.particles), FILTER_METHODS, "filter")
         check_choices("--variant", [method for _, method, _ in self.variants], FILTER_METHODS, "filter")
         for m, ns in self.particles.items():
