@@ -135,6 +135,11 @@ def test_own_rows_each_meet_the_controller_on_their_own_belief(tmp_path):
     assert all("vs_scripted" in rows[p] for p in ("PPO on SIR N=24", "PPO on SIR"))
     scripted = [r for r in result["rows"] if r["kind"] == "scripted"]
     assert [r["filter"] for r in scripted] == ["filter=sir num_particles=24", "filter=sir"]
+    for policy, against in (("PPO on SIR N=24", scripted[0]), ("PPO on SIR", scripted[1])):
+        # one seed: the paired mean difference is the difference of the means, against this belief's controller
+        # (not the random policy, which runs on the last belief too)
+        for key in ("episode_return", "steps"):
+            assert rows[policy]["vs_scripted"][key][0] == pytest.approx(rows[policy][key] - against[key], abs=1e-6)
     assert "| PPO on SIR N=24 | scripted controller (gain 1) on filter=sir num_particles=24 |" in headline_markdown(
         result)
 

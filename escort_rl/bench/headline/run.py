@@ -153,7 +153,8 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
     for cell, result in zip(trained, results[len(selection):]):
         by_row.setdefault(cell.label, []).append(result)
     rows = [trained_row(label, by_row[label]) for label, _ in spec.rows]
-    scripted_on = {belief_identity(_plain(cell.config())): (cell.filter, result) for cell, result in zip(final, fixed)}
+    scripted_on = {belief_identity(_plain(cell.config())): (cell.filter, result)  # the last cell is random's
+                   for cell, result in zip(final[:-1], fixed[:-1])}
     for row in rows:
         config = by_row[row["policy"]][0]["config"]
         reads = policy_reads(config)
