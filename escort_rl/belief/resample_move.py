@@ -149,7 +149,7 @@ class ResampleMoveFilter(HasParams, BeliefFilter):
         log_lik = model.observation_log_prob(observation.unsqueeze(-2), x, a)
         return log_t + scaled_log_likelihood(log_lik, beta), log_lik
 
-    def _move(self, model, x, parents, a, observation, beta, log_lik, moving, generator) -> Tensor:
+    def _move(self, model, x, parents, a, observation, beta, log_lik, moving, generator) -> tuple[Tensor, Tensor]:
         """``mcmc_steps`` random-walk Metropolis moves of the particles of the ``moving`` beliefs ``[*B]``;
         returns ``(x, log_lik)``."""
         d = x.shape[-1]
