@@ -82,18 +82,14 @@ def decision_gradient(policy, params: list, batch, advantage: Tensor, chunk: int
     return torch.cat([g.flatten() for g in grads])
 
 
-def standardised(x: Tensor) -> Tensor:
-    """``(x − mean) / (std + 1e-8)`` over every element, flattened ``[M]``."""
-    x = x.flatten()
-    return (x - x.mean()) / (x.std() + 1e-8)
-
-
 def estimator_advantages(loss, batch, gamma: float, lambdas: tuple[float, ...]) -> dict[str, Tensor]:
     """``{estimator: standardised advantage [M]}`` on ``batch`` from ``loss``'s critic: ``monte carlo``
     (``TD1``) and ``GAE λ`` for each ``λ``. ``loss`` is a TorchRL loss module with a critic; its value
     estimator is set back to ``TD1`` or the last ``GAE`` it was given, so call this on a measurement's own
     algorithm only."""
     from torchrl.objectives import ValueEstimators
+
+    from escort_rl.trainers.reinforce import standardised
 
     key = loss.tensor_keys.advantage
     out = {}
@@ -103,7 +99,7 @@ def estimator_advantages(loss, batch, gamma: float, lambdas: tuple[float, ...]) 
             loss.make_value_estimator(kind, gamma=gamma, **kw)
             td = batch.clone(False)
             loss.value_estimator(td)
-            out[name] = standardised(td[key])
+            out[name] = standardised(td[key]).flatten()  # as REINFORCE scales them, flattened [M]
     return out
 
 

@@ -32,6 +32,17 @@ from escort_rl.trainers.params import ReinforceParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
 
 
+def standardised(x: Tensor) -> Tensor:
+    """``(x − mean) / (std + 1e-8)`` over every element of ``x`` (same shape): how REINFORCE scales each
+    batch's advantages.
+
+    Example:
+        >>> [round(v, 4) for v in standardised(torch.tensor([1.0, 3.0])).tolist()]
+        [-0.7071, 0.7071]
+    """
+    return (x - x.mean()) / (x.std() + 1e-8)
+
+
 class TimeBaseline(nn.Module):
     """A per-time baseline ``b(t)``: a table over the step count ``t ∈ [0, max_steps]``.
 
@@ -103,8 +114,7 @@ class Reinforce(CollectorAlgorithm):
                 self.loss.value_estimator(batch)
                 self.critic.fit_(batch["step_count"], batch[keys.value_target])
             self.loss.value_estimator(batch)
-            adv = batch[keys.advantage]
-            batch[keys.advantage] = (adv - adv.mean()) / (adv.std() + 1e-8)
+            batch[keys.advantage] = standardised(batch[keys.advantage])
         flat = batch.reshape(-1)
         m = flat.shape[0]
         self.optimizer.zero_grad(set_to_none=True)
