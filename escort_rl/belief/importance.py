@@ -67,13 +67,44 @@ def predictive_log_evidence(log_weights: Tensor, log_likelihood: Tensor) -> Tens
     return torch.logsumexp(log_weights + log_likelihood, -1) - torch.logsumexp(log_weights, -1)
 
 
+def largest_step_keeping_ess(base: Tensor, direction: Tensor, upper: Tensor, target: float,
+                             bisections: int = TEMPER_BISECTIONS) -> Tensor:
+    """The largest ``δ ∈ [0, upper]`` with ``ESS(base + δ · direction) ≥ target``, per row, to
+    ``upper · 2^−bisections``, by bisection (no host sync); 0 where no ``δ > 0`` reaches it.
+
+    ``base``, ``direction`` ``[*B, N]`` (log-weights and log-likelihoods; ``−inf`` allowed, with
+    ``0 · (−inf) = 0``), ``upper`` ``[*B]``, ``target`` a number of particles. It assumes what holds
+    for tempering toward a likelihood: the ESS falls as ``δ`` grows, so the set that reaches the
+    target is an interval from 0.
+
+    Example:
+        >>> base, ell = torch.zeros(1, 4), torch.tensor([[0.0, -10.0, -10.0, -10.0]])
+        >>> d = largest_step_keeping_ess(base, ell, torch.ones(1), 2.0)
+        >>> bool(0 < d < 1), round(float(effective_sample_size(base + d * ell)), 3)
+        (True, 2.0)
+    """
+    lo, hi = torch.zeros_like(upper), upper.clone()
+    for _ in range(bisections):
+        mid = 0.5 * (lo + hi)
+        ok = effective_sample_size(base + scaled_log_likelihood(direction, mid)) >= target
+        lo, hi = torch.where(ok, mid, lo), torch.where(ok, hi, mid)
+    return lo
+
+
+def scaled_log_likelihood(log_lik: Tensor, delta: Tensor) -> Tensor:
+    """``δ ℓ`` ``[*B, N]`` for ``δ`` ``[*B]``, with ``0 · (−inf) = 0`` (a particle of zero likelihood keeps
+    its weight until some of the likelihood is taken in)."""
+    scaled = delta.unsqueeze(-1) * log_lik
+    return torch.where(torch.isneginf(log_lik) & (delta.unsqueeze(-1) == 0), torch.zeros_like(scaled), scaled)
+
+
 def tempered_log_weights(log_weights: Tensor, ess_floor: float) -> tuple[Tensor, Tensor, Tensor]:
     """``β ℓ`` with the largest ``β ∈ [0, 1]`` such that ``ESS(β ℓ) ≥ ess_floor · N``, per row.
 
     ``log_weights`` ``[*B, N]``; ``ess_floor`` in ``[0, 1]`` (0 never tempers). A row whose ESS
     already reaches the floor keeps ``β = 1``. Returns the tempered log-weights ``[*B, N]``, ``β``
     ``[*B]`` and the untempered ESS ``[*B]``. ``−inf`` entries stay ``−inf`` (weight 0 at every
-    ``β > 0``); ``β`` is found by :data:`TEMPER_BISECTIONS` bisections (no host sync).
+    ``β > 0``); ``β`` is found by :func:`largest_step_keeping_ess` (no host sync).
 
     Example:
         >>> ell = torch.tensor([[0.0, -10.0, -10.0, -10.0]])   # ESS ≈ 1.0
@@ -90,13 +121,8 @@ def tempered_log_weights(log_weights: Tensor, ess_floor: float) -> tuple[Tensor,
     centred = torch.where(finite, log_weights - torch.where(finite, log_weights, torch.zeros_like(log_weights))
                           .amax(-1, keepdim=True), log_weights)
     target = ess_floor * n
-    lo = torch.zeros_like(ess)  # ESS(lo) ≥ target always holds (β = 0: equal weights on the finite entries)
-    hi = torch.ones_like(ess)
-    for _ in range(TEMPER_BISECTIONS):
-        mid = 0.5 * (lo + hi)
-        ok = effective_sample_size(mid.unsqueeze(-1) * centred) >= target
-        lo = torch.where(ok, mid, lo)
-        hi = torch.where(ok, hi, mid)
+    # β = 0 (equal weights on the finite entries) always reaches the target
+    lo = largest_step_keeping_ess(torch.zeros_like(centred), centred, torch.ones_like(ess), target)
     beta = torch.where(ess >= target, torch.ones_like(ess), lo)
     # β = 0 with −inf entries: keep them impossible (0 · −inf would be NaN)
     tempered = torch.where(finite, beta.unsqueeze(-1) * centred, log_weights)

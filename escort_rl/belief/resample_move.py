@@ -47,7 +47,7 @@ from torch import Tensor
 
 from escort_rl.belief.base import BeliefFilter, check_output_shape
 from escort_rl.belief.checks import OFF
-from escort_rl.belief.importance import effective_sample_size
+from escort_rl.belief.importance import effective_sample_size, largest_step_keeping_ess, scaled_log_likelihood
 from escort_rl.belief.particle_belief import ParticleBelief
 from escort_rl.belief.resampling import SCHEMES, resample_indices
 from escort_rl.config.params import HasParams, build_params, param
@@ -76,18 +76,12 @@ class ResampleMoveParams:
     resampling: str = param("systematic", choices=sorted(SCHEMES))
 
 
-def scaled_log_likelihood(log_lik: Tensor, delta: Tensor) -> Tensor:
-    """``δ ℓ`` ``[*B, N]`` for ``δ`` ``[*B]``, with ``0 · (−inf) = 0`` (a particle of zero likelihood keeps
-    its weight until some of the likelihood is taken in)."""
-    scaled = delta.unsqueeze(-1) * log_lik
-    return torch.where(torch.isneginf(log_lik) & (delta.unsqueeze(-1) == 0), torch.zeros_like(scaled), scaled)
-
-
 def tempering_increment(log_weights: Tensor, log_lik: Tensor, remaining: Tensor, ess_target: float) -> Tensor:
     """The largest ``δ ∈ [0, remaining]`` with ``ESS(log w + δ ℓ) ≥ ess_target · N``, per belief ``[*B]``:
     ``remaining`` where that holds at ``δ = remaining``, and also where no ``δ > 0`` reaches the target
     (the particles of zero likelihood outnumber it: waiting would not help). ``log_weights``, ``log_lik``
-    ``[*B, N]``; :data:`INCREMENT_BISECTIONS` bisections, no host sync.
+    ``[*B, N]``; :func:`~escort_rl.belief.importance.largest_step_keeping_ess` with :data:`INCREMENT_BISECTIONS`
+    bisections, no host sync.
 
     Example:
         >>> lw, ll = torch.zeros(1, 4), torch.tensor([[0.0, -10.0, -10.0, -10.0]])
@@ -97,11 +91,7 @@ def tempering_increment(log_weights: Tensor, log_lik: Tensor, remaining: Tensor,
     """
     target = ess_target * log_lik.shape[-1]
     full_ok = effective_sample_size(log_weights + scaled_log_likelihood(log_lik, remaining)) >= target
-    lo, hi = torch.zeros_like(remaining), remaining.clone()
-    for _ in range(INCREMENT_BISECTIONS):
-        mid = 0.5 * (lo + hi)
-        ok = effective_sample_size(log_weights + scaled_log_likelihood(log_lik, mid)) >= target
-        lo, hi = torch.where(ok, mid, lo), torch.where(ok, hi, mid)
+    lo = largest_step_keeping_ess(log_weights, log_lik, remaining, target, INCREMENT_BISECTIONS)
     return torch.where(full_ok | (lo <= 0), remaining, lo)
 
 
@@ -110,6 +100,10 @@ class ResampleMoveFilter(HasParams, BeliefFilter):
     :class:`ResampleMoveParams` (or its fields as keyword arguments).
 
     ``mean_stages`` is the mean number of tempering stages per belief update since the filter was built.
+    :meth:`importance_diagnostics` adds ``mean_stage_ess_fraction`` and ``min_stage_ess_fraction``: per
+    belief update, the smallest ESS / N among the weights its stages resampled (at least ``ess_target``
+    unless the last of ``max_stages`` stages took what remained), its mean and minimum over the updates.
+    Its ``mean_ess_fraction`` is SIR's, before any tempering.
 
     Example:
         >>> from escort_rl.models import LinearGaussian
@@ -126,11 +120,19 @@ class ResampleMoveFilter(HasParams, BeliefFilter):
     def __init__(self, params: ResampleMoveParams | None = None, **kwargs) -> None:
         self.params = build_params(ResampleMoveParams, params, kwargs, owner=type(self).__name__)
         self._stages = (0.0, 0)  # stages summed over beliefs, beliefs
+        self._stage_ess = (0.0, 1.0)  # Σ over beliefs of the smallest stage ESS / N of an update, and its minimum
 
     @property
     def mean_stages(self) -> float:
         total, count = self._stages
         return total / count if count else float("nan")
+
+    def importance_diagnostics(self) -> dict:
+        out = super().importance_diagnostics()
+        if out:
+            total, low = self._stage_ess
+            out.update(mean_stage_ess_fraction=total / out["count"], min_stage_ess_fraction=low)
+        return out
 
     def __repr__(self) -> str:
         p = self.params
@@ -183,6 +185,7 @@ class ResampleMoveFilter(HasParams, BeliefFilter):
         increment = torch.zeros_like(ess)
         first = None
         stages = torch.zeros_like(ess)
+        stage_ess = torch.full_like(ess, float(n))  # the smallest ESS among the weights the stages resample
         for stage in range(p.max_stages):
             remaining = 1.0 - beta
             moving = remaining > 0
@@ -196,6 +199,7 @@ class ResampleMoveFilter(HasParams, BeliefFilter):
                                                 torch.zeros_like(step_evidence))
             tilted = torch.where(torch.isneginf(tilted).all(-1, keepdim=True), log_w, tilted)  # all impossible
             log_w = tilted - torch.logsumexp(tilted, -1, keepdim=True)
+            stage_ess = torch.where(moving, torch.minimum(stage_ess, effective_sample_size(log_w)), stage_ess)
             beta = torch.where(moving, beta + delta, beta)
             beta = torch.where(beta > 1.0 - 1e-6, torch.ones_like(beta), beta)
             stages = stages + moving.to(stages.dtype)
@@ -212,6 +216,8 @@ class ResampleMoveFilter(HasParams, BeliefFilter):
                 break
         total, count = self._stages
         self._stages = (total + float(stages.sum()), count + stages.numel())
+        self._stage_ess = (self._stage_ess[0] + float(stage_ess.sum()) / n, min(self._stage_ess[1],
+                                                                              float(stage_ess.min()) / n))
         self._record_importance(ess / n, first)
         return ParticleBelief(x, log_w).diagnosed(increment, ess, torch.ones_like(ess, dtype=torch.bool),
                                                   previous=belief)

@@ -237,6 +237,13 @@ REFERENCE_NAMES = {"sir": "SIR", "resample_move": "resample-move SMC (tempered, 
 """What each reference filter is called in a report."""
 
 
+def _update_mean(now: dict, seen: dict, key: str, rows: int) -> float:
+    """The mean over the ``rows`` beliefs of one update of the running mean ``key`` of
+    :meth:`~escort_rl.belief.base.BeliefFilter.importance_diagnostics`, from its values after (``now``)
+    and before (``seen``) the update."""
+    return (now[key] * now["count"] - (seen[key] * seen["count"] if seen else 0.0)) / rows
+
+
 def reference_posterior(model, traj: dict, seeds: list[int], particles: int, base_seed: int = 0,
                         sample: int = SAMPLE, chunk_rows: int = CHUNK_ROWS, name: str = "",
                         replicate: int = 0, method: str = "sir") -> dict:
@@ -245,8 +252,10 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
     Returns per part ``mean`` ``[S, T+1, dp]``, ``cov`` ``[S, T+1, dp, dp]``, ``sample``
     ``[S, T+1, M, dp]``, ``gamma``/``kyy`` ``[S, T+1]``, ``dims`` and ``projections`` ``[L, dp]``;
     ``ess`` ``[S, T+1]`` (after each update's resampling) and ``ess_fraction_before_resampling``
-    ``[S, T]`` (ESS / N of each update's weights before it resamples; the mean over the seeds of a chunk,
-    repeated for each). Chunks of seeds (at most ``chunk_rows // particles`` each) filter one
+    ``[S, T]`` (ESS / N of each update's weights before it resamples or tempers; the mean over the seeds of
+    a chunk, repeated for each); a tempered reference adds ``ess_fraction_of_stages`` ``[S, T]``, the same
+    mean of the smallest ESS / N among the weights its stages resampled. Chunks of seeds (at most
+    ``chunk_rows // particles`` each) filter one
     after another, each with its own generators seeded by its first seed. ``name`` (the domain's)
     seeds the directions of the sliced W1. A chunk of at least :data:`COMPILE_ROWS` rows runs the
     model compiled. ``replicate = r > 0`` draws an independent reference (its prior draw, its filter's and
@@ -273,19 +282,22 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
         g = torch.Generator().manual_seed(derived_seed(f"reference-filter{tag}", base_seed, block[0]))
         gs = torch.Generator().manual_seed(derived_seed(f"reference-sample{tag}", base_seed, block[0]))
         steps = [step_summary(belief.particles, belief.log_weights, parts, sample, gs)]
-        before = []  # the ESS fraction of each update's weights before resampling, mean over the chunk
+        before, staged = [], []  # per update, the mean over the chunk of the ESS fractions (see the docstring)
         for t in range(traj["actions"].shape[1]):
             seen = filt.importance_diagnostics()
             belief = filt.update(model, belief, traj["actions"][rows, t], traj["observations"][rows, t], g)
             now = filt.importance_diagnostics()
-            before.append((now["mean_ess_fraction"] * now["count"]
-                           - (seen["mean_ess_fraction"] * seen["count"] if seen else 0.0)) / len(block))
+            before.append(_update_mean(now, seen, "mean_ess_fraction", len(block)))
+            if "mean_stage_ess_fraction" in now:
+                staged.append(_update_mean(now, seen, "mean_stage_ess_fraction", len(block)))
             if not bool(torch.isfinite(belief.particles).all()) or bool(torch.isnan(belief.log_weights).any()):
                 raise ValueError(f"the reference posterior of '{name}' became non-finite at step {t + 1} "
                                  f"(seeds {block}); its particles are not usable")
             steps.append(step_summary(belief.particles, belief.log_weights, parts, sample, gs))
         chunk = _stack(steps)
         chunk["ess_fraction_before_resampling"] = torch.tensor(before, dtype=torch.float64).expand(len(block), -1)
+        if staged:
+            chunk["ess_fraction_of_stages"] = torch.tensor(staged, dtype=torch.float64).expand(len(block), -1)
         chunks.append(chunk)
     out = {k: (torch.cat([c[k] for c in chunks]) if not isinstance(v, dict)
                else {kk: torch.cat([c[k][kk] for c in chunks]) for kk in v}) for k, v in chunks[0].items()}

@@ -38,14 +38,31 @@ def train_command(result: dict, row: dict) -> str:
     return " ".join(["escort-rl train", *model, *filt])
 
 
+def reference_ess_line(result: dict) -> str:
+    """The report's line on the reference's ESS (:func:`~escort_rl.bench.frontier.run.reference_ess_summary`),
+    with a warning in bold where it is below 1% of its particles."""
+    ess = result["reference_ess"]
+    which = ("the smallest of its tempering stages'" if ess.get("stages") else "before resampling")
+    line = (f"The reference's ESS per update ({which}): median {ess['median']:.0f}, min {ess['min']:.0f} of "
+            f"{ess.get('particles', 'its')} particles.")
+    if ess.get("stages"):
+        line += (f" Untempered, as SIR's would be: median {ess['untempered_median']:.0f} (how sharp the likelihood "
+                 "is; the stages keep the weights from collapsing).")
+    if ess["fraction"] < 0.01:
+        line += (" **Below 1% of its particles: the reference is a few points, and distances to it are not a "
+                 "posterior's.**")
+    return line
+
+
 def advice(result: dict, budget_ms: float = 10.0) -> str:
     """"At 10 ms per update, use …; train on it with `escort-rl train ...`": the closest filter within
-    the budget, or the cheapest row. A SIR reference whose ESS is below 1% of its particles cannot
-    rank filters: then the advice says so and how to get one that can."""
+    the budget, or the cheapest row. A reference whose ESS is below 1% of its particles cannot rank
+    filters: then the advice says so and how to get one that can."""
     ess = result.get("reference_ess")
     if ess and ess["fraction"] < 0.01:
-        return (f"No advice: the reference (an SIR filter) kept a median ESS of {ess['median']:.0f} particles, too few "
-                "to rank the filters; rerun with more --reference-particles, or on a model with fewer steps.")
+        fix = ("" if ess.get("stages") else ", or --reference-filter resample_move, whose tempering does not collapse")
+        return (f"No advice: the reference kept a median ESS of {ess['median']:.0f} particles, too few to rank the "
+                f"filters; rerun with more --reference-particles{fix}, or on a model with fewer steps.")
     fits = [b for b in result["budgets"] if b["ms"] <= budget_ms and b["best"] is not None]
     rows = [r for r in result["rows"] if r["error"] == r["error"]]
     if fits:
@@ -110,11 +127,7 @@ def frontier_markdown(result: dict) -> str:
         f"update of one belief (the {result['seeds']} seeds' beliefs updated as one batch, the first update "
         f"excluded), {result['threads']} torch thread(s)"
         + (", SVGD/ESCORT compiled" if result["compile"] else ", eager") + ".", "",
-        *([f"The reference's ESS per update (before resampling): median {result['reference_ess']['median']:.0f}, "
-           f"min {result['reference_ess']['min']:.0f} of {result['reference'].split()[2]}."
-           + (" **Below 1% of its particles: the reference is a few points, and distances to it are not a "
-              "posterior's.**" if result['reference_ess']['fraction'] < 0.01 else ""), ""]
-          if result.get("reference_ess") else []),
+        *([reference_ess_line(result), ""] if result.get("reference_ess") else []),
         *reference_error_lines(result),
         "**" + advice(result) + "**", "",
         "## Closest filter at each time budget", "",

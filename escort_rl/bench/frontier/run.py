@@ -45,13 +45,23 @@ def frontier_cells(spec: FrontierSpec, reference: tuple = (), reference_folder: 
 
 
 def reference_ess_summary(path: Path, digest: str, particles: int) -> dict:
-    """How far a SIR reference can be trusted: the effective sample size of its weights at each
-    update (before resampling; the mean over a chunk of seeds), as ``min`` and ``median`` over the
+    """How far a reference's weights can be trusted: the effective sample size of the weights it
+    resampled at each update (the mean over a chunk of seeds), as ``min`` and ``median`` over the
     updates, and ``fraction`` (the median over ``N``). A reference whose ESS is a handful of particles
-    is a few points, not a posterior."""
-    frac = Reference.load(path, digest).data["ess_fraction_before_resampling"].double()
-    return {"min": float(frac.min()) * particles, "median": float(frac.median()) * particles,
-            "fraction": float(frac.median())}
+    is a few points, not a posterior. For SIR these are its weights before resampling; for a tempered
+    reference, the smallest of its stages' (``stages``: true), with SIR's untempered ESS beside them
+    (``untempered_median``), which says how sharp the likelihood was, not how the reference fared."""
+    data = Reference.load(path, digest).data
+    before = data["ess_fraction_before_resampling"].double()
+    frac = data.get("ess_fraction_of_stages")
+    out = {"stages": frac is not None}
+    if frac is None:
+        frac = before
+    else:
+        out["untempered_median"] = float(before.median()) * particles
+    frac = frac.double()
+    return {**out, "particles": particles, "min": float(frac.min()) * particles,
+            "median": float(frac.median()) * particles, "fraction": float(frac.median())}
 
 
 def _row(cell: FrontierCell, result: dict, metric: str, part: str) -> dict:
