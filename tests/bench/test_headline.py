@@ -19,11 +19,14 @@ def test_mean_se_is_the_sample_mean_and_its_standard_error():
     assert mean_se([3.0]) == (3.0, 0.0) and all(math.isnan(v) for v in mean_se([]))
 
 
-def test_the_gain_of_the_highest_success_wins_then_the_lower_distance():
-    results = [{"gain": 1.0, "success": [1, 0], "final_distance": [0.1, 2.0]},
-               {"gain": 2.0, "success": [1, 1], "final_distance": [0.4, 0.4]},
-               {"gain": 3.0, "success": [1, 1], "final_distance": [0.2, 0.2]}]
-    assert best_gain(results) == 3.0
+def test_the_gain_of_the_highest_success_wins_then_the_higher_return_then_the_lower_distance():
+    results = [{"gain": 1.0, "success": [1, 0], "final_distance": [0.1, 2.0], "episode_return": [9.0, 9.0]},
+               {"gain": 2.0, "success": [1, 1], "final_distance": [0.4, 0.4], "episode_return": [-5.0, -5.0]},
+               {"gain": 3.0, "success": [1, 1], "final_distance": [0.2, 0.2], "episode_return": [-5.0, -5.0]},
+               {"gain": 4.0, "success": [1, 1], "final_distance": [0.3, 0.3], "episode_return": [-6.0, -5.0]}]
+    assert best_gain(results) == 3.0  # 2 and 3 tie on success and return; 4 reaches the goal later
+    results[1]["episode_return"] = [-4.0, -5.0]  # the gain that reaches the goal sooner wins the tie
+    assert best_gain(results) == 2.0
 
 
 def test_a_trained_row_aggregates_across_seeds_not_episodes():

@@ -5,6 +5,13 @@ from __future__ import annotations
 import math
 
 
+def _selection_cell(s: dict) -> str:
+    """One gain's result in the gain search: success, and return and steps where recorded."""
+    if "episode_return" not in s:
+        return f"{s['success']:.3f}"
+    return f"{s['success']:.3f} ({s['episode_return']:.1f}, {s['steps']:.0f} steps)"
+
+
 def _cell(mean: float, se: float, digits: int) -> str:
     if math.isnan(mean):
         return "—"
@@ -43,7 +50,7 @@ def headline_markdown(result: dict) -> str:
              "of the per-seed means. Scripted and random rows: the same episodes, mean ± s.e. **over episodes**. "
              "The scripted controller's velocity gain was chosen among "
              f"{', '.join(f'{g:g}' for g in spec['gains'])} by success on {spec['episodes']} other episodes "
-             f"(env seeds {spec['selection_seed']}..).", "",
+             f"(env seeds {spec['selection_seed']}..), ties by return.", "",
              "| policy | belief | success | final distance | return | steps | frames | training minutes |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in result["rows"]:
@@ -71,12 +78,12 @@ def headline_markdown(result: dict) -> str:
         if r["kind"] == "trained":
             lines.append(f"- {r['policy']}: " + ", ".join(f"{v:.2f}" for v in r["per_seed"]["success"]))
     lines += curve_markdown(result["rows"])
-    lines += ["", "Gain search (success on the selection episodes):", "",
+    lines += ["", "Gain search (success on the selection episodes; return and steps beside it where recorded):", "",
               "| belief | " + " | ".join(f"gain {g:g}" for g in spec["gains"]) + " |",
               "| --- |" + " --- |" * len(spec["gains"])]
     for f in dict.fromkeys(s["filter"] for s in result["selection"]):
-        cells = {s["gain"]: s["success"] for s in result["selection"] if s["filter"] == f}
-        lines.append(f"| {f} | " + " | ".join(f"{cells[g]:.3f}" for g in spec["gains"]) + " |")
+        cells = {s["gain"]: _selection_cell(s) for s in result["selection"] if s["filter"] == f}
+        lines.append(f"| {f} | " + " | ".join(cells[g] for g in spec["gains"]) + " |")
     if spec["overrides"]:
         lines += ["", "Overrides on every row: `" + " ".join(spec["overrides"]) + "`."]
     lines += ["", "Training minutes: each seed's training wall-clock (collection and updates), "

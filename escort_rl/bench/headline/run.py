@@ -94,10 +94,14 @@ def fixed_row(label: str, result: dict, kind: str) -> dict:
 
 
 def best_gain(results: list[dict]) -> float:
-    """The gain of the highest mean success (ties: the lower mean final distance, then the lower gain)."""
+    """The gain of the highest mean success; ties (every gain reaching the goal, say) go to the higher
+    mean return, which rewards reaching it sooner, then to the lower mean final distance, then to the
+    lower gain."""
     def score(r):
         distance = mean_se(r["final_distance"])[0]
-        return (-mean_se(r["success"])[0], distance if not math.isnan(distance) else 0.0, r["gain"])
+        ret = mean_se(r["episode_return"])[0]
+        return (-mean_se(r["success"])[0], -ret if not math.isnan(ret) else 0.0,
+                distance if not math.isnan(distance) else 0.0, r["gain"])
 
     return min(results, key=score)["gain"]
 
@@ -171,6 +175,7 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
                                    "gains": list(spec.gains),
                                    "overrides": list(spec.overrides), "threads": spec.threads,
                                    "curve_every": spec.curve_every},
-            "selection": [{"filter": c.filter, "gain": c.gain, "success": mean_se(r["success"])[0]}
+            "selection": [{"filter": c.filter, "gain": c.gain, "success": mean_se(r["success"])[0],
+                           "episode_return": mean_se(r["episode_return"])[0], "steps": mean_se(r["steps"])[0]}
                           for c, r in zip(selection, results)],
             "runs": [{"label": c.label, "seed": c.seed, "run_dir": c.run_dir} for c in trained]}
