@@ -154,6 +154,17 @@ def test_rows_with_no_belief_need_the_controller_s_beliefs_named(tmp_path):
         run_headline(spec, make_backend("inprocess"))
 
 
+def test_a_run_override_after_scripted_on_is_refused_not_taken_for_a_belief(capsys):
+    from escort_rl.cli import main
+
+    # argparse gives every word after --scripted-on to it: env=... would have run the controller on another task
+    assert main(["bench", "headline", "--quick", "--row", "PPO", "filter=sir", "--scripted-on", "sir",
+                 "env=lightdark10d_continuous"]) == 2
+    err = capsys.readouterr().err
+    assert "--scripted-on: 'env=lightdark10d_continuous' sets env, which is not part of a belief" in err
+    HeadlineSpec(scripted_filters=("sir", "filter=sir num_particles=3000", "filter=escort filter.num_steps=5"))
+
+
 def test_frontier_rows_train_on_each_filter_s_closest_configuration_within_the_budget(tmp_path):
     import json
 

@@ -40,6 +40,25 @@ def belief_overrides(belief: str) -> tuple[str, ...]:
     return words if any("=" in w for w in words) else (f"filter={belief}",)
 
 
+def check_belief(belief: str) -> None:
+    """Raise a ``ValueError`` naming ``--scripted-on`` where ``belief`` sets more than a belief's keys
+    (:data:`BELIEF_KEYS`: ``filter``, ``filter.*`` and ``num_particles``): a run override such as
+    ``env=...`` given after ``--scripted-on`` lands there, and would run the controller on another task.
+
+    Example:
+        >>> check_belief("env=lightdark10d_continuous")
+        Traceback (most recent call last):
+        ...
+        ValueError: --scripted-on: 'env=lightdark10d_continuous' sets env, which is not part of a belief (a filter name, or overrides of filter, filter.* and num_particles); put the run's own overrides (env=...) before --scripted-on
+    """
+    for word in belief_overrides(belief):
+        key = word.split("=", 1)[0].lstrip("+~")
+        if key.split(".", 1)[0] not in BELIEF_KEYS:
+            raise ValueError(f"--scripted-on: '{belief}' sets {key}, which is not part of a belief (a filter name, or "
+                             f"overrides of filter, filter.* and num_particles); put the run's own overrides "
+                             f"({key}=...) before --scripted-on")
+
+
 def belief_identity(config: dict) -> str:
     """What a composed config's belief is (its :data:`BELIEF_KEYS`, resolved; ``filter.compile`` left out: it
     changes the time, not the belief), as one comparable string: a trained row and a scripted controller act

@@ -218,7 +218,11 @@ class HeadlineSpec:
         object.__setattr__(self, "gains", tuple(float(g) for g in self.gains))
         object.__setattr__(self, "overrides", tuple(self.overrides))
         if self.scripted_filters is not None:
+            from escort_rl.bench.headline.cells import check_belief
+
             object.__setattr__(self, "scripted_filters", tuple(self.scripted_filters))
+            for belief in self.scripted_filters:
+                check_belief(belief)
         if not self.rows:
             raise ValueError("--row: give at least one trained row")
         object.__setattr__(self, "output", Path(self.output))
