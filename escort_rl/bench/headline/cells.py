@@ -46,10 +46,12 @@ def check_belief(belief: str) -> None:
     ``env=...`` given after ``--scripted-on`` lands there, and would run the controller on another task.
 
     Example:
-        >>> check_belief("env=lightdark10d_continuous")
-        Traceback (most recent call last):
-        ...
-        ValueError: --scripted-on: 'env=lightdark10d_continuous' sets env, which is not part of a belief (a filter name, or overrides of filter, filter.* and num_particles); put the run's own overrides (env=...) before --scripted-on
+        >>> check_belief("filter=sir num_particles=3000")  # a belief: nothing to say
+        >>> try:
+        ...     check_belief("env=lightdark10d_continuous")
+        ... except ValueError as err:
+        ...     print(str(err)[:66])
+        --scripted-on: 'env=lightdark10d_continuous' sets env, which is no
     """
     for word in belief_overrides(belief):
         key = word.split("=", 1)[0].lstrip("+~")
