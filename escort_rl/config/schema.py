@@ -259,6 +259,7 @@ class ActorConfig:
     summary: bool = _f(False)
     head: str = _f("auto", choices=["auto", "pooled", "per_coordinate"])
     group_hidden: int = _f(16, ge=1)
+    min_scale: float = _f(1e-4, gt=0)
 
 
 def check_ray_installed(value: str) -> str | None:

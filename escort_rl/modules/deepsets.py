@@ -202,7 +202,8 @@ class DeepSetsCritic(DeepSetsNet):
 def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
                          log_weights_key: str | None = "particle_log_weights",
                          action_key: str = "action",
-                         action_box: tuple[Tensor, Tensor] | None = None) -> ProbabilisticActor:
+                         action_box: tuple[Tensor, Tensor] | None = None,
+                         min_scale: float = 1e-4) -> ProbabilisticActor:
     """Wrap a :class:`DeepSetsActor` as a TorchRL ``ProbabilisticActor``.
 
     Discrete actions (``action_box=None``): a categorical head. Reads ``particles_key`` (and
@@ -211,7 +212,7 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
 
     Continuous actions (``action_box = (low, high)``, tensors ``[A]``; the actor's ``n_actions`` is
     ``2A``): a TanhNormal head. The actor's ``2A`` outputs split into ``"loc"`` and ``"scale"``
-    (``NormalParamExtractor``: ``scale = biased_softplus(·)``), and the action is
+    (``NormalParamExtractor``: ``scale = max(biased_softplus(·), min_scale)``), and the action is
     ``low + (high − low)·(tanh(u) + 1)/2`` with ``u ~ N(loc, scale)``, float ``[*B, A]`` inside the box,
     with ``"action_log_prob"`` ``[*B]`` (the change of variables summed over the ``A`` dimensions).
     TanhNormal has no closed-form entropy; ``ClipPPOLoss`` estimates it by sampling.
@@ -242,7 +243,8 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
                          f"squashes into the box), got low {low.tolist()} and high {high.tolist()}")
     module = TensorDictSequential(
         TensorDictModule(actor, in_keys=in_keys, out_keys=["normal_params"]),
-        TensorDictModule(NormalParamExtractor(), in_keys=["normal_params"], out_keys=["loc", "scale"]))
+        TensorDictModule(NormalParamExtractor(scale_lb=min_scale), in_keys=["normal_params"],
+                         out_keys=["loc", "scale"]))
     return ProbabilisticActor(module, in_keys=["loc", "scale"], out_keys=[action_key], distribution_class=TanhNormal,
                               distribution_kwargs={"low": low, "high": high}, return_log_prob=True,
                               log_prob_key="action_log_prob")

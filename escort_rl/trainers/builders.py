@@ -275,7 +275,9 @@ def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticAc
     actions, a TanhNormal inside the action box for continuous ones (:func:`make_deepsets_policy`)."""
     n_outputs, box = policy_outputs(model)
     actor = build_actor(cfg, model.state_dim, n_outputs, model)
-    return actor, make_deepsets_policy(actor, *belief_keys(cfg), action_box=box)
+    # a run saved before actor.min_scale existed loads with TorchRL's floor, which it trained with
+    min_scale = float(OmegaConf.select(cfg, "actor.min_scale", default=1e-4))
+    return actor, make_deepsets_policy(actor, *belief_keys(cfg), action_box=box, min_scale=min_scale)
 
 
 def deepsets_sizes(cfg: DictConfig, state_dim: int | None = None) -> dict:

@@ -249,3 +249,22 @@ def test_belief_keys_of_the_config_are_read():
     td = TensorDict({"bx": torch.randn(3, 5, 10), "bw": torch.zeros(3, 5)}, [3])
     out = policy(td)
     assert out["action"].shape == (3, 5)
+
+
+def test_the_scale_never_falls_below_actor_min_scale():
+    from escort_rl.trainers.builders import build_policy
+
+    torch.manual_seed(0)
+    actor = DeepSetsActor(state_dim=D, n_actions=2 * 5, hidden=8)
+    with torch.no_grad():  # a head that asks for a tiny scale everywhere: softplus(-30) is about 1e-13
+        actor.head.weight[5:] = 0.0
+        actor.head.bias[5:] = -30.0
+    td = TensorDict({"particles": torch.randn(6, N, D), "particle_log_weights": torch.zeros(6, N)}, [6])
+    floor = make_deepsets_policy(actor, action_box=BOXES["lightdark"], min_scale=0.3)(td.clone())["scale"]
+    assert bool((floor >= 0.3).all())
+    cfg = compose(["env=lightdark10d_continuous", "actor.min_scale=0.25"])
+    _, policy = build_policy(cfg, LightDark10DContinuous())
+    td = TensorDict({"particles": torch.randn(6, N, 10), "particle_log_weights": torch.zeros(6, N)}, [6])
+    assert bool((policy(td)["scale"] >= 0.25).all())
+    with pytest.raises(Exception, match="actor.min_scale"):
+        compose(["env=lightdark10d_continuous", "actor.min_scale=0"])
