@@ -199,11 +199,16 @@ class DeepSetsCritic(DeepSetsNet):
         super().__init__(state_dim, 1, **kwargs)
 
 
+DEFAULT_MIN_SCALE = 1e-4
+"""The TanhNormal's scale floor unless ``actor.min_scale`` says otherwise: TorchRL's ``NormalParamExtractor``'s
+own, which every run saved before the key existed trained with."""
+
+
 def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
                          log_weights_key: str | None = "particle_log_weights",
                          action_key: str = "action",
                          action_box: tuple[Tensor, Tensor] | None = None,
-                         min_scale: float = 1e-4) -> ProbabilisticActor:
+                         min_scale: float = DEFAULT_MIN_SCALE) -> ProbabilisticActor:
     """Wrap a :class:`DeepSetsActor` as a TorchRL ``ProbabilisticActor``.
 
     Discrete actions (``action_box=None``): a categorical head. Reads ``particles_key`` (and

@@ -15,6 +15,7 @@ from escort_rl.config.errors import first_line
 from escort_rl.envs import POMDPEnv
 from escort_rl.models.protocol import is_continuous
 from escort_rl.modules import DeepSetsActor, DeepSetsCritic, make_deepsets_policy, policy_outputs
+from escort_rl.modules.deepsets import DEFAULT_MIN_SCALE
 from escort_rl.planners import ScriptedBeliefController
 from escort_rl.planners.scripted import DEFAULT_GAIN_V
 from escort_rl.transforms import ActionRepeat, BeliefTransform
@@ -275,8 +276,8 @@ def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticAc
     actions, a TanhNormal inside the action box for continuous ones (:func:`make_deepsets_policy`)."""
     n_outputs, box = policy_outputs(model)
     actor = build_actor(cfg, model.state_dim, n_outputs, model)
-    # a run saved before actor.min_scale existed loads with TorchRL's floor, which it trained with
-    min_scale = float(OmegaConf.select(cfg, "actor.min_scale", default=1e-4))
+    # a run saved before actor.min_scale existed loads with the floor it trained with
+    min_scale = float(OmegaConf.select(cfg, "actor.min_scale", default=DEFAULT_MIN_SCALE))
     return actor, make_deepsets_policy(actor, *belief_keys(cfg), action_box=box, min_scale=min_scale)
 
 
