@@ -9,6 +9,7 @@ from torch.distributions import Categorical
 from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from escort_rl.models.protocol import is_continuous
+from escort_rl.modules.clipped_normal import ClippedNormal
 
 
 def _mlp(sizes: list[int], activation: type[nn.Module] = nn.Tanh, last_activation: bool = True) -> nn.Sequential:
@@ -203,12 +204,17 @@ DEFAULT_MIN_SCALE = 1e-4
 """The TanhNormal's scale floor unless ``actor.min_scale`` says otherwise: TorchRL's ``NormalParamExtractor``'s
 own, which every run saved before the key existed trained with."""
 
+CONTINUOUS_DISTRIBUTIONS = {"tanh_normal": TanhNormal, "clipped_normal": ClippedNormal}
+"""A continuous policy's law by its ``actor.distribution`` name: a Gaussian squashed into the action box by
+``tanh`` (TorchRL's ``TanhNormal``), or clipped into it (:class:`~escort_rl.modules.clipped_normal.ClippedNormal`)."""
+
 
 def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
                          log_weights_key: str | None = "particle_log_weights",
                          action_key: str = "action",
                          action_box: tuple[Tensor, Tensor] | None = None,
-                         min_scale: float = DEFAULT_MIN_SCALE) -> ProbabilisticActor:
+                         min_scale: float = DEFAULT_MIN_SCALE,
+                         distribution: str = "tanh_normal") -> ProbabilisticActor:
     """Wrap a :class:`DeepSetsActor` as a TorchRL ``ProbabilisticActor``.
 
     Discrete actions (``action_box=None``): a categorical head. Reads ``particles_key`` (and
@@ -216,11 +222,18 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
     ``"action_log_prob"``.
 
     Continuous actions (``action_box = (low, high)``, tensors ``[A]``; the actor's ``n_actions`` is
-    ``2A``): a TanhNormal head. The actor's ``2A`` outputs split into ``"loc"`` and ``"scale"``
-    (``NormalParamExtractor``: ``scale = max(biased_softplus(·), min_scale)``), and the action is
-    ``low + (high − low)·(tanh(u) + 1)/2`` with ``u ~ N(loc, scale)``, float ``[*B, A]`` inside the box,
-    with ``"action_log_prob"`` ``[*B]`` (the change of variables summed over the ``A`` dimensions).
-    TanhNormal has no closed-form entropy; ``ClipPPOLoss`` estimates it by sampling.
+    ``2A``): a Gaussian head. The actor's ``2A`` outputs split into ``"loc"`` and ``"scale"``
+    (``NormalParamExtractor``: ``scale = max(biased_softplus(·), min_scale)``), and ``distribution`` (a key
+    of :data:`CONTINUOUS_DISTRIBUTIONS`) puts the Gaussian in the box:
+
+    - ``tanh_normal``: ``a = low + (high − low)·(tanh(u) + 1)/2`` with ``u ~ N(loc, scale)``, its
+      log-probability the change of variables. It has no closed-form entropy; ``ClipPPOLoss`` estimates
+      it by sampling.
+    - ``clipped_normal``: ``a = clamp(c + h·u, low, high)`` (``c``, ``h`` the box's centre and half-width),
+      an atom on each face (:class:`~escort_rl.modules.clipped_normal.ClippedNormal`).
+
+    Either writes a float ``action_key`` ``[*B, A]`` inside the box and ``"action_log_prob"`` ``[*B]``
+    (summed over the ``A`` dimensions).
 
     Example:
         >>> from tensordict import TensorDict
@@ -232,6 +245,8 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
         torch.Size([3, 5])
     """
     in_keys = [particles_key] if log_weights_key is None else [particles_key, log_weights_key]
+    if distribution not in CONTINUOUS_DISTRIBUTIONS:
+        raise ValueError(f"distribution: expected one of {sorted(CONTINUOUS_DISTRIBUTIONS)}, got {distribution!r}")
     if action_box is None:
         module = TensorDictModule(actor, in_keys=in_keys, out_keys=["logits"])
         return ProbabilisticActor(module, in_keys=["logits"], out_keys=[action_key], distribution_class=Categorical,
@@ -250,7 +265,8 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
         TensorDictModule(actor, in_keys=in_keys, out_keys=["normal_params"]),
         TensorDictModule(NormalParamExtractor(scale_lb=min_scale), in_keys=["normal_params"],
                          out_keys=["loc", "scale"]))
-    return ProbabilisticActor(module, in_keys=["loc", "scale"], out_keys=[action_key], distribution_class=TanhNormal,
+    return ProbabilisticActor(module, in_keys=["loc", "scale"], out_keys=[action_key],
+                              distribution_class=CONTINUOUS_DISTRIBUTIONS[distribution],
                               distribution_kwargs={"low": low, "high": high}, return_log_prob=True,
                               log_prob_key="action_log_prob")
 

@@ -273,12 +273,14 @@ def build_critic(cfg: DictConfig, model, critic_input: str) -> tuple:
 def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticActor]:
     """The belief policy of ``model``: a :class:`DeepSetsActor` (:func:`build_actor`) and the TorchRL
     ``ProbabilisticActor`` around it reading ``cfg``'s belief keys: a categorical head for discrete
-    actions, a TanhNormal inside the action box for continuous ones (:func:`make_deepsets_policy`)."""
+    actions, a Gaussian put in the action box (``actor.distribution``) for continuous ones (:func:`make_deepsets_policy`)."""
     n_outputs, box = policy_outputs(model)
     actor = build_actor(cfg, model.state_dim, n_outputs, model)
     # a run saved before actor.min_scale existed loads with the floor it trained with
     min_scale = float(OmegaConf.select(cfg, "actor.min_scale", default=DEFAULT_MIN_SCALE))
-    return actor, make_deepsets_policy(actor, *belief_keys(cfg), action_box=box, min_scale=min_scale)
+    distribution = str(OmegaConf.select(cfg, "actor.distribution", default="tanh_normal"))
+    return actor, make_deepsets_policy(actor, *belief_keys(cfg), action_box=box, min_scale=min_scale,
+                                       distribution=distribution)
 
 
 def deepsets_sizes(cfg: DictConfig, state_dim: int | None = None) -> dict:

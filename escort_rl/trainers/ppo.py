@@ -200,13 +200,14 @@ class PPOBase(CollectorAlgorithm):
         if self.kickstart <= 0:
             return total
         teacher_action = minibatch[TEACHER_ACTION]
-        if is_continuous(self.model):  # inside the box: a TanhNormal's density at its edge is 0
+        dist = getattr(self.loss, "last_dist", None)  # the distribution of the loss's own forward on this minibatch
+        if dist is None or tuple(dist.batch_shape)[: minibatch.batch_dims] != tuple(minibatch.batch_size):
+            dist = self.policy.get_dist(minibatch)
+        if is_continuous(self.model) and not getattr(dist, "edge_has_mass", False):
+            # inside the box: a TanhNormal's density at its edge is 0
             low, high = (b.to(teacher_action) for b in check_action_box(self.model))
             margin = 1e-3 * (high - low)
             teacher_action = torch.minimum(torch.maximum(teacher_action, low + margin), high - margin)
-        dist = getattr(self.loss, "last_dist", None)  # the distribution of the loss's own forward on this minibatch
-        if dist is None or tuple(dist.batch_shape)[: teacher_action.dim()] != tuple(minibatch.batch_size):
-            dist = self.policy.get_dist(minibatch)
         imitation = -dist.log_prob(teacher_action).mean()
         out["loss_kickstart"] = imitation.detach()
         return total + self.kickstart * imitation
