@@ -273,7 +273,8 @@ def build_critic(cfg: DictConfig, model, critic_input: str) -> tuple:
 def build_policy(cfg: DictConfig, model) -> tuple[DeepSetsActor, ProbabilisticActor]:
     """The belief policy of ``model``: a :class:`DeepSetsActor` (:func:`build_actor`) and the TorchRL
     ``ProbabilisticActor`` around it reading ``cfg``'s belief keys: a categorical head for discrete
-    actions, a Gaussian put in the action box (``actor.distribution``) for continuous ones (:func:`make_deepsets_policy`)."""
+    actions, a Gaussian put in the action box (``actor.distribution``) for continuous ones
+    (:func:`make_deepsets_policy`)."""
     n_outputs, box = policy_outputs(model)
     actor = build_actor(cfg, model.state_dim, n_outputs, model)
     # a run saved before actor.min_scale existed loads with the floor it trained with

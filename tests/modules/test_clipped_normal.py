@@ -1,0 +1,148 @@
+"""ClippedNormal (escort_rl.modules.clipped_normal), the ``actor.distribution=clipped_normal`` head: its
+log-probability against the censored Gaussian's closed form, its atoms' mass against sampled frequencies,
+its entropy, its deterministic action, and PPO's loss and kickstart on it."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torch.distributions import Normal
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from conftest import hoeffding
+from escort_rl.config import compose
+from escort_rl.models import LightDark10DContinuous
+from escort_rl.modules import DeepSetsActor, make_deepsets_policy
+from escort_rl.modules.clipped_normal import ClippedNormal
+
+LOW, HIGH = torch.tensor([-1.0, 0.0, 2.0]), torch.tensor([1.0, 0.5, 3.0])  # centres 0, 0.25, 2.5
+
+
+def _dist(loc, scale):
+    return ClippedNormal(torch.as_tensor(loc, dtype=torch.float64), torch.as_tensor(scale, dtype=torch.float64),
+                         LOW.double(), HIGH.double())
+
+
+def test_log_prob_is_the_gaussian_density_inside_and_the_tail_mass_on_each_face():
+    loc, scale = torch.tensor([[0.3, -0.5, 1.5]]), torch.tensor([[0.7, 2.0, 0.4]])
+    d = _dist(loc, scale)
+    mu = (LOW + HIGH).double() / 2 + (HIGH - LOW).double() / 2 * loc.double()
+    sigma = (HIGH - LOW).double() / 2 * scale.double()
+    gauss = Normal(mu, sigma)
+    inside = torch.tensor([[0.2, 0.1, 2.9]], dtype=torch.float64)
+    torch.testing.assert_close(d.log_prob(inside), gauss.log_prob(inside).sum(-1))
+    # the low face in dimension 0, the high face in dimensions 1 and 2: P(u ≤ low) and P(u ≥ high)
+    edges = torch.tensor([[-1.0, 0.5, 3.0]], dtype=torch.float64)
+    by_hand = (math.log(float(gauss.cdf(edges)[0, 0])) + math.log(1 - float(gauss.cdf(edges)[0, 1]))
+               + math.log(1 - float(gauss.cdf(edges)[0, 2])))
+    assert float(d.log_prob(edges)) == pytest.approx(by_hand, rel=1e-12)
+
+
+def test_the_atoms_and_the_density_make_one_probability():
+    """The face masses plus the integral of the density inside (trapezoid rule) is 1, per dimension."""
+    d = _dist([[0.8, -1.2, 0.1]], [[0.5, 1.5, 2.0]])
+    total = torch.zeros(3, dtype=torch.float64)
+    for j in range(3):
+        grid = torch.linspace(float(LOW[j]), float(HIGH[j]), 20001, dtype=torch.float64)
+        density = torch.exp(Normal(d.gaussian.loc[0, j], d.gaussian.scale[0, j]).log_prob(grid))
+        atoms = sum(math.exp(float(torch.special.log_ndtr(z)))
+                    for z in ((LOW[j] - d.gaussian.loc[0, j]) / d.gaussian.scale[0, j],
+                              (d.gaussian.loc[0, j] - HIGH[j]) / d.gaussian.scale[0, j]))
+        total[j] = torch.trapezoid(density, grid) + atoms
+    torch.testing.assert_close(total, torch.ones(3, dtype=torch.float64), atol=1e-6, rtol=0)
+
+
+def test_samples_lie_in_the_box_and_hit_each_face_as_often_as_its_mass(per_test_generator):
+    d = _dist([[0.9, 0.0, -0.6]], [[0.5, 0.3, 1.0]])
+    n = 40_000
+    torch.manual_seed(int(torch.randint(0, 2**31 - 1, (1,), generator=per_test_generator)))
+    a = d.sample((n,))[:, 0]
+    assert a.shape == (n, 3) and bool(((a >= LOW.double()) & (a <= HIGH.double())).all())
+    for j in range(3):
+        for face, z in ((LOW[j], (LOW[j] - d.gaussian.loc[0, j]) / d.gaussian.scale[0, j]),
+                        (HIGH[j], (d.gaussian.loc[0, j] - HIGH[j]) / d.gaussian.scale[0, j])):
+            freq = float((a[:, j] == face.double()).double().mean())
+            assert abs(freq - math.exp(float(torch.special.log_ndtr(z)))) < hoeffding(n)
+
+
+def test_far_past_a_face_the_log_prob_of_the_face_tends_to_zero_and_stays_finite():
+    d = _dist([[40.0, -40.0, 0.0]], [[0.01, 0.01, 1e-3]])
+    lp = d.log_prob(torch.tensor([[1.0, 0.0, 2.5]], dtype=torch.float64))
+    assert bool(torch.isfinite(lp).all())
+    # the two faces contribute ~0; dimension 2 is a narrow Gaussian at its centre
+    assert float(lp) == pytest.approx(float(Normal(2.5, 0.5e-3).log_prob(torch.tensor(2.5))), rel=1e-9)
+    # the face's log-mass one scale inside the face is log Φ(1), and its gradient in the mean is finite
+    loc = torch.tensor([[0.99, 0.0, 0.0]], requires_grad=True)
+    lp = ClippedNormal(loc, torch.tensor([[0.01, 1.0, 1.0]]), LOW, HIGH).log_prob(torch.tensor([[1.0, 0.25, 2.5]]))
+    lp.backward()
+    assert bool(torch.isfinite(loc.grad).all())
+
+
+def test_entropy_is_the_gaussians_and_the_deterministic_action_the_clipped_mean():
+    d = _dist([[0.3, 2.0, -5.0]], [[0.7, 2.0, 0.4]])
+    torch.testing.assert_close(d.entropy(), d.gaussian.entropy().sum(-1))
+    torch.testing.assert_close(d.deterministic_sample, torch.tensor([[0.3, 0.5, 2.0]], dtype=torch.float64))
+    assert d.batch_shape == (1,) and d.event_shape == (3,)
+
+
+def _policy_and_beliefs():
+    torch.manual_seed(0)
+    box = (LightDark10DContinuous().action_low, LightDark10DContinuous().action_high)
+    policy = make_deepsets_policy(DeepSetsActor(10, 10, hidden=16), action_box=box, distribution="clipped_normal")
+    td = TensorDict({"particles": torch.randn(64, 6, 10), "particle_log_weights": torch.zeros(64, 6)}, [64])
+    return policy, td, box
+
+
+def test_the_policy_writes_actions_in_the_box_and_their_log_prob():
+    policy, td, (low, high) = _policy_and_beliefs()
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        out = policy(td)
+    assert out["action"].shape == (64, 5) and bool(((out["action"] >= low) & (out["action"] <= high)).all())
+    assert bool((out["action"] == high).any())  # the initial scale (1 half-width) reaches the faces
+    with torch.no_grad():
+        again = policy.get_dist(out).log_prob(out["action"])
+    torch.testing.assert_close(out["action_log_prob"], again)
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        greedy = policy(td.clone())
+    torch.testing.assert_close(greedy["action"], (0.1 * greedy["loc"]).clamp(-0.1, 0.1))
+
+
+def test_an_unknown_distribution_is_refused_by_name():
+    with pytest.raises(ValueError, match="distribution"):
+        make_deepsets_policy(DeepSetsActor(10, 10, hidden=8), action_box=_policy_and_beliefs()[2], distribution="beta")
+    with pytest.raises(Exception, match="actor.distribution"):
+        compose(["env=lightdark10d_continuous", "actor.distribution=beta"])
+
+
+def test_ppo_kickstarts_on_the_teachers_edge_actions_as_they_are():
+    """With a clipped Gaussian the teacher's actions on the faces are scored where they are (they have mass),
+    not moved inside the box as for a TanhNormal."""
+    from escort_rl.trainers.builders import make_env
+    from escort_rl.trainers.ppo import PPO, TEACHER_ACTION
+
+    torch.manual_seed(0)
+    cfg = compose(["trainer=ppo", "env=lightdark10d_continuous", "filter=sir", "trainer.warm_start_filter=null",
+                   "trainer.num_envs=4", "trainer.rollout_steps=12", "env.max_steps=12", "num_particles=8",
+                   "actor.hidden=16", "trainer.minibatches=2", "trainer.epochs=2", "trainer.teacher=scripted",
+                   "actor.distribution=clipped_normal"])
+    ppo = PPO(cfg, LightDark10DContinuous())
+    env = make_env(cfg, 4, seed=3)
+    try:
+        with torch.no_grad():
+            batch = env.rollout(12, ppo.policy, break_when_any_done=False)
+    finally:
+        env.close()
+    ppo.kickstart = 1.0
+    ppo.estimate_advantages(batch)
+    ppo.teacher(batch)
+    frames = batch.reshape(-1)
+    assert bool((frames[TEACHER_ACTION].abs() == 0.1).any())  # the controller pushes at full force
+    out = ppo.loss_terms(frames)
+    ppo.total_loss(frames, out)
+    cross_entropy = -ppo.policy.get_dist(frames).log_prob(frames[TEACHER_ACTION]).mean().detach()
+    assert float(out["loss_kickstart"]) == pytest.approx(float(cross_entropy), rel=1e-6)
+    metrics = ppo.update(batch)
+    assert math.isfinite(metrics["kl_approx"]) and metrics["skipped_steps"] == 0
