@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import torch
-from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import Tensor, nn
 from torch.distributions import Categorical
-from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.modules import ProbabilisticActor
 
 from escort_rl.models.protocol import is_continuous
-from escort_rl.modules.clipped_normal import ClippedNormal
+from escort_rl.modules.action_heads import DEFAULT_DISTRIBUTION, DEFAULT_MIN_SCALE, gaussian_in_box, normal_params
 
 
 def _mlp(sizes: list[int], activation: type[nn.Module] = nn.Tanh, last_activation: bool = True) -> nn.Sequential:
@@ -200,21 +200,12 @@ class DeepSetsCritic(DeepSetsNet):
         super().__init__(state_dim, 1, **kwargs)
 
 
-DEFAULT_MIN_SCALE = 1e-4
-"""The TanhNormal's scale floor unless ``actor.min_scale`` says otherwise: TorchRL's ``NormalParamExtractor``'s
-own, which every run saved before the key existed trained with."""
-
-CONTINUOUS_DISTRIBUTIONS = {"tanh_normal": TanhNormal, "clipped_normal": ClippedNormal}
-"""A continuous policy's law by its ``actor.distribution`` name: a Gaussian squashed into the action box by
-``tanh`` (TorchRL's ``TanhNormal``), or clipped into it (:class:`~escort_rl.modules.clipped_normal.ClippedNormal`)."""
-
-
 def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
                          log_weights_key: str | None = "particle_log_weights",
                          action_key: str = "action",
                          action_box: tuple[Tensor, Tensor] | None = None,
                          min_scale: float = DEFAULT_MIN_SCALE,
-                         distribution: str = "tanh_normal") -> ProbabilisticActor:
+                         distribution: str = DEFAULT_DISTRIBUTION) -> ProbabilisticActor:
     """Wrap a :class:`DeepSetsActor` as a TorchRL ``ProbabilisticActor``.
 
     Discrete actions (``action_box=None``): a categorical head. Reads ``particles_key`` (and
@@ -224,7 +215,7 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
     Continuous actions (``action_box = (low, high)``, tensors ``[A]``; the actor's ``n_actions`` is
     ``2A``): a Gaussian head. The actor's ``2A`` outputs split into ``"loc"`` and ``"scale"``
     (``NormalParamExtractor``: ``scale = max(biased_softplus(·), min_scale)``), and ``distribution`` (a key
-    of :data:`CONTINUOUS_DISTRIBUTIONS`) puts the Gaussian in the box:
+    of :data:`~escort_rl.modules.action_heads.CONTINUOUS_DISTRIBUTIONS`) puts the Gaussian in the box:
 
     - ``tanh_normal``: ``a = low + (high − low)·(tanh(u) + 1)/2`` with ``u ~ N(loc, scale)``, its
       log-probability the change of variables. It has no closed-form entropy; ``ClipPPOLoss`` estimates
@@ -245,30 +236,13 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
         torch.Size([3, 5])
     """
     in_keys = [particles_key] if log_weights_key is None else [particles_key, log_weights_key]
-    if distribution not in CONTINUOUS_DISTRIBUTIONS:
-        raise ValueError(f"distribution: expected one of {sorted(CONTINUOUS_DISTRIBUTIONS)}, got {distribution!r}")
     if action_box is None:
         module = TensorDictModule(actor, in_keys=in_keys, out_keys=["logits"])
         return ProbabilisticActor(module, in_keys=["logits"], out_keys=[action_key], distribution_class=Categorical,
                                   return_log_prob=True, log_prob_key="action_log_prob")
-    if not isinstance(action_box, (tuple, list)) or len(action_box) != 2:
-        raise ValueError(f"action_box: expected a pair (low, high) of tensors [A], got {type(action_box).__name__} "
-                         f"of {len(action_box) if hasattr(action_box, '__len__') else 'no'} items")
-    low, high = (torch.as_tensor(b, dtype=torch.float32) for b in action_box)
-    if low.ndim != 1 or low.shape != high.shape or actor.n_actions != 2 * low.shape[0]:
-        raise ValueError(f"action_box: expected (low, high) of shape [A] for an actor with n_actions = 2A, got shapes "
-                         f"{tuple(low.shape)}, {tuple(high.shape)} and n_actions {actor.n_actions}")
-    if not bool((torch.isfinite(low) & torch.isfinite(high) & (low < high)).all()):
-        raise ValueError(f"action_box: expected finite bounds with low < high in every dimension (a TanhNormal "
-                         f"squashes into the box), got low {low.tolist()} and high {high.tolist()}")
-    module = TensorDictSequential(
-        TensorDictModule(actor, in_keys=in_keys, out_keys=["normal_params"]),
-        TensorDictModule(NormalParamExtractor(scale_lb=min_scale), in_keys=["normal_params"],
-                         out_keys=["loc", "scale"]))
-    return ProbabilisticActor(module, in_keys=["loc", "scale"], out_keys=[action_key],
-                              distribution_class=CONTINUOUS_DISTRIBUTIONS[distribution],
-                              distribution_kwargs={"low": low, "high": high}, return_log_prob=True,
-                              log_prob_key="action_log_prob")
+    module = TensorDictSequential(TensorDictModule(actor, in_keys=in_keys, out_keys=["normal_params"]),
+                                  normal_params(min_scale))
+    return gaussian_in_box(module, action_box, actor.n_actions, action_key=action_key, distribution=distribution)
 
 
 def policy_outputs(model) -> tuple[int, tuple[Tensor, Tensor] | None]:

@@ -32,11 +32,13 @@ Two modes, TorchRL's convention (:class:`torchrl.modules.set_recurrent_mode`):
 from __future__ import annotations
 
 import torch
-from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torch.distributions import Categorical
 from torchrl.envs import TensorDictPrimer
-from torchrl.modules import GRUModule, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules import GRUModule, ProbabilisticActor, ValueOperator
+
+from escort_rl.modules.action_heads import DEFAULT_DISTRIBUTION, DEFAULT_MIN_SCALE, gaussian_in_box, normal_params
 
 RECURRENT_KEY = "recurrent_state"
 
@@ -77,6 +79,7 @@ def make_recurrent_actor_critic(obs_dim: int, n_actions: int, hidden: int = 64,
                                 obs_loc: float | list[float] = 0.0, obs_scale: float | list[float] = 1.0,
                                 observation_key: str = "observation",
                                 action_box: tuple[torch.Tensor, torch.Tensor] | None = None,
+                                min_scale: float = DEFAULT_MIN_SCALE, distribution: str = DEFAULT_DISTRIBUTION,
                                 ) -> tuple[ProbabilisticActor, TensorDictSequential, TensorDictPrimer]:
     """``(policy, value, primer)``: a GRU actor-critic on the standardised observation (see the
     module docstring for the keys, shapes and modes).
@@ -89,13 +92,15 @@ def make_recurrent_actor_critic(obs_dim: int, n_actions: int, hidden: int = 64,
 
     Args:
         obs_dim: the observation's size.
-        n_actions: the number of discrete actions; with ``action_box``, ``2·A`` (a TanhNormal's loc and
-            scale, as :func:`escort_rl.modules.deepsets.make_deepsets_policy`'s continuous head).
+        n_actions: the number of discrete actions; with ``action_box``, ``2·A`` (a Gaussian's loc and
+            scale, put in the box as :func:`escort_rl.modules.action_heads.gaussian_in_box` does).
         hidden: the width of the encoder, of the GRU's hidden state and of the heads.
         obs_loc, obs_scale: the observation is standardised as ``(o − loc) / scale`` (scalars or
             ``[obs_dim]``).
         observation_key: the key the policy reads.
         action_box: ``(low, high)`` tensors ``[A]`` for continuous actions (``None``: discrete).
+        min_scale, distribution: the continuous head's scale floor and law (``actor.min_scale``,
+            ``actor.distribution``; see :mod:`escort_rl.modules.action_heads`).
     """
     encoder = TensorDictModule(
         nn.Sequential(Standardise(obs_dim, obs_loc, obs_scale), nn.Linear(obs_dim, hidden), nn.Tanh()),
@@ -107,13 +112,10 @@ def make_recurrent_actor_critic(obs_dim: int, n_actions: int, hidden: int = 64,
                                     distribution_class=Categorical, return_log_prob=True,
                                     log_prob_key="action_log_prob")
     else:
-        low, high = (torch.as_tensor(b, dtype=torch.float32) for b in action_box)
         params = TensorDictSequential(
             TensorDictModule(_head(hidden, n_actions), in_keys=["rnn_output"], out_keys=["normal_params"]),
-            TensorDictModule(NormalParamExtractor(), in_keys=["normal_params"], out_keys=["loc", "scale"]))
-        policy = ProbabilisticActor(TensorDictSequential(encoder, gru, params), in_keys=["loc", "scale"],
-                                    out_keys=["action"], distribution_class=TanhNormal,
-                                    distribution_kwargs={"low": low, "high": high}, return_log_prob=True,
-                                    log_prob_key="action_log_prob")
+            normal_params(min_scale))
+        policy = gaussian_in_box(TensorDictSequential(encoder, gru, params), action_box, n_actions,
+                                 distribution=distribution)
     value = TensorDictSequential(encoder, gru, ValueOperator(_head(hidden, 1), in_keys=["rnn_output"]))
     return policy, value, gru.make_tensordict_primer()

@@ -37,7 +37,7 @@ from escort_rl.config import ConfigError
 from escort_rl.modules import policy_outputs
 from escort_rl.modules.recurrent import make_recurrent_actor_critic, make_recurrent_primer
 from escort_rl.trainers.algorithm import trainer_params
-from escort_rl.trainers.builders import build_model, build_pomdp_env, input_scaling
+from escort_rl.trainers.builders import build_model, build_pomdp_env, continuous_head, input_scaling
 from escort_rl.trainers.params import RecurrentPPOParams
 from escort_rl.trainers.ppo import PPOBase, clip_ppo_loss
 
@@ -86,7 +86,8 @@ def build_recurrent_actor_critic(cfg: DictConfig, model):
     loc, scale = observation_scaling(cfg, model)
     n_outputs, box = policy_outputs(model)
     policy, value, primer = make_recurrent_actor_critic(model.obs_dim, n_outputs, hidden=recurrent_hidden(cfg),
-                                                        obs_loc=loc, obs_scale=scale, action_box=box)
+                                                        obs_loc=loc, obs_scale=scale, action_box=box,
+                                                        **continuous_head(cfg))
     return policy.to(cfg.device), value.to(cfg.device), primer
 
 

@@ -146,3 +146,25 @@ def test_ppo_kickstarts_on_the_teachers_edge_actions_as_they_are():
     assert float(out["loss_kickstart"]) == pytest.approx(float(cross_entropy), rel=1e-6)
     metrics = ppo.update(batch)
     assert math.isfinite(metrics["kl_approx"]) and metrics["skipped_steps"] == 0
+
+
+@pytest.mark.parametrize("distribution,law", [("clipped_normal", "ClippedNormal"), ("tanh_normal", "TanhNormal")])
+def test_both_continuous_policies_take_actor_distribution(distribution, law):
+    """The belief policy and the GRU on raw observations read the same ``actor.distribution``, so that a
+    comparison between them is one of inputs, not of action laws."""
+    from escort_rl.trainers.builders import build_model, build_policy
+    from escort_rl.trainers.recurrent_ppo import build_recurrent_actor_critic
+
+    overrides = ["env=lightdark10d_continuous", f"actor.distribution={distribution}", "actor.min_scale=0.2"]
+    cfg = compose(overrides)
+    model = build_model(cfg.env)
+    _, belief_policy = build_policy(cfg, model)
+    td = TensorDict({"particles": torch.randn(4, 6, 10), "particle_log_weights": torch.zeros(4, 6)}, [4])
+    assert type(belief_policy.get_dist(belief_policy(td))).__name__ == law
+    gru_policy, _, primer = build_recurrent_actor_critic(compose([*overrides, "trainer=recurrent_ppo"]), model)
+    obs = TensorDict({"observation": torch.randn(4, model.obs_dim), "is_init": torch.ones(4, 1, dtype=torch.bool),
+                      "recurrent_state": torch.zeros(4, 1, primer.primers["recurrent_state"].shape[-1])}, [4])
+    out = gru_policy(obs)
+    assert type(gru_policy.get_dist(out)).__name__ == law
+    assert bool((out["scale"] >= 0.2).all()) and out["action"].shape == (4, 5)
+
