@@ -260,7 +260,7 @@ class ActorConfig:
     head: str = _f("auto", choices=["auto", "pooled", "per_coordinate"])
     group_hidden: int = _f(16, ge=1)
     min_scale: float = _f(1e-4, gt=0)
-    distribution: str = _f("tanh_normal", choices=["tanh_normal", "clipped_normal"])
+    distribution: str = _f("clipped_normal", choices=["tanh_normal", "clipped_normal"])
 
 
 def check_ray_installed(value: str) -> str | None:

@@ -32,8 +32,11 @@ every run saved before the key existed trained with."""
 CONTINUOUS_DISTRIBUTIONS = {"tanh_normal": TanhNormal, "clipped_normal": ClippedNormal}
 """A continuous policy's law by its ``actor.distribution`` name."""
 
-DEFAULT_DISTRIBUTION = "tanh_normal"
-"""The law of a run saved before ``actor.distribution`` existed."""
+DEFAULT_DISTRIBUTION = "clipped_normal"
+"""The law of a continuous policy unless ``actor.distribution`` says otherwise."""
+
+SAVED_RUN_DISTRIBUTION = "tanh_normal"
+"""The law of a run saved before ``actor.distribution`` existed: it loads with the TanhNormal it trained with."""
 
 
 def check_action_box_pair(action_box, n_outputs: int) -> tuple[Tensor, Tensor]:

@@ -15,7 +15,7 @@ from escort_rl.config.errors import first_line
 from escort_rl.envs import POMDPEnv
 from escort_rl.models.protocol import is_continuous
 from escort_rl.modules import DeepSetsActor, DeepSetsCritic, make_deepsets_policy, policy_outputs
-from escort_rl.modules.action_heads import DEFAULT_DISTRIBUTION, DEFAULT_MIN_SCALE
+from escort_rl.modules.action_heads import DEFAULT_MIN_SCALE, SAVED_RUN_DISTRIBUTION
 from escort_rl.planners import ScriptedBeliefController
 from escort_rl.planners.scripted import DEFAULT_GAIN_V
 from escort_rl.transforms import ActionRepeat, BeliefTransform
@@ -284,7 +284,7 @@ def continuous_head(cfg: DictConfig) -> dict:
     """The continuous head's ``min_scale`` and ``distribution`` (``actor.min_scale``, ``actor.distribution``); a
     run saved before either key existed loads with what it trained with (TorchRL's floor, a TanhNormal)."""
     return {"min_scale": float(OmegaConf.select(cfg, "actor.min_scale", default=DEFAULT_MIN_SCALE)),
-            "distribution": str(OmegaConf.select(cfg, "actor.distribution", default=DEFAULT_DISTRIBUTION))}
+            "distribution": str(OmegaConf.select(cfg, "actor.distribution", default=SAVED_RUN_DISTRIBUTION))}
 
 
 def deepsets_sizes(cfg: DictConfig, state_dim: int | None = None) -> dict:

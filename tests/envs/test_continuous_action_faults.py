@@ -67,8 +67,8 @@ HIGH = torch.full((5,), 0.1)
 
 
 @pytest.mark.parametrize("box, expected", [
-    ((HIGH, -HIGH), "action_box: expected finite bounds with low < high in every dimension (a TanhNormal squashes "
-                    "into the box), got low [0.10000000149011612"),
+    ((HIGH, -HIGH), "action_box: expected finite bounds with low < high in every dimension (the policy puts its "
+                    "Gaussian in the box), got low [0.10000000149011612"),
     ((torch.full((5,), math.nan), HIGH), "action_box: expected finite bounds with low < high in every dimension"),
     ((torch.full((5,), -math.inf), HIGH), "action_box: expected finite bounds with low < high in every dimension"),
     ((-HIGH,), "action_box: expected a pair (low, high) of tensors [A], got tuple of 1 items"),

@@ -49,7 +49,7 @@ def tanh_normal_policy(model, hidden: int = 16, seed: int = 0):
     torch.manual_seed(seed)
     n_out, box = policy_outputs(model)
     actor = DeepSetsActor(model.state_dim, n_out, hidden=hidden)
-    return make_deepsets_policy(actor, action_box=box)
+    return make_deepsets_policy(actor, action_box=box, distribution="tanh_normal")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -35,7 +35,7 @@ def make_policy(box, seed: int = 0, spread: float = 1.0):
     actor = DeepSetsActor(D, 2 * low.shape[0], hidden=16)
     with torch.no_grad():
         actor.head.weight.mul_(spread)
-    return actor, make_deepsets_policy(actor, action_box=box)
+    return actor, make_deepsets_policy(actor, action_box=box, distribution="tanh_normal")
 
 
 def beliefs(batch: int, seed: int = 1) -> TensorDict:
@@ -245,7 +245,8 @@ def test_belief_keys_of_the_config_are_read():
     """``make_deepsets_policy`` reads the config's renamed belief keys, as PPO builds it."""
     cfg = compose(["trainer=ppo", "env=lightdark10d_continuous", "keys.particles=bx", "keys.log_weights=bw"])
     n, box = policy_outputs(LightDark10DContinuous())
-    policy = make_deepsets_policy(DeepSetsActor(10, n, hidden=8), *belief_keys(cfg), action_box=box)
+    policy = make_deepsets_policy(DeepSetsActor(10, n, hidden=8), *belief_keys(cfg), action_box=box,
+                                  distribution="tanh_normal")
     td = TensorDict({"bx": torch.randn(3, 5, 10), "bw": torch.zeros(3, 5)}, [3])
     out = policy(td)
     assert out["action"].shape == (3, 5)

@@ -95,7 +95,7 @@ def test_the_continuous_teacher_term_is_finite_at_the_edge_of_the_box():
     """The continuous controller's action is often clipped to the box's edge, where a TanhNormal's density is 0;
     the term reads it just inside."""
     torch.manual_seed(0)
-    cfg = compose([*TINY, "env=lightdark10d_continuous", "trainer.teacher=scripted"])
+    cfg = compose([*TINY, "env=lightdark10d_continuous", "trainer.teacher=scripted", "actor.distribution=tanh_normal"])
     from escort_rl.models import LightDark10DContinuous
 
     ppo = PPO(cfg, LightDark10DContinuous())

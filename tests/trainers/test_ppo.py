@@ -273,7 +273,8 @@ def _continuous_loss(cap):
     torch.manual_seed(0)
     actor, critic = DeepSetsActor(10, 2, hidden=8), DeepSetsActor(10, 1, hidden=8)
     box = (torch.tensor([-2.0]), torch.tensor([2.0]))
-    return make_ppo_loss(make_deepsets_policy(actor, *belief_keys(cfg), action_box=box), critic, cfg), actor
+    policy = make_deepsets_policy(actor, *belief_keys(cfg), action_box=box, distribution="tanh_normal")
+    return make_ppo_loss(policy, critic, cfg), actor
 
 
 def test_the_importance_cap_bounds_the_surrogate_as_dual_clip_does():
