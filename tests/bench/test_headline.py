@@ -47,7 +47,10 @@ def test_the_comparison_with_the_controller_pairs_the_episodes_then_averages_the
     d = paired_difference(seeds, scripted)
     assert d["success"][0] == pytest.approx((1 / 3 - 1 / 3) / 2)
     assert d["steps"][0] == pytest.approx(((-10 - 100 + 10) / 3 + 200 / 3) / 2)  # per seed: -33.3, +66.7
-    assert d["steps"][1] == pytest.approx(mean_se([-100 / 3, 200 / 3])[1])
+    se_seeds = mean_se([-100 / 3, 200 / 3])[1]
+    se_episodes = mean_se([(-10 + 0) / 2, (-100 + 0) / 2, (10 + 200) / 2])[1]  # per episode, over the seeds
+    assert d["steps"][2:] == pytest.approx((se_seeds, se_episodes))
+    assert d["steps"][1] == pytest.approx(math.hypot(se_seeds, se_episodes))
     assert d["episode_return"][0] == pytest.approx(((1 + 10 - 1) / 3 + (-20) / 3) / 2)
 
 

@@ -66,13 +66,16 @@ def headline_markdown(result: dict) -> str:
     if compared:
         scripted = {r["filter"]: r["policy"] for r in result["rows"] if r["kind"] == "scripted"}
         lines += ["", "Each trained row against the scripted controller on its belief, episode by episode "
-                  "(trained − scripted on the same episodes; mean ± s.e. across training seeds of the per-seed "
-                  "mean difference). Positive success and return, negative steps: the learner is ahead.", "",
+                  "(trained − scripted on the same episodes, averaged over seeds and episodes). The s.e. counts "
+                  "both samples, √(s.e. across seeds² + s.e. across episodes²): every seed meets the same run of "
+                  "the controller, whose own spread over the episodes the seeds cannot see. Positive success and "
+                  "return, negative steps: the learner is ahead.", "",
                   "| policy | against | Δ success | Δ steps | Δ return |", "| --- | --- | --- | --- | --- |"]
         for r in compared:
             d = r["vs_scripted"]
             lines.append(f"| {r['policy']} | {scripted.get(r['filter'], r['filter'])} on {r['filter']} | "
-                         f"{_cell(*d['success'], 3)} | {_cell(*d['steps'], 1)} | {_cell(*d['episode_return'], 1)} |")
+                         f"{_cell(*d['success'][:2], 3)} | {_cell(*d['steps'][:2], 1)} | "
+                         f"{_cell(*d['episode_return'][:2], 1)} |")
     lines += ["", "Per-seed success of the trained rows:", ""]
     for r in result["rows"]:
         if r["kind"] == "trained":

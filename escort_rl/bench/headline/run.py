@@ -74,14 +74,24 @@ PAIRED = ("success", "steps", "episode_return")
 
 
 def paired_difference(results: list[dict], scripted: dict) -> dict:
-    """A trained row against the scripted controller on the same episodes and belief: per training seed,
-    the mean over episodes of ``trained − scripted`` (success, steps, return); then mean ± s.e. across
-    the seeds (``{"success": (mean, se), ...}``). Pairing by episode removes the episodes' own spread
-    (a far start takes longer for both), which is most of the spread of steps and return."""
+    """A trained row against the scripted controller on the same episodes and belief: the mean of
+    ``d_si = trained_si − scripted_i`` over training seeds ``s`` and episodes ``i`` (success, steps, return),
+    with the standard error of both samples, ``{"success": (mean, se, se_seeds, se_episodes), ...}``:
+
+        se = √(se_seeds² + se_episodes²),
+
+    ``se_seeds`` the s.e. across seeds of the per-seed means ``d̄_s·`` (the training's spread), and
+    ``se_episodes`` the s.e. across episodes of the per-episode means ``d̄_·i`` (the episodes' spread, the
+    controller's one run on them included: every seed is compared with the same run, so the spread across
+    seeds cannot see it). Both carry the seed × episode residual, so the sum is conservative. Pairing by
+    episode removes what the two policies share (a far start takes longer for both)."""
     out = {}
     for key in PAIRED:
-        per_seed = [mean_se([t - c for t, c in zip(r[key], scripted[key])])[0] for r in results]
-        out[key] = mean_se(per_seed)
+        diffs = [[t - c for t, c in zip(r[key], scripted[key])] for r in results]
+        mean, se_seeds = mean_se([mean_se(d)[0] for d in diffs])
+        per_episode = [mean_se([d[i] for d in diffs])[0] for i in range(min(len(d) for d in diffs))]
+        se_episodes = mean_se(per_episode)[1]
+        out[key] = (mean, math.hypot(se_seeds, se_episodes), se_seeds, se_episodes)
     return out
 
 
