@@ -66,6 +66,10 @@ def test_the_table_has_its_rows_and_a_rerun_loads_the_finished_cells(tmp_path):
     checkpoints = sorted(p.stat().st_mtime_ns for p in (tmp_path / "runs").rglob("manifest.json"))
     assert checkpoints  # every trained cell wrote its run
     assert all(set(r["vs_scripted"]) == {"success", "steps", "episode_return"} for r in result["rows"][:2])
+    # the episodes behind every row are kept, so that a paired difference can be recomputed from the table alone
+    assert all(len(r["per_episode"]["steps"]) == 1 and len(r["per_episode"]["steps"][0]) == 2
+               for r in result["rows"][:2])
+    assert all(len(r["per_episode"]["steps"]) == 2 for r in result["rows"][2:])
     again = run_headline(spec, make_backend("inprocess"))
     assert again["rows"] == result["rows"]
     assert sorted(p.stat().st_mtime_ns for p in (tmp_path / "runs").rglob("manifest.json")) == checkpoints

@@ -32,14 +32,21 @@ def fixed_cell(spec: HeadlineSpec, filter_name: str, gain: float | None, eval_se
                            eval_seed=eval_seed, threads=spec.threads)
 
 
+PAIRED = ("success", "steps", "episode_return")
+"""The metrics a trained row is compared on with the scripted controller, episode by episode."""
+
+
 def trained_row(label: str, results: list[dict]) -> dict:
-    """A trained row: each metric's mean ± s.e. across the training seeds of the per-seed means."""
+    """A trained row: each metric's mean ± s.e. across the training seeds of the per-seed means, and
+    ``per_episode`` (the :data:`PAIRED` metrics, ``[seed][episode]``), from which a paired difference can be
+    recomputed."""
     row = {"policy": label, "kind": "trained", "filter": results[0]["filter"], "seeds": len(results),
            "per_seed": {}}
     for key in ("success", "final_distance", "episode_return", "steps"):
         per_seed = [mean_se(r[key])[0] for r in results]
         row["per_seed"][key] = per_seed
         row[key], row[f"{key}_se"] = mean_se(per_seed)
+    row["per_episode"] = {key: [list(r[key]) for r in results] for key in PAIRED}
     row["frames"] = results[0]["frames"]
     row["curve"] = mean_curve([r.get("curve", []) for r in results])
     row["train_minutes"], row["train_minutes_se"] = mean_se([r["train_seconds"] / 60 for r in results])
@@ -69,10 +76,6 @@ def mean_curve(curves: list[list[dict]]) -> list[dict]:
     return out
 
 
-PAIRED = ("success", "steps", "episode_return")
-"""The metrics a trained row is compared on with the scripted controller, episode by episode."""
-
-
 def paired_difference(results: list[dict], scripted: dict) -> dict:
     """A trained row against the scripted controller on the same episodes and belief: the mean of
     ``d_si = trained_si − scripted_i`` over training seeds ``s`` and episodes ``i`` (success, steps, return),
@@ -96,10 +99,12 @@ def paired_difference(results: list[dict], scripted: dict) -> dict:
 
 
 def fixed_row(label: str, result: dict, kind: str) -> dict:
-    """A scripted or random row: each metric's mean ± s.e. over the episodes."""
+    """A scripted or random row: each metric's mean ± s.e. over the episodes, and ``per_episode`` (the
+    :data:`PAIRED` metrics)."""
     row = {"policy": label, "kind": kind, "filter": result["filter"], "gain": result["gain"]}
     for key in ("success", "final_distance", "episode_return", "steps"):
         row[key], row[f"{key}_se"] = mean_se(result[key])
+    row["per_episode"] = {key: list(result[key]) for key in PAIRED}
     return row
 
 
