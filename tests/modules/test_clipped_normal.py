@@ -1,6 +1,7 @@
 """ClippedNormal (escort_rl.modules.clipped_normal), the ``actor.distribution=clipped_normal`` head: its
 log-probability against the censored Gaussian's closed form, its atoms' mass against sampled frequencies,
-its entropy, its deterministic action, and PPO's loss and kickstart on it."""
+its entropy, its deterministic action, and both policies' heads (the kickstart on it:
+tests/trainers/test_kickstart.py)."""
 
 from __future__ import annotations
 
@@ -115,37 +116,6 @@ def test_an_unknown_distribution_is_refused_by_name():
         make_deepsets_policy(DeepSetsActor(10, 10, hidden=8), action_box=_policy_and_beliefs()[2], distribution="beta")
     with pytest.raises(Exception, match="actor.distribution"):
         compose(["env=lightdark10d_continuous", "actor.distribution=beta"])
-
-
-def test_ppo_kickstarts_on_the_teachers_edge_actions_as_they_are():
-    """With a clipped Gaussian the teacher's actions on the faces are scored where they are (they have mass),
-    not moved inside the box as for a TanhNormal."""
-    from escort_rl.trainers.builders import make_env
-    from escort_rl.trainers.ppo import PPO, TEACHER_ACTION
-
-    torch.manual_seed(0)
-    cfg = compose(["trainer=ppo", "env=lightdark10d_continuous", "filter=sir", "trainer.warm_start_filter=null",
-                   "trainer.num_envs=4", "trainer.rollout_steps=12", "env.max_steps=12", "num_particles=8",
-                   "actor.hidden=16", "trainer.minibatches=2", "trainer.epochs=2", "trainer.teacher=scripted",
-                   "actor.distribution=clipped_normal"])
-    ppo = PPO(cfg, LightDark10DContinuous())
-    env = make_env(cfg, 4, seed=3)
-    try:
-        with torch.no_grad():
-            batch = env.rollout(12, ppo.policy, break_when_any_done=False)
-    finally:
-        env.close()
-    ppo.kickstart = 1.0
-    ppo.estimate_advantages(batch)
-    ppo.teacher(batch)
-    frames = batch.reshape(-1)
-    assert bool((frames[TEACHER_ACTION].abs() == 0.1).any())  # the controller pushes at full force
-    out = ppo.loss_terms(frames)
-    ppo.total_loss(frames, out)
-    cross_entropy = -ppo.policy.get_dist(frames).log_prob(frames[TEACHER_ACTION]).mean().detach()
-    assert float(out["loss_kickstart"]) == pytest.approx(float(cross_entropy), rel=1e-6)
-    metrics = ppo.update(batch)
-    assert math.isfinite(metrics["kl_approx"]) and metrics["skipped_steps"] == 0
 
 
 @pytest.mark.parametrize("distribution,law", [("clipped_normal", "ClippedNormal"), ("tanh_normal", "TanhNormal")])

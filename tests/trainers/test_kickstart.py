@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from escort_rl.config import ConfigError, compose
-from escort_rl.models import KidnappedRobot20D, LightDark10D
+from escort_rl.models import KidnappedRobot20D, LightDark10D, LightDark10DContinuous
 from escort_rl.trainers.algorithm import trainer_params
 from escort_rl.trainers.builders import make_env
 from escort_rl.trainers.checkpointing import load_checkpoint
@@ -20,11 +20,12 @@ TINY = ["trainer=ppo", "filter=sir", "trainer.warm_start_filter=null", "trainer.
         "trainer.minibatches=2", "trainer.epochs=2", "trainer.critic_input=belief", "trainer.update_particles=null"]
 
 
-def _ppo_and_batch(*overrides: str):
-    """A tiny PPO with a kickstart teacher and one batch ``[E, T]`` its own policy collected."""
+def _ppo_and_batch(*overrides: str, model=None):
+    """A tiny PPO with a kickstart teacher and one batch ``[E, T]`` its own policy collected, on ``model``
+    (default: ``LightDark10D()``; the overrides pick its env group)."""
     torch.manual_seed(0)
     cfg = compose([*TINY, "trainer.teacher=scripted", *overrides])
-    ppo = PPO(cfg, LightDark10D())
+    ppo = PPO(cfg, model if model is not None else LightDark10D())
     env = make_env(cfg, 4, seed=3)
     try:
         with torch.no_grad():
@@ -91,28 +92,29 @@ def test_the_weight_falls_per_iteration_and_is_logged(tmp_path, capsys):
     assert "loss_kickstart" not in history[2]  # no teacher term once its weight is 0
 
 
-def test_the_continuous_teacher_term_is_finite_at_the_edge_of_the_box():
-    """The continuous controller's action is often clipped to the box's edge, where a TanhNormal's density is 0;
-    the term reads it just inside."""
-    torch.manual_seed(0)
-    cfg = compose([*TINY, "env=lightdark10d_continuous", "trainer.teacher=scripted", "actor.distribution=tanh_normal"])
-    from escort_rl.models import LightDark10DContinuous
-
-    ppo = PPO(cfg, LightDark10DContinuous())
-    env = make_env(cfg, 4, seed=3)
+@pytest.mark.parametrize("distribution", ["tanh_normal", "clipped_normal"])
+def test_the_continuous_teacher_term_is_finite_at_the_edge_of_the_box(distribution):
+    """The continuous controller's action is often clipped to the box's edge. A TanhNormal's density is 0 there,
+    so the term reads it just inside; the clipped Gaussian (the default) puts mass on the edge, so the term is the
+    cross-entropy to the action as it is. Either way the update stays finite."""
+    ppo, batch = _ppo_and_batch("env=lightdark10d_continuous", f"actor.distribution={distribution}",
+                                model=LightDark10DContinuous())
     try:
-        with torch.no_grad():
-            batch = env.rollout(12, ppo.policy, break_when_any_done=False)
         ppo.kickstart = 1.0
         ppo.estimate_advantages(batch)
         ppo.teacher(batch)
         frames = batch.reshape(-1)
-        high = ppo.model.action_high
-        assert bool((frames[TEACHER_ACTION].abs() >= high).any())  # some actions on the edge
-        total = ppo.total_loss(frames, ppo.loss_terms(frames))
-        assert math.isfinite(float(total))
+        assert bool((frames[TEACHER_ACTION].abs() >= ppo.model.action_high).any())  # some actions on the edge
+        out = ppo.loss_terms(frames)
+        assert math.isfinite(float(ppo.total_loss(frames, out).detach()))
+        as_they_are = -ppo.policy.get_dist(frames).log_prob(frames[TEACHER_ACTION]).mean().detach()
+        if distribution == "clipped_normal":
+            assert float(out["loss_kickstart"]) == pytest.approx(float(as_they_are), rel=1e-6)
+        else:
+            assert float(out["loss_kickstart"]) != pytest.approx(float(as_they_are), rel=1e-3)
+        metrics = ppo.update(batch)
+        assert math.isfinite(metrics["kl_approx"]) and metrics["skipped_steps"] == 0
     finally:
-        env.close()
         ppo.close()
 
 
