@@ -249,7 +249,7 @@ def describe_action_range(model, action: Tensor) -> str:
     nan = "" if bool(torch.isfinite(action).all()) else " and NaN or Inf"
     return (f"real actions must lie in the box [model.action_low, model.action_high] = "
             f"[{model.action_low.tolist()}, {model.action_high.tolist()}], got {span}{nan}; squash the policy's "
-            "output into the box (e.g. a TanhNormal) or clip it")
+            "output into the box (e.g. a TanhNormal, or a clipped Gaussian) or clip it")
 
 
 def null_action(model, shape: tuple[int, ...] = (), device=None) -> Tensor:

@@ -23,7 +23,7 @@ def _mlp(sizes: list[int], activation: type[nn.Module] = nn.Tanh, last_activatio
 
 class DeepSetsNet(nn.Module):
     """``out = g(ρ(Σ_i w_i φ(x_i)))``: a per-particle encoder φ, weighted pooling, an MLP ρ and a
-    linear head g: the body of :class:`DeepSetsActor` (the head gives logits or a TanhNormal's
+    linear head g: the body of :class:`DeepSetsActor` (the head gives logits or a Gaussian's
     parameters) and :class:`DeepSetsCritic` (the head gives a value).
 
     With equal weights the pooling is the mean (the paper's ``(1/n) Σ_i h_i``); with SIR weights
@@ -32,7 +32,7 @@ class DeepSetsNet(nn.Module):
 
     Args:
         state_dim: ``d``.
-        n_actions: number of outputs: the discrete actions' logits, or ``2·action_dim`` (a TanhNormal's
+        n_actions: number of outputs: the discrete actions' logits, or ``2·action_dim`` (a Gaussian's
             loc and scale, see :func:`make_deepsets_policy`).
         hidden: width of φ and ρ.
         input_loc, input_scale: particles are standardised as ``(x - loc) / scale`` before φ
@@ -59,7 +59,7 @@ class DeepSetsNet(nn.Module):
             instead of once per group.
         group_layout: how the ``[G, m]`` group outputs become ``n_actions``: ``group_major``
             (``a = m·j + r``, discrete actions, e.g. ``2i`` / ``2i+1``) or ``output_major``
-            (``a = G·r + j``, a TanhNormal's ``[loc_1..loc_G, scale_1..scale_G]``).
+            (``a = G·r + j``, a Gaussian's ``[loc_1..loc_G, scale_1..scale_G]``).
         group_hidden: the width of ``φ_c`` (16: ``φ_c`` runs on ``G`` times as many inputs as ``φ``; at
             64 the policy's forward pass cost about ten times the pooled head's).
 
@@ -175,7 +175,7 @@ class DeepSetsNet(nn.Module):
 
 class DeepSetsActor(DeepSetsNet):
     """A belief policy's network: ``logits = g(ρ(Σ_i w_i φ(x_i)))`` (:class:`DeepSetsNet`) with
-    ``n_actions`` outputs, the discrete actions' logits or ``2·action_dim`` for a TanhNormal
+    ``n_actions`` outputs, the discrete actions' logits or ``2·action_dim`` for a Gaussian
     (:func:`make_deepsets_policy`).
 
     Example:
@@ -247,7 +247,7 @@ def make_deepsets_policy(actor: DeepSetsActor, particles_key: str = "particles",
 
 def policy_outputs(model) -> tuple[int, tuple[Tensor, Tensor] | None]:
     """What a belief policy of ``model`` outputs: ``(n_actions, None)`` for discrete actions (logits),
-    ``(2·action_dim, (action_low, action_high))`` for continuous ones (a TanhNormal's loc and scale)."""
+    ``(2·action_dim, (action_low, action_high))`` for continuous ones (a Gaussian's loc and scale)."""
     if is_continuous(model):
         return 2 * int(model.action_dim), (model.action_low.cpu(), model.action_high.cpu())
     return int(model.n_actions), None

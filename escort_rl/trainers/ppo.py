@@ -79,7 +79,8 @@ def make_ppo_loss(policy, critic, cfg: DictConfig, critic_keys: list | None = No
     :func:`~escort_rl.trainers.builders.build_policy`) and a critic reading ``critic_keys`` (default:
     the belief keys), with GAE as its value estimator; the settings are ``cfg.trainer``'s, read as
     :class:`~escort_rl.trainers.params.PPOParams`. The loss reads the log-probability the policy
-    wrote (``action_log_prob``); a TanhNormal policy's entropy is estimated by sampling."""
+    wrote (``action_log_prob``); a TanhNormal policy's entropy is estimated by sampling (a clipped
+    Gaussian's is its Gaussian's, in closed form)."""
     p = trainer_params(PPOParams, cfg.trainer)
     value = ValueOperator(critic, in_keys=critic_keys or list(belief_keys(cfg)))
     loss = clip_ppo_loss(policy, value, p)

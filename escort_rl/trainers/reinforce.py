@@ -85,7 +85,7 @@ class Reinforce(CollectorAlgorithm):
         frames = t.num_envs * int(cfg.env.max_steps)  # num_envs full episodes
         if is_continuous(model):
             raise ConfigError("trainer: trainer=reinforce takes discrete actions and this env's are continuous; use "
-                              "trainer=ppo (a TanhNormal policy)")
+                              "trainer=ppo (a Gaussian policy)")
         particles_key, log_weights_key = belief_keys(cfg)
         self.actor = build_actor(cfg, model.state_dim, model.n_actions, model)
         self.policy = make_deepsets_policy(self.actor, particles_key=particles_key, log_weights_key=log_weights_key)

@@ -1,4 +1,4 @@
-"""Continuous actions (``env=lightdark10d_continuous``, the TanhNormal policy) refuse a mistake with one
+"""Continuous actions (``env=lightdark10d_continuous``, the Gaussian policy) refuse a mistake with one
 line naming the config key, the argument or the field, and say the fix: a force or start box out of
 range, an input scaling that does not fit the state, a TanhNormal box that is not a box, and real
 actions of the wrong dtype, shape or range handed to a filter. A float64 action is read as float32."""
@@ -60,7 +60,7 @@ def test_a_negative_scripted_gain_is_named_while_composing():
 
 
 # ---------------------------------------------------------------------------------------------
-# The TanhNormal policy's box
+# The continuous policy's box
 # ---------------------------------------------------------------------------------------------
 
 HIGH = torch.full((5,), 0.1)
