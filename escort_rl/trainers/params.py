@@ -145,12 +145,12 @@ class PPOParams(BeliefTrainerParams):
             teacher: 0.95 first at iterations 9 to 14 of 5 seeds).
     """
 
-    iterations: int = param(16, ge=1)
+    iterations: int = param(8, ge=1)
     num_envs: int = param(64, ge=1)
     entropy_coef: float = param(0.001, ge=0)  # 0.01 kept the policy near 1.9 nats; both learn alike
     exploring_starts: bool = param(True)
     warm_start_filter: Optional[str] = param("sir_rough", check=check_filter_name)
-    warm_start_iterations: int = param(8, ge=0)
+    warm_start_iterations: int = param(4, ge=0)
     rollout_steps: int = param(125, ge=1)
     gae_lambda: float = param(0.95, ge=0, le=1)
     clip_epsilon: float = param(0.2, gt=0)
