@@ -102,18 +102,18 @@ HORIZON_ROWS = (
     ("16-iteration job, entropy 0.003", (*SIXTEEN_ITERATION_JOB, "trainer.entropy_coef=0.003",
                                          "trainer.teacher=none")),
 )
-"""``--rows horizon``: the 16-iteration job (:data:`SIXTEEN_ITERATION_JOB`) with a discount that reaches past 100 decisions (γ = 0.995: about 200),
-and with a smaller entropy bonus, so that the policy that hovers near the goal in the dark sees the cost of not
-finishing, or settles on one action there."""
+"""``--rows horizon``: the 16-iteration job (:data:`SIXTEEN_ITERATION_JOB`) with a discount that reaches past
+100 decisions (γ = 0.995: about 200), and with a smaller entropy bonus, so that the policy that hovers near the
+goal in the dark sees the cost of not finishing, or settles on one action there."""
 
 TEACHER_ROWS = (
     ("16-iteration job, teacher over the warm start only", (*SIXTEEN_ITERATION_JOB, "trainer.kickstart_iterations=8")),
     ("16-iteration job without a teacher", (*SIXTEEN_ITERATION_JOB, "trainer.teacher=none")),
 )
-"""``--rows teacher``: the 16-iteration job's (:data:`SIXTEEN_ITERATION_JOB`) kickstart (the scripted controller as a teacher: each Adam step also
-minimises the policy's cross-entropy to the controller's action on the same belief, with a weight falling from 1
-to 0 over the whole run) against a weight that reaches 0 at the end of the SIR warm start, and against no teacher
-(the default job before)."""
+"""``--rows teacher``: the 16-iteration job's (:data:`SIXTEEN_ITERATION_JOB`) kickstart (the scripted controller
+as a teacher: each Adam step also minimises the policy's cross-entropy to the controller's action on the same
+belief, with a weight falling from 1 to 0 over the whole run) against a weight that reaches 0 at the end of the SIR
+warm start, and against no teacher (the default job before)."""
 
 REINFORCE_ROWS = (
     ("REINFORCE on SIR beliefs, learned baseline, 4x the frames", (
