@@ -99,8 +99,8 @@ class PPOParams(BeliefTrainerParams):
     """PPO (:class:`escort_rl.trainers.ppo.PPO`): TorchRL's ``ClipPPOLoss`` with GAE, minibatch
     epochs from a replay buffer. An iteration runs ``env.max_steps`` steps in every env (episodes
     reset on their own inside it), as ``env.max_steps / rollout_steps`` PPO updates on batches of
-    ``num_envs × rollout_steps`` frames. The defaults are the default job's: 8 iterations on SIR
-    beliefs (the warm start), then 8 on the run's filter (512,000 frames, half on each).
+    ``num_envs × rollout_steps`` frames. The defaults are the default job's: 4 iterations on SIR
+    beliefs (the warm start), then 4 on the run's filter (256,000 frames, half on each).
 
     Attributes:
         rollout_steps: steps per env in one PPO batch (64 × 125 = 8000 frames).
