@@ -202,3 +202,19 @@ def test_frontier_rows_train_on_each_filter_s_closest_configuration_within_the_b
     bad = _parser().parse_args(["bench", "headline", "--frontier-rows", str(path), "0.1"])
     with pytest.raises(ValueError, match=r"^--frontier-rows: no filter of .* updates within 0.1 ms; raise the budget"):
         spec_from_args(bad)
+
+
+def test_a_trained_cell_is_the_same_cell_wherever_its_run_is_written(tmp_path, monkeypatch):
+    from escort_rl.bench.headline.cells import TrainedCell
+
+    monkeypatch.chdir(tmp_path)
+
+    def cell(run_dir: str, seed: int = 0) -> TrainedCell:
+        return TrainedCell(label="row", overrides=("trainer.iterations=1",), seed=seed, run_dir=run_dir,
+                           episodes=2, eval_seed=10000)
+
+    relative = cell("out/runs/row-seed0")
+    assert relative.spec() == cell(str(tmp_path / "out/runs/row-seed0")).spec()
+    assert relative.spec() == cell("moved/runs/row-seed0").spec()
+    assert relative.spec() != cell("out/runs/row-seed0", seed=1).spec()
+    assert "run_dir" not in relative.spec() and "output_dir" not in relative.spec()["config"]

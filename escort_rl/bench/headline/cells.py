@@ -106,12 +106,17 @@ class TrainedCell(Cell):
         return [*self.overrides, *curve, f"seed={self.seed}", f"output_dir={self.run_dir}"]
 
     def spec(self) -> dict:
-        """The cell's fields and the config they compose to: a changed config file is a new cell."""
+        """The cell's fields and the config they compose to: a changed config file is a new cell. Where the run
+        is written (``run_dir``, the config's ``output_dir``) is left out, so that a relative and an absolute
+        ``--output`` for the same folder, or a moved folder, name the same cell."""
         from omegaconf import OmegaConf
 
         from escort_rl.config import compose
 
-        return {**super().spec(), "config": OmegaConf.to_container(compose(self.overrides_with_run()), resolve=True)}
+        config = OmegaConf.to_container(compose(self.overrides_with_run()), resolve=True)
+        config.pop("output_dir", None)
+        fields = {k: v for k, v in super().spec().items() if k != "run_dir"}
+        return {**fields, "config": config}
 
     def run(self) -> dict:
         from omegaconf import OmegaConf
