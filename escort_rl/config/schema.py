@@ -168,6 +168,9 @@ class EnvConfig:
     # the scripted controller's velocity gain in evaluation (the best of a sweep on the default
     # job's filter, stored with where it came from); null: the controller's default
     scripted_gain: Optional[float] = _f(None, ge=0)
+    # the velocity gain of the kickstart teacher (trainer.teacher), where it differs from the evaluation's
+    # best gain; null: scripted_gain
+    teacher_gain: Optional[float] = _f(None, ge=0)
     # whether trainer.teacher=auto (PPO's default) kickstarts from the scripted controller in this env:
     # true where the controller is a good policy on the belief (Light-Dark), not where it is a baseline
     # to beat (the hidden goal's, which commits to a mode)

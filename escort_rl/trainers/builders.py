@@ -327,12 +327,21 @@ def scripted_gain(cfg) -> float:
     return DEFAULT_GAIN_V if gain is None else float(gain)
 
 
-def scripted_policy(cfg, model, action_key: str = "action"):
-    """The domain's scripted controller at :func:`scripted_gain` on the belief of ``cfg``'s filter, writing
-    ``action_key``, or ``None`` where the domain has none (Kidnapped Robot: no goal to drive to)."""
+def teacher_gain(cfg) -> float:
+    """The kickstart teacher's velocity gain for ``cfg``'s env: ``env.teacher_gain`` where the env group sets
+    one (the gain the measured default job learned from), else :func:`scripted_gain`."""
+    gain = OmegaConf.select(cfg, "env.teacher_gain", default=None)
+    return scripted_gain(cfg) if gain is None else float(gain)
+
+
+def scripted_policy(cfg, model, action_key: str = "action", gain_v: float | None = None):
+    """The domain's scripted controller at velocity gain ``gain_v`` (default :func:`scripted_gain`) on the
+    belief of ``cfg``'s filter, writing ``action_key``, or ``None`` where the domain has none (Kidnapped
+    Robot: no goal to drive to)."""
     particles_key, log_weights_key = belief_keys(cfg)
     try:
         return ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key,
-                                        action_key=action_key, gain_v=scripted_gain(cfg))
+                                        action_key=action_key,
+                                        gain_v=scripted_gain(cfg) if gain_v is None else gain_v)
     except ValueError:
         return None

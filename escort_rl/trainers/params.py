@@ -133,7 +133,8 @@ class PPOParams(BeliefTrainerParams):
             (PPO's annealing, as in Stable-Baselines3 and CleanRL). It is a function of the update's
             index, so a resumed run continues on the same schedule.
         teacher: the policy PPO kickstarts from (Schmitt et al. 2018): ``scripted``: the env's scripted
-            controller on the same belief (at ``env.scripted_gain``; an error where the env has none);
+            controller on the same belief (at ``env.teacher_gain``, else ``env.scripted_gain``; an error
+            where the env has none);
             ``auto``: that controller where the env group marks it a teacher (``env.scripted_teacher``),
             else none; ``none``: no teacher. Each Adam step then also minimises
             ``λ_i · E[−log π_θ(a_teacher | b)]``, the policy's cross-entropy to the teacher's action.

@@ -43,7 +43,14 @@ from torchrl.objectives import ClipPPOLoss, ValueEstimators
 from escort_rl.config import ConfigError
 from escort_rl.models.protocol import check_action_box, is_continuous
 from escort_rl.trainers.algorithm import trainer_params
-from escort_rl.trainers.builders import belief_keys, build_critic, build_policy, env_factory, scripted_policy
+from escort_rl.trainers.builders import (
+    belief_keys,
+    build_critic,
+    build_policy,
+    env_factory,
+    scripted_policy,
+    teacher_gain,
+)
 from escort_rl.trainers.params import PPOParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
 
@@ -94,13 +101,14 @@ TEACHER_ACTION = "teacher_action"
 
 def kickstart_teacher(cfg: DictConfig, model, params: PPOParams):
     """The policy PPO kickstarts from (``trainer.teacher``), writing :data:`TEACHER_ACTION`, or ``None``: the
-    env's scripted controller on the belief for ``scripted``, and for ``auto`` where the env group sets
-    ``scripted_teacher``; ``None`` for ``none`` or a zero ``kickstart_coef``."""
+    env's scripted controller on the belief (at ``env.teacher_gain``, else ``env.scripted_gain``) for
+    ``scripted``, and for ``auto`` where the env group sets ``scripted_teacher``; ``None`` for ``none`` or a
+    zero ``kickstart_coef``."""
     if params.teacher == "none" or params.kickstart_coef == 0:
         return None
     if params.teacher == "auto" and not OmegaConf.select(cfg, "env.scripted_teacher", default=False):
         return None
-    teacher = scripted_policy(cfg, model, action_key=TEACHER_ACTION)
+    teacher = scripted_policy(cfg, model, action_key=TEACHER_ACTION, gain_v=teacher_gain(cfg))
     if teacher is None:
         raise ConfigError(f"trainer.teacher: env '{cfg.env.name}' has no scripted controller to learn from; set "
                           "trainer.teacher=none")

@@ -142,3 +142,17 @@ def test_recurrent_ppo_refuses_a_teacher():
     cfg = compose(["trainer=recurrent_ppo", "trainer.teacher=scripted"])
     with pytest.raises(ConfigError, match="trainer.teacher: trainer=recurrent_ppo"):
         validate_recurrent_ppo_config(cfg)
+
+
+@pytest.mark.parametrize("overrides, teacher, evaluation", [
+    ([], 0.5, 0.125),  # Light-Dark's group: the teacher the default job learned from, the evaluation's best gain
+    (["env.teacher_gain=null"], 0.125, 0.125),  # no teacher gain: the teacher is the evaluation's controller
+    (["env.teacher_gain=2", "env.scripted_gain=1"], 2.0, 1.0),
+])
+def test_the_teacher_acts_at_its_own_gain_and_the_evaluation_at_the_best_one(overrides, teacher, evaluation):
+    from escort_rl.trainers.builders import scripted_policy
+
+    cfg = compose([*TINY, *overrides])
+    model = LightDark10D()
+    assert kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer)).controller.gain_v == teacher
+    assert scripted_policy(cfg, model).controller.gain_v == evaluation
