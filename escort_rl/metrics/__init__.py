@@ -5,6 +5,8 @@
 - :mod:`.moments`: moments and correlations of particle sets and mixtures, and their errors;
 - :mod:`.reference`: the reference posterior (a large bootstrap particle filter, or the model's
   exact posterior) and each belief's distances to it;
+- :mod:`.rao_blackwell`: the Rao-Blackwellised particle filter a reference runs where a model's state
+  is a Gaussian sum given part of it;
 - :mod:`.checks`: the input checks they share.
 """
 

@@ -48,6 +48,7 @@ from escort_rl.belief.seeding import derived_seed, initial_beliefs, tensor_hash
 from escort_rl.belief.sir import SIRFilter
 from escort_rl.metrics.distances import kernel_mean, median_gamma, sphere_directions, weighted_sliced_wasserstein
 from escort_rl.metrics.moments import weighted_moments
+from escort_rl.metrics.rao_blackwell import RaoBlackwellisedSMC
 
 CHUNK_ROWS = 400_000
 """Particle rows (seeds × N) a reference filters at once: 10⁵ particles go 4 seeds at a time. Multi-Target
@@ -233,7 +234,15 @@ def _stack(steps: list[dict]) -> dict:
 REFERENCE_FILTERS = {"sir": lambda: SIRFilter(resample_threshold=0.5), "resample_move": lambda: ResampleMoveFilter()}
 """The filters a reference posterior may run: name -> a new filter."""
 
-REFERENCE_NAMES = {"sir": "SIR", "resample_move": "resample-move SMC (tempered, with MCMC moves)"}
+RAO_BLACKWELL = "rao_blackwell"
+"""The reference that samples only part of the state (:mod:`escort_rl.metrics.rao_blackwell`), for a model
+that gives the rest in closed form."""
+
+REFERENCE_METHODS = (*REFERENCE_FILTERS, RAO_BLACKWELL)
+"""Every reference a ``--reference-filter`` may name."""
+
+REFERENCE_NAMES = {"sir": "SIR", "resample_move": "resample-move SMC (tempered, with MCMC moves)",
+                   RAO_BLACKWELL: "Rao-Blackwellised SMC (part of the state sampled, the rest a Gaussian sum in closed form)"}
 """What each reference filter is called in a report."""
 
 
@@ -261,44 +270,28 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
     model compiled. ``replicate = r > 0`` draws an independent reference (its prior draw, its filter's and
     its subsample's random streams are the ``r``-th), on the same trajectories and directions: the distance
     between two replicates measures the reference's own error. ``method``: the reference's filter, one of
-    :data:`REFERENCE_FILTERS` (``sir``: SIR resampling at ESS/N < 0.5; ``resample_move``: resample-move SMC
-    with adaptive tempering, whose weights do not collapse onto a few particles when the likelihood is sharp).
+    :data:`REFERENCE_METHODS` (``sir``: SIR resampling at ESS/N < 0.5; ``resample_move``: resample-move SMC
+    with adaptive tempering, whose weights do not collapse onto a few particles when the likelihood is sharp;
+    ``rao_blackwell``: particles on part of the state and the rest in closed form, for a model that gives
+    that form, :mod:`escort_rl.metrics.rao_blackwell`).
     """
 
     parts = state_parts(model)
-    if method not in REFERENCE_FILTERS:
+    if method not in REFERENCE_METHODS:
         raise ValueError(f"--reference-filter: unknown reference filter '{method}'; choose from "
-                         f"{', '.join(REFERENCE_FILTERS)}")
-    filt = REFERENCE_FILTERS[method]()
+                         f"{', '.join(REFERENCE_METHODS)}")
+    rao_blackwell = method == RAO_BLACKWELL
+    if rao_blackwell:
+        RaoBlackwellisedSMC.check(model)
     per_chunk = max(1, int(chunk_rows) // int(particles))
-    if min(per_chunk, len(seeds)) * int(particles) >= COMPILE_ROWS:
+    if not rao_blackwell and min(per_chunk, len(seeds)) * int(particles) >= COMPILE_ROWS:
         model = _CompiledModel(model)
     chunks = []
     for lo in range(0, len(seeds), per_chunk):
         block = list(seeds[lo:lo + per_chunk])
-        rows = slice(lo, lo + len(block))
-        tag = f"/{int(replicate)}" if replicate else ""
-        belief, _ = initial_beliefs(filt, model, block, particles, base_seed, kind=f"reference-belief{tag}")
-        g = torch.Generator().manual_seed(derived_seed(f"reference-filter{tag}", base_seed, block[0]))
-        gs = torch.Generator().manual_seed(derived_seed(f"reference-sample{tag}", base_seed, block[0]))
-        steps = [step_summary(belief.particles, belief.log_weights, parts, sample, gs)]
-        before, staged = [], []  # per update, the mean over the chunk of the ESS fractions (see the docstring)
-        for t in range(traj["actions"].shape[1]):
-            seen = filt.importance_diagnostics()
-            belief = filt.update(model, belief, traj["actions"][rows, t], traj["observations"][rows, t], g)
-            now = filt.importance_diagnostics()
-            before.append(_update_mean(now, seen, "mean_ess_fraction", len(block)))
-            if "mean_stage_ess_fraction" in now:
-                staged.append(_update_mean(now, seen, "mean_stage_ess_fraction", len(block)))
-            if not bool(torch.isfinite(belief.particles).all()) or bool(torch.isnan(belief.log_weights).any()):
-                raise ValueError(f"the reference posterior of '{name}' became non-finite at step {t + 1} "
-                                 f"(seeds {block}); its particles are not usable")
-            steps.append(step_summary(belief.particles, belief.log_weights, parts, sample, gs))
-        chunk = _stack(steps)
-        chunk["ess_fraction_before_resampling"] = torch.tensor(before, dtype=torch.float64).expand(len(block), -1)
-        if staged:
-            chunk["ess_fraction_of_stages"] = torch.tensor(staged, dtype=torch.float64).expand(len(block), -1)
-        chunks.append(chunk)
+        run = _rao_blackwellised_chunk if rao_blackwell else _filter_chunk
+        chunks.append(run(model, traj, slice(lo, lo + len(block)), block, particles, base_seed, sample, name,
+                          replicate, method, parts))
     out = {k: (torch.cat([c[k] for c in chunks]) if not isinstance(v, dict)
                else {kk: torch.cat([c[k][kk] for c in chunks]) for kk in v}) for k, v in chunks[0].items()}
     for part, dims in parts.items():
@@ -306,6 +299,67 @@ def reference_posterior(model, traj: dict, seeds: list[int], particles: int, bas
         out[part]["projections"] = sphere_directions(PROJECTIONS, len(dims), g, dtype=torch.float32)
         out[part]["dims"] = torch.tensor(dims, dtype=torch.int64)
     return out
+
+
+def _filter_chunk(model, traj: dict, rows: slice, block: list[int], particles: int, base_seed: int, sample: int,
+                  name: str, replicate: int, method: str, parts: dict) -> dict:
+    """:func:`reference_posterior` of the seeds ``block`` (rows ``rows`` of ``traj``) by a filter of
+    :data:`REFERENCE_FILTERS`."""
+    filt = REFERENCE_FILTERS[method]()
+    tag = f"/{int(replicate)}" if replicate else ""
+    belief, _ = initial_beliefs(filt, model, block, particles, base_seed, kind=f"reference-belief{tag}")
+    g = torch.Generator().manual_seed(derived_seed(f"reference-filter{tag}", base_seed, block[0]))
+    gs = torch.Generator().manual_seed(derived_seed(f"reference-sample{tag}", base_seed, block[0]))
+    steps = [step_summary(belief.particles, belief.log_weights, parts, sample, gs)]
+    before, staged = [], []  # per update, the mean over the chunk of the ESS fractions (see the docstring)
+    for t in range(traj["actions"].shape[1]):
+        seen = filt.importance_diagnostics()
+        belief = filt.update(model, belief, traj["actions"][rows, t], traj["observations"][rows, t], g)
+        now = filt.importance_diagnostics()
+        before.append(_update_mean(now, seen, "mean_ess_fraction", len(block)))
+        if "mean_stage_ess_fraction" in now:
+            staged.append(_update_mean(now, seen, "mean_stage_ess_fraction", len(block)))
+        if not bool(torch.isfinite(belief.particles).all()) or bool(torch.isnan(belief.log_weights).any()):
+            raise ValueError(f"the reference posterior of '{name}' became non-finite at step {t + 1} "
+                             f"(seeds {block}); its particles are not usable")
+        steps.append(step_summary(belief.particles, belief.log_weights, parts, sample, gs))
+    chunk = _stack(steps)
+    chunk["ess_fraction_before_resampling"] = torch.tensor(before, dtype=torch.float64).expand(len(block), -1)
+    if staged:
+        chunk["ess_fraction_of_stages"] = torch.tensor(staged, dtype=torch.float64).expand(len(block), -1)
+    return chunk
+
+
+def _rao_blackwellised_chunk(model, traj: dict, rows: slice, block: list[int], particles: int, base_seed: int,
+                             sample: int, name: str, replicate: int, method: str, parts: dict) -> dict:
+    """:func:`reference_posterior` of the seeds ``block`` by :class:`~escort_rl.metrics.rao_blackwell.
+    RaoBlackwellisedSMC`: per part the mixture's exact moments given the particles, and ``sample`` draws of it."""
+    filt = RaoBlackwellisedSMC()
+    tag = f"/{int(replicate)}" if replicate else ""
+    g = torch.Generator().manual_seed(derived_seed(f"reference-belief{tag}", base_seed, block[0]))
+    gs = torch.Generator().manual_seed(derived_seed(f"reference-sample{tag}", base_seed, block[0]))
+    belief = filt.init(model, len(block), particles, g)
+
+    def summary() -> dict:
+        mean, cov = filt.moments(model, belief)
+        y = filt.draws(model, belief, sample, gs)
+        out = {"ess": effective_sample_size(belief.log_weights)}
+        for part, dims in parts.items():
+            idx = list(dims)
+            out[part] = part_summary(mean[..., idx], cov[..., idx, :][..., idx], y[..., idx].float())
+        return out
+
+    steps, before = [summary()], []
+    for t in range(traj["actions"].shape[1]):
+        belief = filt.update(model, belief, traj["actions"][rows, t], traj["observations"][rows, t], g)
+        before.append(float(filt.last_ess_fraction.mean()))
+        if not bool(torch.isfinite(belief.x).all()) or bool(torch.isnan(belief.log_weights).any()):
+            raise ValueError(f"the reference posterior of '{name}' became non-finite at step {t + 1} "
+                             f"(seeds {block}); its particles are not usable")
+        steps.append(summary())
+    chunk = _stack(steps)
+    chunk["ess_fraction_before_resampling"] = torch.tensor(before, dtype=torch.float64).expand(len(block), -1)
+    return chunk
 
 
 class DamagedReferenceError(ValueError):

@@ -57,12 +57,13 @@ def register(subparsers) -> None:
 
 def add_reference_filter_option(p) -> None:
     """``--reference-filter``, shared with ``bench regime-map``."""
-    from escort_rl.metrics.reference import REFERENCE_FILTERS
+    from escort_rl.metrics.reference import REFERENCE_METHODS
 
-    p.add_argument("--reference-filter", choices=sorted(REFERENCE_FILTERS), default=None,
-                   help="the reference's filter where the model has no exact posterior: sir, or resample_move "
+    p.add_argument("--reference-filter", choices=sorted(REFERENCE_METHODS), default=None,
+                   help="the reference's filter where the model has no exact posterior: sir, resample_move "
                    "(tempered stages that keep ESS/N at 0.5, random-walk Metropolis moves after each; about 10x "
-                   "SIR's cost) (default: sir)")
+                   "SIR's cost), or rao_blackwell (particles on part of the state, the rest a Gaussian sum in "
+                   "closed form, for a model that gives that form, e.g. env=hidden_goal) (default: sir)")
 
 
 def add_method_options(p) -> None:

@@ -79,9 +79,9 @@ class FrontierSpec:
     reference_particles: int = 100_000
     """N of the SIR reference for a model without an exact posterior."""
     reference_filter: str = "sir"
-    """The filter of that reference: ``sir`` or ``resample_move`` (tempered, with MCMC moves:
-    :class:`~escort_rl.belief.ResampleMoveFilter`), a key of
-    :data:`~escort_rl.metrics.reference.REFERENCE_FILTERS`."""
+    """The filter of that reference: ``sir``, ``resample_move`` (tempered, with MCMC moves:
+    :class:`~escort_rl.belief.ResampleMoveFilter`) or ``rao_blackwell``
+    (:mod:`~escort_rl.metrics.rao_blackwell`), one of :data:`~escort_rl.metrics.reference.REFERENCE_METHODS`."""
     threads: int = 1
     """Torch threads in each cell."""
     base_seed: int = 0
@@ -115,9 +115,9 @@ class FrontierSpec:
             object.__setattr__(self, "output", Path(self.output))
         check_choices("--methods", self.methods, FILTER_METHODS)
         check_choices("--metric", [self.metric], METRICS, "metric")
-        from escort_rl.metrics.reference import REFERENCE_FILTERS
+        from escort_rl.metrics.reference import REFERENCE_METHODS
 
-        check_choices("--reference-filter", [self.reference_filter], tuple(REFERENCE_FILTERS), "reference filter")
+        check_choices("--reference-filter", [self.reference_filter], REFERENCE_METHODS, "reference filter")
         check_choices("particles", list(self.particles), FILTER_METHODS, "filter")
         check_choices("--variant", [method for _, method, _ in self.variants], FILTER_METHODS, "filter")
         for m, ns in self.particles.items():
