@@ -242,7 +242,8 @@ REFERENCE_METHODS = (*REFERENCE_FILTERS, RAO_BLACKWELL)
 """Every reference a ``--reference-filter`` may name."""
 
 REFERENCE_NAMES = {"sir": "SIR", "resample_move": "resample-move SMC (tempered, with MCMC moves)",
-                   RAO_BLACKWELL: "Rao-Blackwellised SMC (part of the state sampled, the rest a Gaussian sum in closed form)"}
+                   RAO_BLACKWELL: "Rao-Blackwellised SMC (part of the state sampled, the rest a Gaussian sum in "
+                                  "closed form)"}
 """What each reference filter is called in a report."""
 
 
