@@ -114,21 +114,25 @@ class RaoBlackwellisedSMC:
                                                                  action, observation, generator)
         logw = b.log_weights + inc
         logw = logw - torch.logsumexp(logw, -1, keepdim=True)
-        n = logw.shape[-1]
-        frac = effective_sample_size(logw) / n
-        self.last_ess_fraction = frac
-        low = frac < self.resample_threshold
-        if bool(low.any()):
-            idx = systematic(logw, generator)  # [B, n]
-            keep = torch.arange(n).expand_as(idx)
-            idx = torch.where(low[:, None], idx, keep)
+        self.last_ess_fraction = effective_sample_size(logw) / logw.shape[-1]
+        return self.resample(ConditionalParticles(x, logw, log_w, means, var),
+                             self.last_ess_fraction < self.resample_threshold, generator)
 
-            def pick(t: Tensor) -> Tensor:
-                return t.gather(1, idx.reshape(*idx.shape, *([1] * (t.dim() - 2))).expand(*idx.shape, *t.shape[2:]))
+    @staticmethod
+    def resample(b: ConditionalParticles, where: Tensor, generator: torch.Generator | None = None
+                 ) -> ConditionalParticles:
+        """Systematic resampling of whole particles (each ``x_i`` with its Gaussian sum) in the beliefs
+        ``where`` ``[B]`` (bool), to equal weights; the other beliefs unchanged."""
+        if not bool(where.any()):
+            return b
+        n = b.log_weights.shape[-1]
+        idx = torch.where(where[:, None], systematic(b.log_weights, generator), torch.arange(n))  # [B, n]
 
-            x, log_w, means, var = pick(x), pick(log_w), pick(means), pick(var)
-            logw = torch.where(low[:, None], torch.full_like(logw, -math.log(n)), logw)
-        return ConditionalParticles(x, logw, log_w, means, var)
+        def pick(t: Tensor) -> Tensor:
+            return t.gather(1, idx.reshape(*idx.shape, *([1] * (t.dim() - 2))).expand(*idx.shape, *t.shape[2:]))
+
+        logw = torch.where(where[:, None], torch.full_like(b.log_weights, -math.log(n)), b.log_weights)
+        return ConditionalParticles(pick(b.x), logw, pick(b.mode_log_weights), pick(b.mode_means), pick(b.variance))
 
     @staticmethod
     def _components(model, b: ConditionalParticles) -> tuple[Tensor, Tensor, Tensor]:

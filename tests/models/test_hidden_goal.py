@@ -154,3 +154,70 @@ def test_the_benchmarks_compare_the_goal_first_and_walk_toward_the_beacon():
     assert ((actions >= 0) & (actions < model.n_actions)).all()
     toward = (actions == 2 * 3 + 1).double().mean()  # the push down the last axis, toward b = −β e_3
     assert 0.4 < float(toward) < 0.85  # about 1/2 + 1/16
+
+
+def _grid_2d(centres: torch.Tensor, half: float, points: int = 401) -> tuple[torch.Tensor, float]:
+    """A square grid ``[points², 2]`` covering every centre ``[K, 2]`` ± ``half``, and its cell area."""
+    lo, hi = centres.min(0).values - half, centres.max(0).values + half
+    axes = [torch.linspace(float(lo[i]), float(hi[i]), points, dtype=torch.float64) for i in range(2)]
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 2)
+    return grid, float(axes[0][1] - axes[0][0]) * float(axes[1][1] - axes[1][0])
+
+
+def test_the_rao_blackwellised_goal_update_is_bayes_rule_on_a_grid(per_test_generator):
+    """Given a particle's position, the goal's Gaussian sum after one step is the grid posterior of the
+    prior sum (drifted) times the goal reading's density: the same evidence, mode weights and means. Near the
+    beacon, where the reading carries the goal; d = 2, two modes weighted 0.3 and 0.7."""
+    m = HiddenGoal(dim=2, modes=2, beacon_distance=1.0)
+    p = m.params
+    x = (m.beacon.double() + torch.tensor([0.3, -0.2], dtype=torch.float64)).reshape(1, 1, 2)
+    log_w = torch.log(torch.tensor([[[0.3, 0.7]]], dtype=torch.float64))
+    means = torch.tensor([[[[2.9, 0.1], [-3.1, -0.05]]]], dtype=torch.float64)
+    var = torch.full((1, 1, 2), 0.02, dtype=torch.float64)
+    a = torch.tensor([0])
+    o = torch.tensor([[0.5, -1.1, -0.4, 0.2]], dtype=torch.float64)
+    x_new, lw, mu, v, log_inc = m.rao_blackwell_step(x, log_w, means, var, a, o, per_test_generator)
+    pred = x + m._pushes.double()[0, :2]
+    sx2, so2 = p.position_noise_std ** 2, p.position_obs_std ** 2
+    position_term = -0.5 * (((o[:, :2] - pred) ** 2).sum() / (sx2 + so2) + 2 * math.log(2 * math.pi * (sx2 + so2)))
+    ell = float(m.signal(x_new.float()).double())
+    prior_var = 0.02 + p.goal_drift_std ** 2
+    grid, cell = _grid_2d(means[0, 0], 8 * math.sqrt(prior_var))
+    mode_density = torch.stack([w * torch.exp(-0.5 * ((grid - mj) ** 2).sum(-1) / prior_var) / (2 * math.pi * prior_var)
+                                for w, mj in zip((0.3, 0.7), means[0, 0])])  # [2, G]
+    reading = torch.exp(-0.5 * ((o[0, 2:] - ell * grid) ** 2).sum(-1) / p.goal_obs_std ** 2) \
+        / (2 * math.pi * p.goal_obs_std ** 2)
+    joint = mode_density * reading
+    evidence = joint.sum() * cell
+    assert float(log_inc[0, 0] - position_term) == pytest.approx(math.log(float(evidence)), abs=1e-4)
+    post_w = joint.sum(-1) * cell / evidence
+    assert torch.softmax(lw[0, 0], -1).tolist() == pytest.approx(post_w.tolist(), abs=1e-5)
+    post_means = (joint[..., None] * grid).sum(1) / joint.sum(-1, keepdim=True)
+    assert mu[0, 0].flatten().tolist() == pytest.approx(post_means.flatten().tolist(), abs=1e-5)
+    post_var = (joint * ((grid - post_means[:, None]) ** 2).sum(-1)).sum(-1) / joint.sum(-1) / 2
+    assert [float(v[0, 0, 0])] * 2 == pytest.approx(post_var.tolist(), rel=1e-4)
+
+
+def test_the_fully_adapted_start_draws_the_first_position_from_its_posterior(per_test_generator):
+    """Far from the beacon (the goal's reading says nothing of the position), the first step's positions
+    follow the posterior of ``x₁`` given the first reading under the start box's uniform prior: per
+    coordinate, ``∫ U(x₀) N(x₁; x₀ + push, σ_x²) N(o; x₁, σ_o²) dx₀`` on a grid. Mean and standard deviation
+    within 5 standard errors; a reading outside the box on one coordinate."""
+    m = HiddenGoal(dim=2, modes=2, beacon_distance=30.0)
+    p, n = m.params, 200_000
+    o = torch.tensor([[0.9, -0.1, 0.0, 0.0]], dtype=torch.float64)
+    a = torch.tensor([0])  # pushes coordinate 0 by +step
+    x, lw, _, _, log_inc = m.rao_blackwell_first_step(1, n, a, o, per_test_generator)
+    assert float(log_inc.max() - log_inc.min()) < 1e-9  # every particle weighs the same
+    x0 = torch.linspace(-p.start_spread, p.start_spread, 2001, dtype=torch.float64)
+    x1 = torch.linspace(-3.0, 3.0, 6001, dtype=torch.float64)
+    for c in range(2):
+        push = p.step if c == 0 else 0.0
+        trans = torch.exp(-0.5 * (x1[:, None] - x0[None] - push) ** 2 / p.position_noise_std ** 2).sum(1)
+        dens = trans * torch.exp(-0.5 * (float(o[0, c]) - x1) ** 2 / p.position_obs_std ** 2)
+        dens = dens / dens.sum()
+        mean = float((dens * x1).sum())
+        std = math.sqrt(float((dens * (x1 - mean) ** 2).sum()))
+        draws = x[0, :, c]
+        assert abs(float(draws.mean()) - mean) < 5 * std / math.sqrt(n)
+        assert abs(float(draws.std()) / std - 1) < 5 / math.sqrt(2 * n)
