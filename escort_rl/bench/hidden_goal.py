@@ -192,6 +192,9 @@ def register(subparsers) -> None:
                    "or none with --add-filter)")
     options.add_labelled_option(p, "--add-filter", "a filter configuration of your own",
                                 "'escort smoothed' filter=escort_train filter.prior=smoothed")
+    p.add_argument("--frontier-rows", nargs=2, default=None, metavar=("FRONTIER_JSON", "MS"),
+                   help="add each filter's configuration that a frontier.json (bench frontier, at the one "
+                   "--dims value) found closest to its reference within MS ms an update: equal filter time")
     p.add_argument("--episodes", type=int, default=None, help="episodes per row (default: 100)")
     p.add_argument("--particles", type=int, default=None, metavar="N", help="N where a row does not set it "
                    "(default: 100)")
@@ -209,6 +212,15 @@ def main(args) -> None:
     pick = QUICK if args.quick else full
     kw = {k: getattr(args, k) if getattr(args, k) is not None else pick[k] for k in full}
     own = options.labelled(args.add_filter, "--add-filter")
+    if getattr(args, "frontier_rows", None):
+        from escort_rl.bench.frontier.run import budget_configurations
+
+        if len(kw["dims"]) != 1:
+            raise ValueError(f"--frontier-rows: a frontier is measured at one dimension; give the frontier's as the "
+                             f"only --dims value, got {list(kw['dims'])}")
+        path, budget = args.frontier_rows
+        own = [*((f"{name} (closest within {float(budget):g} ms)", overrides)
+                 for name, overrides in budget_configurations(path, float(budget), "--frontier-rows")), *own]
     if own and args.filters is None:
         kw["filters"] = ()
     run_hidden_goal(modes=args.modes, seed=args.seed, overrides=tuple(args.overrides), output=args.output,

@@ -53,3 +53,22 @@ def test_a_filter_of_ones_own(tmp_path):
     result = json.loads((tmp_path / "hidden_goal.json").read_text())
     assert [r["label"] for r in result["rows"]] == ["sir systematic, commit", "sir systematic, look first"]
     assert result["filters"] == {"sir systematic": ["filter=sir", "filter.resampling=systematic"]}
+
+
+def test_frontier_rows_act_on_each_filters_closest_configuration_within_the_budget(tmp_path, capsys):
+    rows = [dict(method="sir", base="sir", settings=[], particles=20, num_steps=0, ms_per_update=0.3, error=2.0),
+            dict(method="sir", base="sir", settings=[], particles=40, num_steps=0, ms_per_update=0.8, error=1.0),
+            dict(method="enkf", base="enkf", settings=[], particles=30, num_steps=0, ms_per_update=0.5, error=1.5),
+            dict(method="escort", base="escort", settings=[], particles=12, num_steps=50, ms_per_update=30.0,
+                 error=0.1)]
+    path = tmp_path / "frontier.json"
+    path.write_text(json.dumps({"rows": rows}))
+    argv = ["bench", "hidden-goal", "--frontier-rows", str(path), "1", "--dims", "3", "--episodes", "2", "--steps",
+            "3", "--output", str(tmp_path / "out")]
+    assert main(argv) == 0
+    result = json.loads((tmp_path / "out" / "hidden_goal.json").read_text())
+    assert result["filters"] == {"sir N=40 (closest within 1 ms)": ["filter=sir", "num_particles=40"],
+                                 "enkf N=30 (closest within 1 ms)": ["filter=enkf", "num_particles=30"]}
+    assert {r["particles"] for r in result["rows"]} == {40, 30}
+    assert main([*argv[:-1], str(tmp_path / "two"), "--dims", "3", "4"]) != 0
+    assert "--frontier-rows: a frontier is measured at one dimension" in capsys.readouterr().err

@@ -112,6 +112,25 @@ def closest_at_budget(result: dict, budget_ms: float) -> list[dict]:
     order = list(dict.fromkeys(r.get("base", r["method"]) for r in result["rows"]))
     return [best[b] for b in order if b in best]
 
+def budget_configurations(path, budget_ms: float, option: str) -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """Each filter's configuration that a frontier (the ``frontier.json`` at ``path``) found closest to its
+    reference within ``budget_ms`` ms an update (:func:`closest_at_budget`), as ``(label, Hydra overrides)``:
+    the rows of a comparison at equal filter time. ``option`` (the command's flag) names the mistake in an
+    error."""
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{option}: no frontier result at '{path}'; give the frontier.json of a bench frontier run")
+    picked = closest_at_budget(json.loads(path.read_text()), float(budget_ms))
+    if not picked:
+        raise ValueError(f"{option}: no filter of '{path}' updates within {budget_ms:g} ms; raise the budget")
+    return tuple((label(r), (f"filter={r.get('base', r['method'])}", f"num_particles={r['particles']}",
+                             *([f"filter.num_steps={r['num_steps']}"] if r.get("num_steps") else []),
+                             *(f"filter.{s}" for s in r.get("settings", []))))
+                 for r in picked)
+
 
 def run_frontier(spec: FrontierSpec, backend=None, progress=None) -> dict:
     """Every filter of ``spec`` over its costs on its model; each row's distances to the reference

@@ -138,24 +138,10 @@ def frontier_rows(path: str | Path, budget_ms: float) -> tuple[tuple[str, tuple[
     """``--frontier-rows PATH MS``: a trained row (PPO, no warm start) on each filter's configuration that a
     frontier (``frontier.json`` of ``bench frontier``) found closest to its reference within ``MS`` ms an
     update: equal filter time."""
-    import json
+    from escort_rl.bench.frontier.run import budget_configurations
 
-    from escort_rl.bench.frontier.run import closest_at_budget, label
-
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"--frontier-rows: no frontier result at '{path}'; give the frontier.json of a bench "
-                         "frontier run")
-    picked = closest_at_budget(json.loads(path.read_text()), float(budget_ms))
-    if not picked:
-        raise ValueError(f"--frontier-rows: no filter of '{path}' updates within {budget_ms:g} ms; raise the budget")
-    rows = []
-    for r in picked:
-        overrides = [f"filter={r.get('base', r['method'])}", f"num_particles={r['particles']}",
-                     *([f"filter.num_steps={r['num_steps']}"] if r.get("num_steps") else []),
-                     *(f"filter.{s}" for s in r.get("settings", [])), "trainer.warm_start_iterations=0"]
-        rows.append((f"PPO on {label(r)} (closest within {budget_ms:g} ms)", tuple(overrides)))
-    return tuple(rows)
+    return tuple((f"PPO on {name} (closest within {budget_ms:g} ms)", (*overrides, "trainer.warm_start_iterations=0"))
+                 for name, overrides in budget_configurations(path, budget_ms, "--frontier-rows"))
 
 
 ROW_SETS = {"headline": TRAINED_ROWS, "default": TRAINED_ROWS[:1], "ablation": ABLATION_ROWS, "starts": START_ROWS,
