@@ -86,6 +86,7 @@ class RaoBlackwellisedSMC:
 
     @staticmethod
     def check(model) -> None:
+        """Raise a ``ValueError`` naming every member of :data:`MEMBERS` that ``model`` lacks."""
         missing = [m for m in MEMBERS if getattr(model, m, None) is None]
         if missing:
             raise ValueError(f"--reference-filter rao_blackwell: {type(model).__name__} lacks {', '.join(missing)}; "
