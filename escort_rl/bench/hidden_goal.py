@@ -87,33 +87,47 @@ class HiddenGoalCell(ConfigCell):
         particles_key, log_weights_key = belief_keys(cfg)
         policy = ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key,
                                           controller=controller)
+        beliefs, means = {}, []
+
+        def keep(td) -> None:  # a step's belief mean, and its particles at the probe steps
+            x, lw = td["next", particles_key], td["next", log_weights_key]
+            means.append((torch.softmax(lw, -1).unsqueeze(-1) * x).sum(-2))
+            if len(means) in PROBE_STEPS:
+                beliefs[len(means)] = (x.clone(), lw.clone())
+
+        def keep_and_drop(t: int, td) -> None:  # not T × E × N particles held until the end
+            keep(td)
+            for key in (particles_key, log_weights_key):
+                td.del_(key)
+                td.del_(("next", key))
+
         t0 = time.perf_counter()
-        rollout, step_s = run_episodes(cfg, policy, self.episodes, self.seed)
+        rollout, step_s = run_episodes(cfg, policy, self.episodes, self.seed, on_step=keep_and_drop)
         seconds = time.perf_counter() - t0
-        m = first_episode_metrics(rollout, model)
+        keep(rollout[:, -1])  # the last step, which the rollout shows no callback
+        m = first_episode_metrics(rollout, model, belief_mean=torch.stack(means, 1))
         return {"label": self.label, "overrides": list(self.overrides), "confidence": self.confidence,
                 "dim": self.dim, "modes": self.modes, "particles": int(cfg.num_particles),
                 "filter": str(cfg.filter.name), "success": m["success"].double().tolist(),
                 "steps": m["steps"].double().tolist(), "episode_return": m["episode_return"].double().tolist(),
-                **mode_probes(model, controller, rollout["next", particles_key], rollout["next", log_weights_key],
-                              rollout["next", "true_state"], m["length"]),
+                **mode_probes(model, controller, beliefs, rollout["next", "true_state"], m["length"]),
                 "seconds_per_step": step_s, "seconds": seconds}
 
 
-def mode_probes(model, controller, particles: torch.Tensor, log_weights: torch.Tensor, truth: torch.Tensor,
-                length: torch.Tensor) -> dict:
+def mode_probes(model, controller, beliefs: dict, truth: torch.Tensor, length: torch.Tensor) -> dict:
     """At each step of :data:`PROBE_STEPS` inside the episode, per running episode: the true mode's weight,
     the modes holding at least 5% and the heaviest mode's goal error. Returns ``{"<metric>@<step>": [...]}``
-    (``particles`` ``[E, T, N, 2d]``, ``log_weights`` ``[E, T, N]``, ``truth`` ``[E, T, 2d]``, ``length``
-    ``[E]``)."""
+    (``beliefs``: ``{step: (particles [E, N, 2d], log_weights [E, N])}`` after that step, for the steps of
+    :data:`PROBE_STEPS` the episodes reached; ``truth`` ``[E, T, 2d]``, ``length`` ``[E]``)."""
     d = model.dim
     out = {}
     for step in PROBE_STEPS:
         t = step - 1
-        if t >= particles.shape[1]:
+        if step not in beliefs or t >= truth.shape[1]:
             continue
         running = length > t
-        x, lw, s = particles[:, t][running], log_weights[:, t][running], truth[:, t][running]
+        particles, log_weights = beliefs[step]
+        x, lw, s = particles[running], log_weights[running], truth[:, t][running]
         if x.shape[0] == 0:
             continue
         shares = controller.mode_weights(x, lw)[2]

@@ -96,7 +96,7 @@ def summarise_episodes(metrics: dict) -> dict:
 
 
 def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = None,
-                 make=make_env, desc: str | None = None) -> tuple[TensorDict, float]:
+                 make=make_env, desc: str | None = None, on_step=None) -> tuple[TensorDict, float]:
     """Roll ``policy`` (or uniform-random actions when ``None``) for one episode in each of
     ``episodes`` envs seeded with ``seed``. Returns the rollout ``[E, T]`` and the seconds per
     batched step (policy + env + belief update) over steps 2..T: the first step is a warm-up (with
@@ -104,7 +104,11 @@ def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = No
     ``make(cfg, num_envs, seed)`` builds the env (default: the env with ``cfg``'s belief filter). With
     an :class:`~escort_rl.transforms.ActionRepeat` of ``k`` in the env, ``T = ⌈max_steps / k⌉``
     decisions, and the seconds are per env step (a decision's seconds over ``k``). ``desc``: a progress
-    bar of the steps under that name (the first step compiles a compiled filter: seconds)."""
+    bar of the steps under that name (the first step compiles a compiled filter: seconds). ``on_step(t, td)``
+    sees each step's tensordict ``[E]`` as it joins the rollout (``t = 0..T−2``; the last step is not shown):
+    it may read it, and the keys it deletes from it are not kept (a bench that needs the particles at a
+    few steps only keeps the rollout from holding all ``T × E × N`` of them). With ``on_step`` the steps are
+    stacked lazily, so that they may differ in their keys: the last step keeps what the others lost."""
     from tqdm import tqdm
 
     env = make(cfg, episodes, seed=seed)
@@ -114,14 +118,17 @@ def run_episodes(cfg, policy, episodes: int, seed: int, timing: dict | None = No
     steps = -(-int(cfg.env.max_steps) // repeat)
     bar = tqdm(total=steps, desc=desc, disable=desc is None, leave=False, dynamic_ncols=True)
 
-    def tick(*_) -> None:
+    def tick(_env, td) -> None:
+        if on_step is not None:
+            on_step(len(stamps), td)
         stamps.append(time.perf_counter())
         bar.update(1)
 
     t0 = time.perf_counter()
     try:
         with torch.no_grad():
-            rollout = env.rollout(steps, policy, break_when_any_done=False, callback=tick)
+            rollout = env.rollout(steps, policy, break_when_any_done=False, callback=tick,
+                                  return_contiguous=on_step is None)
     finally:
         bar.close()
     env.close()
