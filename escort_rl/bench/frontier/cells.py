@@ -141,7 +141,10 @@ def parse_variant(item) -> tuple[str, str, tuple]:
     name, overrides = item[0], list(item[1:])
     methods = [o.split("=", 1)[1] for o in overrides if o.startswith("filter=")]
     items = tuple(o[len("filter."):] for o in overrides if o.startswith("filter.") and "=" in o)
-    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", name) or len(methods) != 1 or methods[0] not in FILTER_METHODS \
+    if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", name):
+        raise ValueError(f"--variant: the name {name!r} must be a letter, then letters, digits or '_' (it names "
+                         "the row and its cells), e.g. escort_eps002")
+    if len(methods) != 1 or methods[0] not in FILTER_METHODS \
             or not items or len(items) + 1 != len(overrides):
         raise ValueError(f"--variant: expected {VARIANT_SYNTAX} with METHOD one of {', '.join(FILTER_METHODS)}, "
                          f"got {' '.join(item)!r}")
