@@ -52,6 +52,16 @@ def has_rao_blackwell_form(model) -> bool:
     return all(getattr(model, m, None) is not None for m in MEMBERS)
 
 
+def _state_order(x_dims, z_dims) -> Tensor:
+    """The columns of ``cat([x, z], -1)`` in the state's order: column ``k`` of the result is state dim ``k``.
+
+    Example (the goal first, then the position):
+        >>> _state_order((2, 3), (0, 1)).tolist()
+        [2, 3, 0, 1]
+    """
+    return torch.argsort(torch.tensor([*x_dims, *z_dims]))
+
+
 class ConditionalParticles(NamedTuple):
     """A Rao-Blackwellised belief of ``B`` beliefs of ``n`` particles, float64: ``x`` ``[B, n, dx]``,
     ``log_weights`` ``[B, n]`` (the particles'), and per particle ``z``'s Gaussian sum: ``mode_log_weights``
@@ -142,8 +152,7 @@ class RaoBlackwellisedSMC:
         xd, zd = model.rao_blackwell_dims
         bsz, n, m, dz = b.mode_means.shape
         centres = torch.cat([b.x.unsqueeze(-2).expand(bsz, n, m, len(xd)), b.mode_means], -1)
-        order = torch.tensor([*xd, *zd])
-        centres = centres[..., torch.argsort(order)]  # columns in state order
+        centres = centres[..., _state_order(xd, zd)]
         prob = torch.softmax(b.log_weights, -1).unsqueeze(-1) * torch.softmax(b.mode_log_weights, -1)
         var = b.variance.unsqueeze(-2).expand(bsz, n, m, dz)
         return centres.reshape(bsz, n * m, -1), prob.reshape(bsz, n * m), var.reshape(bsz, n * m, dz)
@@ -172,5 +181,4 @@ class RaoBlackwellisedSMC:
         v = b.variance.gather(1, i[..., None].expand(*i.shape, dz))
         z = z + v.sqrt() * torch.randn(z.shape, generator=generator, dtype=z.dtype, device=z.device)
         x = b.x.gather(1, i[..., None].expand(*i.shape, b.x.shape[-1]))
-        order = torch.tensor([*xd, *zd])
-        return torch.cat([x, z], -1)[..., torch.argsort(order)]
+        return torch.cat([x, z], -1)[..., _state_order(xd, zd)]
