@@ -55,9 +55,9 @@ def has_rao_blackwell_form(model) -> bool:
 def _state_order(x_dims, z_dims) -> Tensor:
     """The columns of ``cat([x, z], -1)`` in the state's order: column ``k`` of the result is state dim ``k``.
 
-    Example (the goal first, then the position):
-        >>> _state_order((2, 3), (0, 1)).tolist()
-        [2, 3, 0, 1]
+    Example (x holds state dims 1 and 2, z dim 0: state dim 0 is column 2 of ``cat([x, z])``):
+        >>> _state_order((1, 2), (0,)).tolist()
+        [2, 0, 1]
     """
     return torch.argsort(torch.tensor([*x_dims, *z_dims]))
 
