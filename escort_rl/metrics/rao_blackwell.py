@@ -65,13 +65,15 @@ def _state_order(x_dims, z_dims) -> Tensor:
 class ConditionalParticles(NamedTuple):
     """A Rao-Blackwellised belief of ``B`` beliefs of ``n`` particles, float64: ``x`` ``[B, n, dx]``,
     ``log_weights`` ``[B, n]`` (the particles'), and per particle ``z``'s Gaussian sum: ``mode_log_weights``
-    ``[B, n, M]`` (normalised), ``mode_means`` ``[B, n, M, dz]``, ``variance`` ``[B, n, dz]``."""
+    ``[B, n, M]`` (normalised), ``mode_means`` ``[B, n, M, dz]``, ``variance`` ``[B, n, dz]``; ``at_prior``: the
+    belief is :meth:`RaoBlackwellisedSMC.init`'s, not yet updated."""
 
     x: Tensor
     log_weights: Tensor
     mode_log_weights: Tensor
     mode_means: Tensor
     variance: Tensor
+    at_prior: bool = False
 
 
 class RaoBlackwellisedSMC:
@@ -92,7 +94,6 @@ class RaoBlackwellisedSMC:
     def __init__(self) -> None:
         self.last_ess_fraction: Tensor | None = None
         """ESS/n of each belief's weights after the last update's reweighting, before it resampled."""
-        self._at_prior = False
 
     @staticmethod
     def check(model) -> None:
@@ -107,16 +108,15 @@ class RaoBlackwellisedSMC:
         """``n`` particles of the prior for each of ``batch`` beliefs, equally weighted."""
         self.check(model)
         x, log_w, means, var = model.rao_blackwell_prior(batch, n, generator)
-        self._at_prior = True
-        return ConditionalParticles(x, torch.full((batch, n), -math.log(n), dtype=torch.float64), log_w, means, var)
+        return ConditionalParticles(x, torch.full((batch, n), -math.log(n), dtype=torch.float64), log_w, means, var,
+                                    at_prior=True)
 
     def update(self, model, b: ConditionalParticles, action: Tensor, observation: Tensor,
                generator: torch.Generator | None = None) -> ConditionalParticles:
         """One step: the model's proposal and exact conditional update, the weights, and systematic
         resampling of the beliefs whose ESS/n fell below :attr:`resample_threshold`. The first update after
         :meth:`init` is the model's ``rao_blackwell_first_step`` where it gives one (module docstring)."""
-        first = getattr(model, "rao_blackwell_first_step", None) if self._at_prior else None
-        self._at_prior = False
+        first = getattr(model, "rao_blackwell_first_step", None) if b.at_prior else None
         if first is not None:
             bsz, n = b.log_weights.shape
             x, log_w, means, var, inc = first(bsz, n, action, observation, generator)

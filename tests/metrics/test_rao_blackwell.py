@@ -90,3 +90,20 @@ def test_resampling_keeps_each_particle_with_its_own_gaussian_sum(per_test_gener
     assert torch.allclose(after.log_weights[0], torch.full((50,), -math.log(50), dtype=torch.float64))
     assert torch.equal(after_rows[1], before_rows[1]) and torch.equal(after.log_weights[1], b.log_weights[1])
     assert len({tuple(r.tolist()) for r in after_rows[0]}) < 50  # it did resample (unequal weights before)
+
+
+def test_each_belief_takes_the_fully_adapted_start_whatever_the_filter_did_before(per_test_generator):
+    """The first update of a belief from ``init`` is the model's fully adapted start, even when the same filter
+    initialised or updated another belief in between: far from the beacon its weights then stay equal (ESS/n 1),
+    where a start from prior draws loses most of its ESS to the first reading in 10 dimensions."""
+    model = HiddenGoal(dim=10, modes=2, beacon_distance=30.0)
+    traj = generate_trajectories(model, 2, [0])
+    f = RaoBlackwellisedSMC()
+    first, second = f.init(model, 1, 2000, per_test_generator), f.init(model, 1, 2000, per_test_generator)
+    a, o = traj["actions"][:, 0], traj["observations"][:, 0]
+    f.update(model, first, a, o, per_test_generator)
+    f.update(model, second, a, o, per_test_generator)
+    assert float(f.last_ess_fraction.min()) > 0.999
+    moved = f.update(model, f.update(model, first, a, o, per_test_generator), traj["actions"][:, 1],
+                     traj["observations"][:, 1], per_test_generator)
+    assert not moved.at_prior
