@@ -112,6 +112,7 @@ def closest_at_budget(result: dict, budget_ms: float) -> list[dict]:
     order = list(dict.fromkeys(r.get("base", r["method"]) for r in result["rows"]))
     return [best[b] for b in order if b in best]
 
+
 def budget_configurations(path, budget_ms: float, option: str) -> tuple[tuple[str, tuple[str, ...]], ...]:
     """Each filter's configuration that a frontier (the ``frontier.json`` at ``path``) found closest to its
     reference within ``budget_ms`` ms an update (:func:`closest_at_budget`), as ``(label, Hydra overrides)``:
