@@ -48,7 +48,7 @@ def check_agent(agent: str) -> str:
 def agent_lr(cfg: DictConfig) -> float:
     """RMSprop's rate for ``cfg.agent``: ``trainer.belief_lr`` for the belief agents (DVRL, ESCORT-latent)
     when set, else ``trainer.lr``."""
-    belief_lr = cfg.trainer.get("belief_lr", None)
+    belief_lr = cfg.trainer.belief_lr
     return float(belief_lr) if belief_lr is not None and cfg.agent != "gru" else float(cfg.trainer.lr)
 
 
@@ -59,7 +59,7 @@ def build_atari_policy(cfg: DictConfig, obs_shape: tuple[int, ...], n_actions: i
     if agent == "gru":
         return FrameGRUPolicy(FrameGRU(obs_shape[0], n_actions, hidden=int(cfg.gru.hidden), frame_size=obs_shape[1]))
     vrnn = {k: cfg.vrnn[k] for k in ("num_particles", "latent_dim", "hidden", "encoding_dim", "summary")}
-    vrnn["emission_min_std"] = float(cfg.vrnn.get("emission_min_std", 0.0))
+    vrnn["emission_min_std"] = float(cfg.vrnn.emission_min_std)
     if agent == "dvrl":
         return DVRLPolicy(DVRL(obs_shape, n_actions, resample=True, **vrnn))
     latent = ("likelihood", "elbo")
@@ -118,7 +118,7 @@ class AtariA2C(Algorithm):
         self.optimizer = torch.optim.RMSprop(self.policy.parameters(), lr=agent_lr(cfg), alpha=float(t.rmsprop_alpha),
                                              eps=float(t.rmsprop_eps))
         self.games = GameLog()
-        vectorized = bool(t.get("vectorized_envs", False))
+        vectorized = bool(t.vectorized_envs)
         if vectorized and t.parallel_envs:
             raise ConfigError("trainer.vectorized_envs: ALE's vector env runs the games on its own threads; set "
                               "trainer.parallel_envs=false with it")
@@ -163,7 +163,7 @@ class AtariA2C(Algorithm):
                 bootstrap = self.policy(self.td.clone())["state_value"].squeeze(-1)
             loss, terms = a2c_loss(window, bootstrap, float(t.gamma), float(t.entropy_coef),
                                    float(t.value_loss_coef), float(t.encoding_loss_coef), elbo_key=elbo_key,
-                                   normalize_advantage=bool(t.get("normalize_advantage", True)))
+                                   normalize_advantage=bool(t.normalize_advantage))
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(self.policy.parameters(), float(t.max_grad_norm))
