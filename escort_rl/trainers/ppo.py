@@ -172,9 +172,9 @@ class PPOBase(CollectorAlgorithm):
             return ""
         p = self.params
         span = p.kickstart_span
-        return (f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling to 0 by iteration "
-                f"{span + 1}" if span < p.iterations else
-                f"; kickstarted by the scripted controller, weight {p.kickstart_coef:g} falling linearly over the run")
+        note = f"; kickstarted by the scripted controller at gain {self.teacher.gain_v:g}, weight {p.kickstart_coef:g}"
+        return note + (f" falling to 0 by iteration {span + 1}" if span < p.iterations else
+                       " falling linearly over the run")
 
     # ------------------------------------------------------------------ the hooks
     @abstractmethod

@@ -85,7 +85,8 @@ def test_the_weight_falls_per_iteration_and_is_logged(tmp_path, capsys):
     train(compose([*TINY, "trainer.iterations=3", "trainer.kickstart_coef=2.0", "trainer.kickstart_iterations=2",
                    "trainer.teacher=scripted",
                    f"output_dir={run}"]), progress=False)
-    assert "kickstarted by the scripted controller, weight 2 falling to 0 by iteration 3" in capsys.readouterr().out
+    plan = "kickstarted by the scripted controller at gain 0.5, weight 2 falling to 0 by iteration 3"
+    assert plan in capsys.readouterr().out
     history = load_checkpoint(run)["trainer_state"]["history"]
     assert [h["kickstart_weight"] for h in history] == [2.0, 1.0, 0.0]
     assert all(math.isfinite(h["loss_kickstart"]) for h in history[:2])
