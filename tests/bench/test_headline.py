@@ -54,6 +54,20 @@ def test_the_comparison_with_the_controller_pairs_the_episodes_then_averages_the
     assert d["episode_return"][0] == pytest.approx(((1 + 10 - 1) / 3 + (-20) / 3) / 2)
 
 
+def test_the_steps_where_both_arrive_leave_out_the_episodes_either_misses():
+    scripted = {"success": [1, 0, 1, 1], "steps": [100, 500, 300, 200], "episode_return": [0, 0, 0, 0]}
+    seeds = [{"success": [1, 1, 1, 0], "steps": [90, 400, 310, 500], "episode_return": [0, 0, 0, 0]},
+             {"success": [1, 0, 1, 1], "steps": [96, 500, 290, 180], "episode_return": [0, 0, 0, 0]}]
+    mean, se, se_seeds, se_episodes = paired_difference(seeds, scripted)["steps_both_succeed"]
+    # seed 0 pairs episodes 0 and 2 (-10, +10), seed 1 episodes 0, 2 and 3 (-4, -10, -20)
+    assert mean == pytest.approx((0.0 + (-34 / 3)) / 2)
+    assert se_seeds == pytest.approx(mean_se([0.0, -34 / 3])[1])
+    assert se_episodes == pytest.approx(mean_se([(-10 - 4) / 2, (10 - 10) / 2, -20])[1])
+    assert se == pytest.approx(math.hypot(se_seeds, se_episodes))
+    one_pair = [{"success": [1, 0, 0, 0], "steps": [90, 500, 500, 500], "episode_return": [0, 0, 0, 0]}] * 2
+    assert paired_difference(one_pair, scripted)["steps_both_succeed"] is None
+
+
 def test_the_table_has_its_rows_and_a_rerun_loads_the_finished_cells(tmp_path):
     spec = HeadlineSpec.quick(seeds=1, episodes=2, gains=(1.0, 3.0), output=tmp_path)
     result = run_headline(spec, make_backend("inprocess"))
@@ -65,7 +79,8 @@ def test_the_table_has_its_rows_and_a_rerun_loads_the_finished_cells(tmp_path):
         (f, g) for f in ("escort_train", "sir_rough") for g in (1.0, 3.0)}
     checkpoints = sorted(p.stat().st_mtime_ns for p in (tmp_path / "runs").rglob("manifest.json"))
     assert checkpoints  # every trained cell wrote its run
-    assert all(set(r["vs_scripted"]) == {"success", "steps", "episode_return"} for r in result["rows"][:2])
+    compared = {"success", "steps", "episode_return", "steps_both_succeed"}
+    assert all(set(r["vs_scripted"]) == compared for r in result["rows"][:2])
     # the episodes behind every row are kept, so that a paired difference can be recomputed from the table alone
     assert all(len(r["per_episode"]["steps"]) == 1 and len(r["per_episode"]["steps"][0]) == 2
                for r in result["rows"][:2])

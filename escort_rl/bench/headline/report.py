@@ -69,13 +69,17 @@ def headline_markdown(result: dict) -> str:
                   "(trained − scripted on the same episodes, averaged over seeds and episodes). The s.e. counts "
                   "both samples, √(s.e. across seeds² + s.e. across episodes²): every seed meets the same run of "
                   "the controller, whose own spread over the episodes the seeds cannot see. Positive success and "
-                  "return, negative steps: the learner is ahead.", "",
-                  "| policy | against | Δ success | Δ steps | Δ return |", "| --- | --- | --- | --- | --- |"]
+                  "return, negative steps: the learner is ahead. *Δ steps where both arrive*: the same on the "
+                  "episodes that both the seed's policy and the controller finish, so that which episodes each "
+                  "misses, largely chance, stays out of it.", "",
+                  "| policy | against | Δ success | Δ steps | Δ return | Δ steps where both arrive |",
+                  "| --- | --- | --- | --- | --- | --- |"]
         for r in compared:
             d = r["vs_scripted"]
+            both = d["steps_both_succeed"]
             lines.append(f"| {r['policy']} | {scripted.get(r['filter'], r['filter'])} on {r['filter']} | "
                          f"{_cell(*d['success'][:2], 3)} | {_cell(*d['steps'][:2], 1)} | "
-                         f"{_cell(*d['episode_return'][:2], 1)} |")
+                         f"{_cell(*d['episode_return'][:2], 1)} | {_cell(*both[:2], 1) if both else '—'} |")
     lines += ["", "Per-seed success of the trained rows:", ""]
     for r in result["rows"]:
         if r["kind"] == "trained":
