@@ -24,6 +24,8 @@ def register(subparsers) -> None:
                                    "for an action)")
     options.add_seeds_option(p, None, "training seeds 0..N-1 per trained row", str(full.seeds))
     p.add_argument("--episodes", type=int, default=None, help=f"evaluation episodes (default: {full.episodes})")
+    p.add_argument("--selection-episodes", type=int, default=None,
+                   help="the gain search's episodes (default: as many as --episodes)")
     p.add_argument("--gains", type=float, nargs="+", default=None,
                    help="the scripted controller's velocity gains searched (default: "
                    f"{' '.join(f'{g:g}' for g in full.gains)})")
@@ -57,7 +59,7 @@ def register(subparsers) -> None:
 
 def spec_from_args(args) -> HeadlineSpec:
     base = HeadlineSpec.quick() if args.quick else HeadlineSpec()
-    changes = options.given(args, "seeds", "episodes", "threads", "curve_every")
+    changes = options.given(args, "seeds", "episodes", "selection_episodes", "threads", "curve_every")
     if args.gains is not None:
         changes["gains"] = tuple(args.gains)
     overrides = (*base.overrides, *getattr(args, "overrides", ()))

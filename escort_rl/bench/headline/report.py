@@ -49,7 +49,7 @@ def headline_markdown(result: dict) -> str:
              f"{spec['episodes']} episodes (env seeds {spec['eval_seed']}..); mean ± s.e. **across training seeds** "
              "of the per-seed means. Scripted and random rows: the same episodes, mean ± s.e. **over episodes**. "
              "The scripted controller's velocity gain was chosen among "
-             f"{', '.join(f'{g:g}' for g in spec['gains'])} by success on {spec['episodes']} other episodes "
+             f"{', '.join(f'{g:g}' for g in spec['gains'])} by success on {spec['selection_episodes']} other episodes "
              f"(env seeds {spec['selection_seed']}..), ties by return.", "",
              "| policy | belief | success | final distance | return | steps | frames | training minutes |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]

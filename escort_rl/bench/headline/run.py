@@ -27,9 +27,13 @@ def trained_cells(spec: HeadlineSpec) -> list[TrainedCell]:
             for label, overrides in spec.rows for seed in range(spec.seeds)]
 
 
-def fixed_cell(spec: HeadlineSpec, filter_name: str, gain: float | None, eval_seed: int) -> FixedPolicyCell:
-    return FixedPolicyCell(filter=filter_name, gain=gain, overrides=spec.overrides, episodes=spec.episodes,
-                           eval_seed=eval_seed, threads=spec.threads)
+def fixed_cell(spec: HeadlineSpec, filter_name: str, gain: float | None, eval_seed: int,
+               episodes: int | None = None) -> FixedPolicyCell:
+    """The scripted (``gain``) or random (``None``) policy on ``episodes`` episodes (default: the table's) from
+    env seed ``eval_seed``."""
+    return FixedPolicyCell(filter=filter_name, gain=gain, overrides=spec.overrides,
+                           episodes=spec.episodes if episodes is None else episodes, eval_seed=eval_seed,
+                           threads=spec.threads)
 
 
 PAIRED = ("success", "steps", "episode_return")
@@ -182,7 +186,7 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
     if not beliefs:
         raise ValueError("--scripted-on: no trained row acts on a filter's belief; name the beliefs the scripted "
                          "controller runs on (a filter config name, or its overrides in one quoted word)")
-    selection = [fixed_cell(spec, f, g, spec.selection_seed) for f in beliefs for g in spec.gains]
+    selection = [fixed_cell(spec, f, g, spec.selection_seed, spec.selection_size) for f in beliefs for g in spec.gains]
     trained = trained_cells(spec)
     results = run_cells([*selection, *trained], backend, store, desc="headline")
     chosen = {f: best_gain([r for c, r in zip(selection, results) if c.filter == f]) for f in beliefs}
@@ -208,6 +212,7 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
     env = str(compose(row_overrides(spec.overrides, ())).env.name)
     return {"rows": rows, "spec": {"env": env, "seeds": spec.seeds, "episodes": spec.episodes,
                                    "eval_seed": spec.eval_seed, "selection_seed": spec.selection_seed,
+                                   "selection_episodes": spec.selection_size,
                                    "gains": list(spec.gains),
                                    "overrides": list(spec.overrides), "threads": spec.threads,
                                    "curve_every": spec.curve_every},

@@ -167,10 +167,10 @@ class HeadlineSpec:
     on the same ``episodes`` episodes), the scripted controller at its best gain on each row's belief
     and a uniform-random policy.
 
-    The gain is chosen among ``gains`` on ``episodes`` other episodes (env seeds from
-    ``selection_seed``), then evaluated on the table's episodes (from ``eval_seed``), so that the
-    choice does not select on the reported noise. The controller's action (push the dimension of the
-    largest ``|k_p·(g − x̂) − k_v·v̂|``) depends on the gains through ``k_v / k_p`` alone, so the grid of
+    The gain is chosen among ``gains`` on ``selection_episodes`` other episodes (``None``: as many as the
+    table's ``episodes``; env seeds from ``selection_seed``), then evaluated on the table's episodes (from
+    ``eval_seed``), so that the choice does not select on the reported noise. The controller's action (push the
+    dimension of the largest ``|k_p·(g − x̂) − k_v·v̂|``) depends on the gains through ``k_v / k_p`` alone, so the grid of
     velocity gains at ``k_p = 1`` sweeps both; 0 is a pure P rule. ``scripted_filters``: the beliefs the
     controller acts on, each a filter config name or the overrides that pick the belief, space-separated
     (``"filter=sir num_particles=3000"``); ``None``: each belief a trained row acts on. A trained row is paired,
@@ -193,6 +193,7 @@ class HeadlineSpec:
     episodes: int = 100
     eval_seed: int = 10000
     selection_seed: int = 20000
+    selection_episodes: int | None = None
     gains: tuple[float, ...] = (0.0, 0.125, 0.25, 0.5, 1.0, 2.0, 3.0)
     rows: tuple[tuple[str, tuple[str, ...]], ...] = TRAINED_ROWS
     scripted_filters: tuple[str, ...] | None = SCRIPTED_FILTERS
@@ -202,7 +203,8 @@ class HeadlineSpec:
     output: Path = Path(DEFAULT_OUTPUT)
 
     def __post_init__(self) -> None:
-        for flag, value in (("--seeds", self.seeds), ("--episodes", self.episodes), ("--threads", self.threads)):
+        for flag, value in (("--seeds", self.seeds), ("--episodes", self.episodes), ("--threads", self.threads),
+                            ("--selection-episodes", self.selection_size)):
             if int(value) < 1:
                 raise ValueError(f"{flag}: must be >= 1, got {value}")
         if int(self.curve_every) < 0:
@@ -220,6 +222,16 @@ class HeadlineSpec:
         if not self.rows:
             raise ValueError("--row: give at least one trained row")
         object.__setattr__(self, "output", Path(self.output))
+
+    @property
+    def selection_size(self) -> int:
+        """The gain search's episodes: ``selection_episodes``, else ``episodes``.
+
+        Examples:
+            >>> HeadlineSpec(episodes=500).selection_size, HeadlineSpec(selection_episodes=100).selection_size
+            (500, 100)
+        """
+        return int(self.episodes if self.selection_episodes is None else self.selection_episodes)
 
     @classmethod
     def quick(cls, **changes) -> HeadlineSpec:
