@@ -94,33 +94,35 @@ def paired_difference(results: list[dict], scripted: dict) -> dict:
     episode removes what the two policies share (a far start takes longer for both)."""
     out = {}
     for key in PAIRED:
-        diffs = [[t - c for t, c in zip(r[key], scripted[key])] for r in results]
-        mean, se_seeds = mean_se([mean_se(d)[0] for d in diffs])
-        per_episode = [mean_se([d[i] for d in diffs])[0] for i in range(min(len(d) for d in diffs))]
-        se_episodes = mean_se(per_episode)[1]
-        out[key] = (mean, math.hypot(se_seeds, se_episodes), se_seeds, se_episodes)
+        out[key] = two_part_mean_se([dict(enumerate(t - c for t, c in zip(r[key], scripted[key]))) for r in results])
     out["steps_both_succeed"] = steps_where_both_succeed(results, scripted)
     return out
+
+
+def two_part_mean_se(pairs: list[dict[int, float]]) -> tuple[float, float, float, float]:
+    """``(mean, se, se_seeds, se_episodes)`` of paired differences ``pairs[s][i] = d_si`` (seed ``s``, episode ``i``;
+    a seed may hold a subset of the episodes): the mean and s.e. across seeds of the per-seed means, the s.e.
+    across episodes of the per-episode means (over the seeds that hold the episode), and
+    ``se = √(se_seeds² + se_episodes²)`` (:func:`paired_difference`)."""
+    mean, se_seeds = mean_se([mean_se(list(p.values()))[0] for p in pairs if p])
+    episodes = sorted(set().union(*pairs))
+    se_episodes = mean_se([mean_se([p[i] for p in pairs if i in p])[0] for i in episodes])[1]
+    return (mean, math.hypot(se_seeds, se_episodes), se_seeds, se_episodes)
 
 
 def steps_where_both_succeed(results: list[dict], scripted: dict) -> tuple[float, float, float, float] | None:
     """:func:`paired_difference`'s steps on the episodes that the seed's policy and the controller both finish:
     ``d_si = steps_si − steps_i`` over the pairs ``(s, i)`` where both succeed, as ``(mean, se, se_seeds,
-    se_episodes)`` with the same two s.e. (the per-seed and per-episode means over the pairs they hold). An episode
-    that one policy misses costs it the time-out's ``max_steps`` in the mean steps, and which episodes each misses is
-    largely chance (a belief gone wrong near the goal); this difference is the speed of the two where both arrive,
-    with that chance out. ``None`` where fewer than two seeds or two episodes hold a pair."""
+    se_episodes)`` with the same two s.e. (:func:`two_part_mean_se`). An episode that one policy misses costs it the
+    time-out's ``max_steps`` in the mean steps, and which episodes each misses is largely chance (a belief gone wrong
+    near the goal); this difference is the speed of the two where both arrive, with that chance out. ``None`` where
+    fewer than two seeds or two episodes hold a pair."""
     pairs = [{i: t - c for i, (t, c, ok, ok_c) in enumerate(zip(r["steps"], scripted["steps"], r["success"],
                                                                  scripted["success"])) if ok and ok_c}
              for r in results]
-    per_seed = [mean_se(list(p.values()))[0] for p in pairs if p]
-    episodes = sorted(set().union(*pairs))
-    per_episode = [mean_se([p[i] for p in pairs if i in p])[0] for i in episodes]
-    if len(per_seed) < 2 or len(per_episode) < 2:
+    if sum(1 for p in pairs if p) < 2 or len(set().union(*pairs)) < 2:
         return None
-    mean, se_seeds = mean_se(per_seed)
-    se_episodes = mean_se(per_episode)[1]
-    return (mean, math.hypot(se_seeds, se_episodes), se_seeds, se_episodes)
+    return two_part_mean_se(pairs)
 
 
 def fixed_row(label: str, result: dict, kind: str) -> dict:
