@@ -16,7 +16,7 @@ from escort_rl.envs import POMDPEnv
 from escort_rl.models.protocol import is_continuous
 from escort_rl.modules import DeepSetsActor, DeepSetsCritic, make_deepsets_policy, policy_outputs
 from escort_rl.modules.action_heads import DEFAULT_MIN_SCALE, SAVED_RUN_DISTRIBUTION
-from escort_rl.planners import ScriptedBeliefController
+from escort_rl.planners import ScriptedBeliefController, TrueStateController
 from escort_rl.planners.scripted import DEFAULT_GAIN_V
 from escort_rl.transforms import ActionRepeat, BeliefTransform
 
@@ -334,14 +334,18 @@ def teacher_gain(cfg) -> float:
     return scripted_gain(cfg) if gain is None else float(gain)
 
 
-def scripted_policy(cfg, model, action_key: str = "action", gain_v: float | None = None):
+def scripted_policy(cfg, model, action_key: str = "action", gain_v: float | None = None,
+                    on_true_state: bool = False):
     """The domain's scripted controller at velocity gain ``gain_v`` (default :func:`scripted_gain`) on the
-    belief of ``cfg``'s filter, writing ``action_key``, or ``None`` where the domain has none (Kidnapped
-    Robot: no goal to drive to)."""
-    particles_key, log_weights_key = belief_keys(cfg)
+    belief of ``cfg``'s filter (``on_true_state``: on the simulator's ``true_state`` instead, which only a
+    training env exposes), writing ``action_key``, or ``None`` where the domain has none (Kidnapped Robot:
+    no goal to drive to)."""
+    gain_v = scripted_gain(cfg) if gain_v is None else gain_v
     try:
+        if on_true_state:
+            return TrueStateController(model, action_key=action_key, gain_v=gain_v)
+        particles_key, log_weights_key = belief_keys(cfg)
         return ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key,
-                                        action_key=action_key,
-                                        gain_v=scripted_gain(cfg) if gain_v is None else gain_v)
+                                        action_key=action_key, gain_v=gain_v)
     except ValueError:
         return None

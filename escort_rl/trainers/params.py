@@ -134,7 +134,9 @@ class PPOParams(BeliefTrainerParams):
             index, so a resumed run continues on the same schedule.
         teacher: the policy PPO kickstarts from (Schmitt et al. 2018): ``scripted``: the env's scripted
             controller on the same belief (at ``env.teacher_gain``, else ``env.scripted_gain``; an error
-            where the env has none);
+            where the env has none); ``state``: the same controller on the simulator's true state
+            (``true_state``; a privileged teacher: only training reads it, as the state critic does, and the
+            policy learns what the full-information rule would do from the belief alone);
             ``auto``: that controller where the env group marks it a teacher (``env.scripted_teacher``),
             else none; ``none``: no teacher. Each Adam step then also minimises
             ``λ_i · E[−log π_θ(a_teacher | b)]``, the policy's cross-entropy to the teacher's action.
@@ -164,7 +166,7 @@ class PPOParams(BeliefTrainerParams):
     update_particles: Optional[int] = param(25, ge=1)
     max_importance_ratio: Optional[float] = param(None, gt=1)
     lr_schedule: str = param("constant", choices=["constant", "linear"])
-    teacher: str = param("auto", choices=["auto", "scripted", "none"])
+    teacher: str = param("auto", choices=["auto", "scripted", "state", "none"])
     kickstart_coef: float = param(1.0, ge=0)
     kickstart_iterations: Optional[int] = param(None, ge=1)
 
@@ -219,7 +221,7 @@ class RecurrentPPOParams(PPOParams):
     minibatches: int = param(4, ge=1)  # groups of num_envs / minibatches whole rows
     critic_input: str = param("belief", choices=["belief", "state"])
     update_particles: Optional[int] = param(None, ge=1)
-    teacher: str = param("none", choices=["auto", "scripted", "none"])
+    teacher: str = param("none", choices=["auto", "scripted", "state", "none"])
     hidden: int = param(64, ge=1)
 
 

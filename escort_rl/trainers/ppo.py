@@ -102,13 +102,14 @@ TEACHER_ACTION = "teacher_action"
 def kickstart_teacher(cfg: DictConfig, model, params: PPOParams):
     """The policy PPO kickstarts from (``trainer.teacher``), writing :data:`TEACHER_ACTION`, or ``None``: the
     env's scripted controller on the belief (at ``env.teacher_gain``, else ``env.scripted_gain``) for
-    ``scripted``, and for ``auto`` where the env group sets ``scripted_teacher``; ``None`` for ``none`` or a
+    ``scripted``, on the simulator's true state for ``state``, and for ``auto`` where the env group sets ``scripted_teacher``; ``None`` for ``none`` or a
     zero ``kickstart_coef``."""
     if params.teacher == "none" or params.kickstart_coef == 0:
         return None
     if params.teacher == "auto" and not OmegaConf.select(cfg, "env.scripted_teacher", default=False):
         return None
-    teacher = scripted_policy(cfg, model, action_key=TEACHER_ACTION, gain_v=teacher_gain(cfg))
+    teacher = scripted_policy(cfg, model, action_key=TEACHER_ACTION, gain_v=teacher_gain(cfg),
+                              on_true_state=params.teacher == "state")
     if teacher is None:
         raise ConfigError(f"trainer.teacher: env '{cfg.env.name}' has no scripted controller to learn from; set "
                           "trainer.teacher=none")
@@ -172,7 +173,9 @@ class PPOBase(CollectorAlgorithm):
             return ""
         p = self.params
         span = p.kickstart_span
-        note = f"; kickstarted by the scripted controller at gain {self.teacher.gain_v:g}, weight {p.kickstart_coef:g}"
+        on = " on the true state" if p.teacher == "state" else ""
+        note = (f"; kickstarted by the scripted controller{on} at gain {self.teacher.gain_v:g}, "
+                f"weight {p.kickstart_coef:g}")
         return note + (f" falling to 0 by iteration {span + 1}" if span < p.iterations else
                        " falling linearly over the run")
 

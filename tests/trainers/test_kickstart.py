@@ -157,3 +157,27 @@ def test_the_teacher_acts_at_its_own_gain_and_the_evaluation_at_the_best_one(ove
     model = LightDark10D()
     assert kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer)).controller.gain_v == teacher
     assert scripted_policy(cfg, model).controller.gain_v == evaluation
+
+
+def test_the_state_teacher_acts_on_the_true_state_of_each_training_frame():
+    """``trainer.teacher=state``: the controller's action on each frame's ``true_state`` (a one-particle belief),
+    whatever the particles say; the belief teacher's actions on the same frames differ where the belief is off."""
+    from escort_rl.planners import TrueStateController
+
+    ppo, batch = _ppo_and_batch("trainer.teacher=state")
+    try:
+        assert isinstance(ppo.teacher, TrueStateController)
+        assert "on the true state" in ppo.plan_note()
+        ppo.teacher(batch)
+        expected = ppo.teacher.controller(batch["true_state"])
+        assert torch.equal(batch[TEACHER_ACTION], expected)
+        cfg = compose([*TINY, "trainer.teacher=scripted"])
+        on_belief = kickstart_teacher(cfg, ppo.model, trainer_params(PPOParams, cfg.trainer))
+        shuffled = batch.clone()
+        shuffled["true_state"] = shuffled["true_state"].flip(0)  # another env's state, the same beliefs
+        ppo.teacher(shuffled)
+        assert not torch.equal(shuffled[TEACHER_ACTION], expected)
+        on_belief(shuffled)
+        assert torch.equal(shuffled[TEACHER_ACTION], on_belief(batch.clone())[TEACHER_ACTION])
+    finally:
+        ppo.close()
