@@ -165,8 +165,17 @@ def test_own_rows_each_meet_the_controller_on_their_own_belief(tmp_path):
         # (not the random policy, which runs on the last belief too)
         for key in ("episode_return", "steps"):
             assert rows[policy]["vs_scripted"][key][0] == pytest.approx(rows[policy][key] - against[key], abs=1e-6)
-    assert "| PPO on SIR N=24 | scripted controller (gain 1) on filter=sir num_particles=24 |" in headline_markdown(
-        result)
+    # the hidden goal's controller (toward the heaviest mode) has no velocity gain: no gain search runs, and the
+    # table says what it does instead of naming a gain it ignores
+    from escort_rl.bench.headline.run import gainless_rule
+    from escort_rl.config import compose
+
+    rule = gainless_rule(compose(["env=hidden_goal"]))
+    assert "heaviest mode" in rule and gainless_rule(compose(["env=lightdark10d"])) is None
+    assert result["selection"] == [] and result["spec"]["scripted_rule"] == rule
+    md = headline_markdown(result)
+    assert f"| PPO on SIR N=24 | scripted controller ({rule}) on filter=sir num_particles=24 |" in md
+    assert f"it pushes {rule}." in md and "Gain search" not in md and "velocity gain was chosen" not in md
 
 
 def test_rows_with_no_belief_need_the_controller_s_beliefs_named(tmp_path):
@@ -233,3 +242,4 @@ def test_a_trained_cell_is_the_same_cell_wherever_its_run_is_written(tmp_path, m
     assert relative.spec() == cell("moved/runs/row-seed0").spec()
     assert relative.spec() != cell("out/runs/row-seed0", seed=1).spec()
     assert "run_dir" not in relative.spec() and "output_dir" not in relative.spec()["config"]
+

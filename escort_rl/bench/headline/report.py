@@ -40,6 +40,15 @@ def curve_markdown(rows: list[dict]) -> list[str]:
     return lines
 
 
+def _controller_sentence(spec: dict) -> str:
+    """How the scripted controller was set: the gain search, or the rule of a controller without a gain."""
+    if spec.get("scripted_rule"):
+        return f"The scripted controller has no gain to choose: it pushes {spec['scripted_rule']}."
+    return ("The scripted controller's velocity gain was chosen among "
+            f"{', '.join(f'{g:g}' for g in spec['gains'])} by success on {spec['selection_episodes']} other episodes "
+            f"(env seeds {spec['selection_seed']}..), ties by return.")
+
+
 def headline_markdown(result: dict) -> str:
     """The table: each row's success, final distance, return and steps (mean ± s.e.), its belief,
     its training frames and minutes; then the gain search and how to read the table."""
@@ -48,9 +57,7 @@ def headline_markdown(result: dict) -> str:
              f"Trained rows: {spec['seeds']} training seeds each, every seed's final policy greedy on the same "
              f"{spec['episodes']} episodes (env seeds {spec['eval_seed']}..); mean ± s.e. **across training seeds** "
              "of the per-seed means. Scripted and random rows: the same episodes, mean ± s.e. **over episodes**. "
-             "The scripted controller's velocity gain was chosen among "
-             f"{', '.join(f'{g:g}' for g in spec['gains'])} by success on {spec['selection_episodes']} other episodes "
-             f"(env seeds {spec['selection_seed']}..), ties by return.", "",
+             + _controller_sentence(spec), "",
              "| policy | belief | success | final distance | return | steps | frames | training minutes |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in result["rows"]:
@@ -85,9 +92,10 @@ def headline_markdown(result: dict) -> str:
         if r["kind"] == "trained":
             lines.append(f"- {r['policy']}: " + ", ".join(f"{v:.2f}" for v in r["per_seed"]["success"]))
     lines += curve_markdown(result["rows"])
-    lines += ["", "Gain search (success on the selection episodes; return and steps beside it where recorded):", "",
-              "| belief | " + " | ".join(f"gain {g:g}" for g in spec["gains"]) + " |",
-              "| --- |" + " --- |" * len(spec["gains"])]
+    if result["selection"]:
+        lines += ["", "Gain search (success on the selection episodes; return and steps beside it where recorded):",
+                  "", "| belief | " + " | ".join(f"gain {g:g}" for g in spec["gains"]) + " |",
+                  "| --- |" + " --- |" * len(spec["gains"])]
     for f in dict.fromkeys(s["filter"] for s in result["selection"]):
         cells = {s["gain"]: _selection_cell(s) for s in result["selection"] if s["filter"] == f}
         lines.append(f"| {f} | " + " | ".join(cells[g] for g in spec["gains"]) + " |")

@@ -40,6 +40,17 @@ PAIRED = ("success", "steps", "episode_return")
 """The metrics a trained row is compared on with the scripted controller, episode by episode."""
 
 
+def gainless_rule(cfg) -> str | None:
+    """What the scripted controller of ``cfg``'s env does, in words, where it has no gain to choose (the hidden
+    goal's :class:`~escort_rl.planners.scripted.HeaviestModeController`), else ``None``: a PD rule, whose
+    velocity gain the headline searches."""
+    from escort_rl.planners.scripted import scripted_controller_for
+    from escort_rl.trainers.builders import build_model
+
+    controller = scripted_controller_for(build_model(cfg.env, "cpu"))
+    return None if hasattr(controller, "gain_v") else controller.rule
+
+
 def trained_row(label: str, results: list[dict]) -> dict:
     """A trained row: each metric's mean ± s.e. across the training seeds of the per-seed means, and
     ``per_episode`` (the :data:`PAIRED` metrics, ``[seed][episode]``), from which a paired difference can be
@@ -188,10 +199,13 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
     if not beliefs:
         raise ValueError("--scripted-on: no trained row acts on a filter's belief; name the beliefs the scripted "
                          "controller runs on (a filter config name, or its overrides in one quoted word)")
-    selection = [fixed_cell(spec, f, g, spec.selection_seed, spec.selection_size) for f in beliefs for g in spec.gains]
+    rule = gainless_rule(compose(row_overrides(spec.overrides, ())))
+    gains = () if rule else spec.gains  # nothing to search for a controller without a gain
+    selection = [fixed_cell(spec, f, g, spec.selection_seed, spec.selection_size) for f in beliefs for g in gains]
     trained = trained_cells(spec)
     results = run_cells([*selection, *trained], backend, store, desc="headline")
-    chosen = {f: best_gain([r for c, r in zip(selection, results) if c.filter == f]) for f in beliefs}
+    chosen = {f: spec.gains[0] if rule else best_gain([r for c, r in zip(selection, results) if c.filter == f])
+              for f in beliefs}
     final = [fixed_cell(spec, f, chosen[f], spec.eval_seed) for f in beliefs]
     final.append(fixed_cell(spec, beliefs[-1], None, spec.eval_seed))
     fixed = run_cells(final, backend, store, desc="headline evaluation")
@@ -208,14 +222,14 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
         row["filter"] = reads or (match[0] if match else row["filter"])
         if match:
             row["vs_scripted"] = paired_difference(by_row[row["policy"]], match[1])
-    rows += [fixed_row(f"scripted controller (gain {chosen[f]:g})", {**r, "filter": f}, "scripted")
+    rows += [fixed_row(f"scripted controller ({rule or f'gain {chosen[f]:g}'})", {**r, "filter": f}, "scripted")
              for f, r in zip(beliefs, fixed)]
     rows.append(fixed_row("random", fixed[-1], "random"))
     env = str(compose(row_overrides(spec.overrides, ())).env.name)
     return {"rows": rows, "spec": {"env": env, "seeds": spec.seeds, "episodes": spec.episodes,
                                    "eval_seed": spec.eval_seed, "selection_seed": spec.selection_seed,
                                    "selection_episodes": spec.selection_size,
-                                   "gains": list(spec.gains),
+                                   "gains": list(gains), "scripted_rule": rule,
                                    "overrides": list(spec.overrides), "threads": spec.threads,
                                    "curve_every": spec.curve_every},
             "selection": [{"filter": c.filter, "gain": c.gain, "success": mean_se(r["success"])[0],
