@@ -102,8 +102,8 @@ TEACHER_ACTION = "teacher_action"
 def kickstart_teacher(cfg: DictConfig, model, params: PPOParams):
     """The policy PPO kickstarts from (``trainer.teacher``), writing :data:`TEACHER_ACTION`, or ``None``: the
     env's scripted controller on the belief (at ``env.teacher_gain``, else ``env.scripted_gain``) for
-    ``scripted``, on the simulator's true state for ``state``, and for ``auto`` where the env group sets ``scripted_teacher``; ``None`` for ``none`` or a
-    zero ``kickstart_coef``."""
+    ``scripted``, on the simulator's true state for ``state``, and for ``auto`` where the env group sets
+    ``scripted_teacher``; ``None`` for ``none`` or a zero ``kickstart_coef``."""
     if params.teacher == "none" or params.kickstart_coef == 0:
         return None
     if params.teacher == "auto" and not OmegaConf.select(cfg, "env.scripted_teacher", default=False):
