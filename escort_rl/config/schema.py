@@ -262,6 +262,7 @@ class ActorConfig:
     summary: bool = _f(False)
     head: str = _f("auto", choices=["auto", "pooled", "per_coordinate"])
     group_hidden: int = _f(16, ge=1)
+    max_particles: Optional[int] = _f(None, ge=1)
     min_scale: float = _f(1e-4, gt=0)
     distribution: str = _f("clipped_normal", choices=["tanh_normal", "clipped_normal"])
 

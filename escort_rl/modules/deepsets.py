@@ -21,6 +21,24 @@ def _mlp(sizes: list[int], activation: type[nn.Module] = nn.Tanh, last_activatio
     return nn.Sequential(*layers)
 
 
+def thinned(particles: Tensor, log_weights: Tensor | None, max_particles: int | None) -> tuple[Tensor, Tensor | None]:
+    """Every ``s``-th of ``N`` particles, ``s = ⌊N / M⌋``, the first ``M`` of them, with their log weights
+    (``None`` stays ``None``); unchanged where ``max_particles`` ``M`` is ``None`` or ``N ≤ M``.
+    ``[*B, N, d]``, ``[*B, N]`` -> ``[*B, M, d]``, ``[*B, M]``. After systematic resampling, which lists
+    the copies of each ancestor together, the stride is a stratified subsample of the belief.
+
+    Example:
+        >>> x = torch.arange(10.0).reshape(1, 10, 1)
+        >>> thinned(x, None, 4)[0].flatten().tolist()
+        [0.0, 2.0, 4.0, 6.0]
+    """
+    n = particles.shape[-2]
+    if max_particles is None or n <= max_particles:
+        return particles, log_weights
+    index = slice(0, (n // max_particles) * max_particles, n // max_particles)
+    return particles[..., index, :], None if log_weights is None else log_weights[..., index]
+
+
 class DeepSetsNet(nn.Module):
     """``out = g(ρ(Σ_i w_i φ(x_i)))``: a per-particle encoder φ, weighted pooling, an MLP ρ and a
     linear head g: the body of :class:`DeepSetsActor` (the head gives logits or a Gaussian's
@@ -57,6 +75,11 @@ class DeepSetsNet(nn.Module):
             encoder of the group's own coordinates and ``e_j`` is a learned embedding of the group. The
             rule "score each coordinate, act on the best" is then learned once for all ``G`` groups
             instead of once per group.
+        max_particles: ``None`` (default): the network reads all ``N`` particles. ``M``: where ``N > M`` it
+            reads ``M`` of them, every ``⌊N/M⌋``-th (:func:`thinned`), with their weights renormalised, so
+            that its cost stays that of ``M`` particles whatever the filter's ``N`` (a filter with many
+            cheap particles, such as SIR at equal time with a dearer one, then costs the policy no more).
+            The subset is deterministic: a greedy policy stays a function of the belief.
         group_layout: how the ``[G, m]`` group outputs become ``n_actions``: ``group_major``
             (``a = m·j + r``, discrete actions, e.g. ``2i`` / ``2i+1``) or ``output_major``
             (``a = G·r + j``, a Gaussian's ``[loc_1..loc_G, scale_1..scale_G]``).
@@ -70,9 +93,13 @@ class DeepSetsNet(nn.Module):
                  input_loc: float | list[float] = 0.0, input_scale: float | list[float] = 1.0,
                  encoder_layers: int = 2, periodic_dims: tuple[int, ...] | list[int] = (),
                  summary: bool = False, coordinate_groups: tuple[tuple[int, ...], ...] | None = None,
-                 group_layout: str = "group_major", group_hidden: int = 16) -> None:
+                 group_layout: str = "group_major", group_hidden: int = 16,
+                 max_particles: int | None = None) -> None:
         super().__init__()
         self.state_dim, self.n_actions = state_dim, n_actions
+        if max_particles is not None and max_particles < 1:
+            raise ValueError(f"max_particles: must be >= 1 or None, got {max_particles}")
+        self.max_particles = max_particles
         periodic = sorted({int(i) for i in periodic_dims})
         if any(not 0 <= i < state_dim for i in periodic):
             raise ValueError(f"periodic_dims: state indices in [0, {state_dim}), got {list(periodic_dims)}")
@@ -153,6 +180,7 @@ class DeepSetsNet(nn.Module):
         return self.group_rest(torch.tanh(self.group_in(z)))
 
     def forward(self, particles: Tensor, log_weights: Tensor | None = None) -> Tensor:
+        particles, log_weights = thinned(particles, log_weights, self.max_particles)
         context = self.pool(particles, log_weights)  # [*B, H]
         if self.groups is None:
             return self.head(context)

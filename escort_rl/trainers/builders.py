@@ -297,7 +297,7 @@ def deepsets_sizes(cfg: DictConfig, state_dim: int | None = None) -> dict:
     loc, scale = input_scaling(cfg, state_dim)                              # take the schema's defaults
     periodic = cfg.env.get("periodic_dims", None) or ()  # an env key of the angle-carrying env groups only
     return dict(hidden=actor.hidden, input_loc=loc, input_scale=scale, encoder_layers=actor.encoder_layers,
-                periodic_dims=list(periodic), summary=actor.summary)
+                periodic_dims=list(periodic), summary=actor.summary, max_particles=actor.max_particles)
 
 
 def build_actor(cfg: DictConfig, state_dim: int, n_actions: int, model) -> DeepSetsActor:

@@ -127,3 +127,21 @@ def test_group_head_bad_groups_name_the_argument():
         assert fragment in str(info.value)
     with pytest.raises(ValueError, match="group_layout"):
         DeepSetsActor(10, 10, hidden=8, coordinate_groups=GROUPS, group_layout="rows")
+
+
+def test_max_particles_reads_a_strided_subset_of_a_larger_belief_and_all_of_a_smaller_one():
+    from escort_rl.config import compose
+    from escort_rl.models import LightDark10D
+    from escort_rl.trainers.builders import build_actor
+
+    torch.manual_seed(0)
+    full = DeepSetsActor(state_dim=3, n_actions=4, hidden=8, coordinate_groups=((0,), (1,)), group_hidden=4)
+    thin = DeepSetsActor(state_dim=3, n_actions=4, hidden=8, coordinate_groups=((0,), (1,)), group_hidden=4,
+                         max_particles=4)
+    thin.load_state_dict(full.state_dict())
+    x, log_w = torch.randn(2, 10, 3), torch.randn(2, 10)
+    torch.testing.assert_close(thin(x, log_w), full(x[:, 0:8:2], log_w[:, 0:8:2]))  # every 2nd, the first 4
+    torch.testing.assert_close(thin(x[:, :4], log_w[:, :4]), full(x[:, :4], log_w[:, :4]))
+    assert not torch.allclose(thin(x, log_w), full(x, log_w))
+    actor = build_actor(compose(["actor.max_particles=25"]), 10, 10, LightDark10D())
+    assert actor.max_particles == 25 and build_actor(compose([]), 10, 10, LightDark10D()).max_particles is None
