@@ -426,3 +426,20 @@ def test_input_validation_reads_the_host_once(monkeypatch):
         validate_update_inputs(model, belief, torch.full_like(action, model.n_actions), observation)
     with pytest.raises(ValueError, match=r"^observation: contains NaN or Inf \(flat batch indices \[0\]\)"):
         validate_update_inputs(model, belief, action, torch.cat([observation[:1] * NAN, observation[1:]]))
+
+
+@pytest.mark.parametrize("shape", [(0,), (5,), (3, 4, 2)])
+@pytest.mark.parametrize("seed", range(6))
+def test_the_one_pass_checks_agree_with_isfinite(shape, seed):
+    """``all_finite`` and ``below_inf`` (one pass each) say what ``torch.isfinite`` says, with NaN, ±inf or
+    neither planted anywhere, and near the float32 limit (where a sum would overflow)."""
+    from escort_rl.belief.checks import all_finite, below_inf
+
+    g = gen(seed)
+    t = torch.randn(shape, generator=g) * 3e38 if seed % 2 else torch.randn(shape, generator=g)
+    if t.numel():
+        flat = t.view(-1)
+        for value in torch.tensor([NAN, INF, -INF])[torch.rand(3, generator=g) < 0.4]:
+            flat[torch.randint(t.numel(), (1,), generator=g)] = value
+    assert bool(all_finite(t)) == bool(torch.isfinite(t).all())
+    assert bool(below_inf(t)) == bool((torch.isfinite(t) | torch.isneginf(t)).all())
