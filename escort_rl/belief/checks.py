@@ -3,9 +3,9 @@
 A filter records what it must not let through silently as it goes: its input belief, what each
 model method returned, the per-particle counts of bad scores met during an evolution, and its
 result. Recording only queues small reductions (one pass each: :func:`all_finite`);
-:meth:`FiniteGuard.verify` fuses them into one boolean and reads it once (the one host synchronisation). Only when that
-boolean is false does the guard inspect the recorded tensors, in the order they were recorded, and
-raise a :class:`NonFiniteError` that names the first culprit, e.g.
+:meth:`FiniteGuard.verify` fuses them into one boolean and reads it once (the one host
+synchronisation). Only when that boolean is false does the guard inspect the recorded tensors, in
+the order they were recorded, and raise a :class:`NonFiniteError` that names the first culprit, e.g.
 ``model.observation_log_prob returned NaN for 3 particles of belief 0; ...``.
 
 What counts as bad:
@@ -51,13 +51,18 @@ def is_finite(t: Tensor) -> Tensor:
     return t.abs() < math.inf
 
 
+def _true(t: Tensor) -> Tensor:
+    """A 0-dim ``True`` on ``t``'s device."""
+    return torch.ones((), dtype=torch.bool, device=t.device)
+
+
 def all_finite(t: Tensor) -> Tensor:
     """0-dim bool: no NaN and no ±inf anywhere in ``t`` (true for an empty ``t``). One pass over memory:
     ``torch.aminmax`` propagates NaN into both ends, so ``min > −inf and max < inf`` holds exactly when every
     entry is finite; ``torch.isfinite(t).all()`` makes four passes and, at ``[64, 3000, 10]``, costs ten times
     as much."""
     if t.numel() == 0:
-        return torch.ones((), dtype=torch.bool, device=t.device)
+        return _true(t)
     low, high = torch.aminmax(t)
     return (low > -math.inf) & (high < math.inf)
 
@@ -65,9 +70,7 @@ def all_finite(t: Tensor) -> Tensor:
 def below_inf(t: Tensor) -> Tensor:
     """0-dim bool: no NaN and no +inf in ``t`` (``-inf`` allowed; true for an empty ``t``), in one pass:
     ``amax(t) < inf``, ``amax`` propagating NaN."""
-    if t.numel() == 0:
-        return torch.ones((), dtype=torch.bool, device=t.device)
-    return t.amax() < math.inf
+    return _true(t) if t.numel() == 0 else t.amax() < math.inf
 
 
 def log_density_flags(log_density: Tensor, score: Tensor) -> Tensor:
@@ -186,11 +189,9 @@ class FiniteGuard:
     def log_weights(self, lead: str, t: Tensor, fix: str) -> None:
         """``t`` ``[*B, N]`` must hold no NaN and no +inf, and at least one finite value per belief."""
         if self.enabled:
-            if t.numel() == 0:
-                self._ok.append(torch.ones((), dtype=torch.bool, device=t.device))
-            else:  # each belief's largest log-weight: NaN or +inf propagate to it, and -inf means no weight
-                largest = t.amax(-1)
-                self._ok.append((largest < math.inf).all() & (largest > -math.inf).all())
+            # each belief's largest log-weight: NaN or +inf propagate to it, and -inf means it has no weight
+            largest = t.amax(-1) if t.numel() else t.new_zeros(())
+            self._ok.append((largest < math.inf).all() & (largest > -math.inf).all())
             self._entries.append(("log_weights", lead, t, fix))
 
     def counts(self, channels: Sequence[tuple[str, str]], counts: Tensor | None, when: str) -> None:

@@ -75,16 +75,16 @@ class DeepSetsNet(nn.Module):
             encoder of the group's own coordinates and ``e_j`` is a learned embedding of the group. The
             rule "score each coordinate, act on the best" is then learned once for all ``G`` groups
             instead of once per group.
-        max_particles: ``None`` (default): the network reads all ``N`` particles. ``M``: where ``N > M`` it
-            reads ``M`` of them, every ``⌊N/M⌋``-th (:func:`thinned`), with their weights renormalised, so
-            that its cost stays that of ``M`` particles whatever the filter's ``N`` (a filter with many
-            cheap particles, such as SIR at equal time with a dearer one, then costs the policy no more).
-            The subset is deterministic: a greedy policy stays a function of the belief.
         group_layout: how the ``[G, m]`` group outputs become ``n_actions``: ``group_major``
             (``a = m·j + r``, discrete actions, e.g. ``2i`` / ``2i+1``) or ``output_major``
             (``a = G·r + j``, a Gaussian's ``[loc_1..loc_G, scale_1..scale_G]``).
         group_hidden: the width of ``φ_c`` (16: ``φ_c`` runs on ``G`` times as many inputs as ``φ``; at
             64 the policy's forward pass cost about ten times the pooled head's).
+        max_particles: ``None`` (default): the network reads all ``N`` particles. ``M``: where ``N > M`` it
+            reads ``M`` of them, every ``⌊N/M⌋``-th (:func:`thinned`), with their weights renormalised, so
+            that its cost stays that of ``M`` particles whatever the filter's ``N`` (a filter with many
+            cheap particles, such as SIR at equal time with a dearer one, then costs the policy no more).
+            The subset is deterministic: a greedy policy stays a function of the belief.
 
     Shapes: ``particles`` ``[*B, N, d]``, ``log_weights`` ``[*B, N]`` or ``None`` -> ``[*B, n_actions]``.
     """
