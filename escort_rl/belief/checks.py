@@ -61,7 +61,7 @@ def all_finite(t: Tensor) -> Tensor:
     ``torch.aminmax`` propagates NaN into both ends, so ``min > −inf and max < inf`` holds exactly when every
     entry is finite; ``torch.isfinite(t).all()`` makes four passes and, at ``[64, 3000, 10]``, costs ten times
     as much."""
-    if t.numel() == 0:
+    if t.numel() == 0 or not t.is_floating_point():  # integers and booleans are finite
         return _true(t)
     low, high = torch.aminmax(t)
     return (low > -math.inf) & (high < math.inf)
@@ -70,7 +70,7 @@ def all_finite(t: Tensor) -> Tensor:
 def below_inf(t: Tensor) -> Tensor:
     """0-dim bool: no NaN and no +inf in ``t`` (``-inf`` allowed; true for an empty ``t``), in one pass:
     ``amax(t) < inf``, ``amax`` propagating NaN."""
-    return _true(t) if t.numel() == 0 else t.amax() < math.inf
+    return _true(t) if t.numel() == 0 or not t.is_floating_point() else t.amax() < math.inf
 
 
 def log_density_flags(log_density: Tensor, score: Tensor) -> Tensor:

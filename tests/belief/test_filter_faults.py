@@ -443,3 +443,4 @@ def test_the_one_pass_checks_agree_with_isfinite(shape, seed):
             flat[torch.randint(t.numel(), (1,), generator=g)] = value
     assert bool(all_finite(t)) == bool(torch.isfinite(t).all())
     assert bool(below_inf(t)) == bool((torch.isfinite(t) | torch.isneginf(t)).all())
+    assert bool(all_finite(t > 0)) and bool(below_inf(t.to(torch.int64) if t.isfinite().all() else t > 0))
