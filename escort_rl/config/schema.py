@@ -263,6 +263,8 @@ class ActorConfig:
     head: str = _f("auto", choices=["auto", "pooled", "per_coordinate"])
     group_hidden: int = _f(16, ge=1)
     max_particles: Optional[int] = _f(None, ge=1)
+    pooling: str = _f("mean", choices=["mean", "attention"])
+    attention_heads: int = _f(4, ge=1)
     min_scale: float = _f(1e-4, gt=0)
     distribution: str = _f("clipped_normal", choices=["tanh_normal", "clipped_normal"])
 

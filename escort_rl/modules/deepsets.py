@@ -80,6 +80,18 @@ class DeepSetsNet(nn.Module):
             (``a = G·r + j``, a Gaussian's ``[loc_1..loc_G, scale_1..scale_G]``).
         group_hidden: the width of ``φ_c`` (16: ``φ_c`` runs on ``G`` times as many inputs as ``φ``; at
             64 the policy's forward pass cost about ten times the pooled head's).
+        pooling: how ``φ(x_i)`` becomes one embedding. ``mean`` (default): the weighted mean ``Σ_i w_i φ(x_i)``.
+            ``attention``: attention pooling by learned queries (a Set Transformer's PMA with one seed per
+            head, as the attention-pooled particle policies use), with ``A = attention_heads`` heads of
+            width ``H / A``::
+
+                pooled_a = Σ_i softmax_i(u_aᵀ φ(x_i) + c_a + log w_i) · (V φ(x_i))_a,   a = 1..A,
+
+            concatenated over the heads (a query ``q_a`` and a key map ``K`` enter only as ``u_a = Kᵀ q_a``,
+            so they are one linear map). Adding ``log w_i`` to the scores makes it the weighted attention:
+            with ``u = 0`` (its initial value) it is the weighted mean of ``V φ(x_i)``. The per-coordinate
+            head's group pooling stays the weighted mean.
+        attention_heads: ``A``, which must divide ``hidden``.
         max_particles: ``None`` (default): the network reads all ``N`` particles. ``M``: where ``N > M`` it
             reads ``M`` of them, every ``⌊N/M⌋``-th (:func:`thinned`), with their weights renormalised, so
             that its cost stays that of ``M`` particles whatever the filter's ``N`` (a filter with many
@@ -94,7 +106,7 @@ class DeepSetsNet(nn.Module):
                  encoder_layers: int = 2, periodic_dims: tuple[int, ...] | list[int] = (),
                  summary: bool = False, coordinate_groups: tuple[tuple[int, ...], ...] | None = None,
                  group_layout: str = "group_major", group_hidden: int = 16,
-                 max_particles: int | None = None) -> None:
+                 max_particles: int | None = None, pooling: str = "mean", attention_heads: int = 4) -> None:
         super().__init__()
         self.state_dim, self.n_actions = state_dim, n_actions
         if max_particles is not None and max_particles < 1:
@@ -114,6 +126,16 @@ class DeepSetsNet(nn.Module):
         self.phi = _mlp([inputs] + [hidden] * encoder_layers)
         self.rho = _mlp([hidden + (2 * inputs if self.summary else 0), hidden])
         self.head = nn.Linear(hidden, n_actions)
+        if pooling not in ("mean", "attention"):
+            raise ValueError(f"pooling: mean or attention, got {pooling!r}")
+        self.pooling = pooling
+        if pooling == "attention":
+            if attention_heads < 1 or hidden % attention_heads:
+                raise ValueError(f"attention_heads: must be >= 1 and divide hidden={hidden}, got {attention_heads}")
+            self.attention_scores = nn.Linear(hidden, attention_heads)  # u_a, c_a
+            nn.init.zeros_(self.attention_scores.weight)
+            nn.init.zeros_(self.attention_scores.bias)
+            self.attention_values = nn.Linear(hidden, hidden, bias=False)  # V
         self.register_buffer("groups", None)
         if coordinate_groups is not None:
             self._build_group_head(coordinate_groups, group_layout, hidden, group_hidden, encoder_layers)
@@ -167,12 +189,22 @@ class DeepSetsNet(nn.Module):
             w = torch.full_like(z[..., :1], 1.0 / z.shape[-2])
         else:
             w = torch.softmax(log_weights, dim=-1).unsqueeze(-1)  # [*B, N, 1]
-        pooled = (w * h).sum(-2)
+        pooled = self.attend(h, log_weights) if self.pooling == "attention" else (w * h).sum(-2)
         if self.summary:
             mean = (w * z).sum(-2)  # [*B, d']
             log_std = 0.5 * torch.log((w * (z - mean.unsqueeze(-2)) ** 2).sum(-2) + 1e-6)
             pooled = torch.cat([pooled, mean, log_std], dim=-1)
         return self.rho(pooled)
+
+    def attend(self, h: Tensor, log_weights: Tensor | None) -> Tensor:
+        """Attention pooling (``pooling=attention``): ``h`` ``[*B, N, H]``, ``log_weights`` ``[*B, N]`` or
+        ``None`` -> ``[*B, H]``, the heads' weighted attention averages concatenated."""
+        scores = self.attention_scores(h)  # [*B, N, A]
+        if log_weights is not None:
+            scores = scores + torch.log_softmax(log_weights, dim=-1).unsqueeze(-1)
+        attention = torch.softmax(scores, dim=-2)  # over the particles
+        values = self.attention_values(h).unflatten(-1, (scores.shape[-1], -1))  # [*B, N, A, H/A]
+        return (attention.unsqueeze(-1) * values).sum(-3).flatten(-2)
 
     def encode_group(self, z: Tensor) -> Tensor:
         """``φ_c`` on one group's standardised coordinates ``[*, k]`` -> ``[*, H_c]`` (what :meth:`forward`

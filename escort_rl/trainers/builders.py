@@ -289,15 +289,16 @@ def continuous_head(cfg: DictConfig) -> dict:
 
 def deepsets_sizes(cfg: DictConfig, state_dim: int | None = None) -> dict:
     """The keyword arguments of a :class:`~escort_rl.modules.DeepSetsNet` from the ``actor`` group: width
-    ``actor.hidden``, depth ``actor.encoder_layers``, ``actor.summary``, and the env group's input
-    scaling (checked against ``state_dim`` when given) and angles (``env.periodic_dims``)."""
+    ``actor.hidden``, depth ``actor.encoder_layers``, ``actor.summary``, ``actor.pooling`` and ``actor.attention_heads``,
+    and the env group's input scaling (checked against ``state_dim`` when given) and angles (``env.periodic_dims``)."""
     from escort_rl.config.schema import ActorConfig
 
     actor = OmegaConf.merge(OmegaConf.structured(ActorConfig), cfg.actor)  # typed; a saved config's absent keys
     loc, scale = input_scaling(cfg, state_dim)                              # take the schema's defaults
     periodic = cfg.env.get("periodic_dims", None) or ()  # an env key of the angle-carrying env groups only
     return dict(hidden=actor.hidden, input_loc=loc, input_scale=scale, encoder_layers=actor.encoder_layers,
-                periodic_dims=list(periodic), summary=actor.summary, max_particles=actor.max_particles)
+                periodic_dims=list(periodic), summary=actor.summary, max_particles=actor.max_particles,
+                pooling=actor.pooling, attention_heads=actor.attention_heads)
 
 
 def build_actor(cfg: DictConfig, state_dim: int, n_actions: int, model) -> DeepSetsActor:

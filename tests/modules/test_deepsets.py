@@ -145,3 +145,61 @@ def test_max_particles_reads_a_strided_subset_of_a_larger_belief_and_all_of_a_sm
     assert not torch.allclose(thin(x, log_w), full(x, log_w))
     actor = build_actor(compose(["actor.max_particles=25"]), 10, 10, LightDark10D())
     assert actor.max_particles == 25 and build_actor(compose([]), 10, 10, LightDark10D()).max_particles is None
+
+
+def _attention_actor(seed: int = 0, **kwargs) -> DeepSetsActor:
+    """An attention-pooled actor whose scores are not at their zero start (so that attention is not a mean)."""
+    torch.manual_seed(seed)
+    actor = DeepSetsActor(state_dim=4, n_actions=6, hidden=8, pooling="attention", attention_heads=2, **kwargs)
+    torch.nn.init.normal_(actor.attention_scores.weight, std=2.0)
+    return actor
+
+
+@settings(max_examples=25, deadline=None)
+@given(n=st.integers(1, 30), seed=st.integers(0, 2**31 - 1), weighted=st.booleans())
+def test_attention_pooling_is_permutation_invariant(n, seed, weighted):
+    g = torch.Generator().manual_seed(seed)
+    actor = _attention_actor(coordinate_groups=((0,), (1,), (2,)), group_hidden=4)
+    x, log_w = torch.randn(3, n, 4, generator=g), torch.randn(3, n, generator=g) if weighted else None
+    perm = torch.randperm(n, generator=g)
+    torch.testing.assert_close(actor(x, log_w), actor(x[:, perm], None if log_w is None else log_w[:, perm]),
+                               rtol=1e-5, atol=1e-5)
+
+
+def test_attention_pooling_starts_as_the_weighted_mean_of_its_values():
+    torch.manual_seed(0)
+    actor = DeepSetsActor(state_dim=4, n_actions=6, hidden=8, pooling="attention", attention_heads=2)
+    x, log_w = torch.randn(2, 9, 4), torch.randn(2, 9)
+    h = actor.phi(actor.features(x))
+    mean = (torch.softmax(log_w, -1).unsqueeze(-1) * actor.attention_values(h)).sum(-2)
+    torch.testing.assert_close(actor.attend(h, log_w), mean)
+
+
+def test_attention_pooling_follows_the_weights_and_the_scores():
+    actor = _attention_actor()
+    x = torch.randn(1, 3, 4)
+    one = torch.tensor([[0.0, -1e9, -1e9]])  # all weight on particle 0
+    torch.testing.assert_close(actor(x, one), actor(x[:, :1]), rtol=1e-5, atol=1e-5)
+    # one head's scores by hand: softmax over particles of u·h + c + log w, then the head's slice of V h
+    h, log_w = actor.phi(actor.features(x)), torch.randn(1, 3)
+    a = torch.softmax(h @ actor.attention_scores.weight[0] + actor.attention_scores.bias[0]
+                      + torch.log_softmax(log_w, -1), dim=-1)  # [1, 3]
+    head0 = (a.unsqueeze(-1) * actor.attention_values(h)[..., :4]).sum(-2)
+    torch.testing.assert_close(actor.attend(h, log_w)[..., :4], head0)
+    assert not torch.allclose(a, torch.softmax(log_w, -1), atol=1e-3)  # the scores moved the weights
+
+
+def test_attention_pooling_bad_arguments_name_the_field():
+    import pytest
+
+    from escort_rl.config import compose
+    from escort_rl.models import LightDark10D
+    from escort_rl.trainers.builders import build_actor
+
+    with pytest.raises(ValueError, match="attention_heads"):
+        DeepSetsActor(4, 6, hidden=8, pooling="attention", attention_heads=3)
+    with pytest.raises(ValueError, match="pooling"):
+        DeepSetsActor(4, 6, hidden=8, pooling="max")
+    actor = build_actor(compose(["actor.pooling=attention", "actor.attention_heads=8"]), 10, 10, LightDark10D())
+    assert actor.pooling == "attention" and actor.attention_scores.out_features == 8
+    assert build_actor(compose([]), 10, 10, LightDark10D()).pooling == "mean"
