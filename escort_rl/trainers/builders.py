@@ -289,8 +289,9 @@ def continuous_head(cfg: DictConfig) -> dict:
 
 def deepsets_sizes(cfg: DictConfig, state_dim: int | None = None) -> dict:
     """The keyword arguments of a :class:`~escort_rl.modules.DeepSetsNet` from the ``actor`` group: width
-    ``actor.hidden``, depth ``actor.encoder_layers``, ``actor.summary``, ``actor.pooling`` and ``actor.attention_heads``,
-    and the env group's input scaling (checked against ``state_dim`` when given) and angles (``env.periodic_dims``)."""
+    ``actor.hidden``, depth ``actor.encoder_layers``, ``actor.summary``, ``actor.pooling`` and
+    ``actor.attention_heads``, and the env group's input scaling (checked against ``state_dim`` when given) and
+    angles (``env.periodic_dims``)."""
     from escort_rl.config.schema import ActorConfig
 
     actor = OmegaConf.merge(OmegaConf.structured(ActorConfig), cfg.actor)  # typed; a saved config's absent keys
