@@ -176,6 +176,10 @@ def test_own_rows_each_meet_the_controller_on_their_own_belief(tmp_path):
     md = headline_markdown(result)
     assert f"| PPO on SIR N=24 | scripted controller ({rule}) on filter=sir num_particles=24 |" in md
     assert f"it pushes {rule}." in md and "Gain search" not in md and "velocity gain was chosen" not in md
+    # the GRU's trainer group drops the run's trainer keys it does not name again, and the table says so
+    assert rows["GRU"]["dropped_overrides"] == ["trainer.warm_start_iterations=1"]
+    assert "Row *GRU* drops `trainer.warm_start_iterations=1`: it picks their group." in md
+    assert rows["PPO on SIR"]["dropped_overrides"] == ["filter.compile=false"]
 
 
 def test_rows_with_no_belief_need_the_controller_s_beliefs_named(tmp_path):

@@ -21,6 +21,21 @@ def row_overrides(base, row) -> list[str]:
     return merge_override_lists(list(base), list(row))
 
 
+def dropped_overrides(base, row) -> list[str]:
+    """The overrides of ``base`` that ``row`` drops without naming their key, which :func:`row_overrides`
+    leaves out because the row picks their group: ``trainer=recurrent_ppo`` drops the run's
+    ``trainer.iterations=100`` unless the row gives ``trainer.iterations`` too.
+
+    Example:
+        >>> dropped_overrides(["trainer.iterations=100", "trainer.epochs=4", "env=hidden_goal"],
+        ...                   ["trainer=recurrent_ppo", "trainer.epochs=2"])
+        ['trainer.iterations=100']
+    """
+    kept = set(row_overrides(base, row))
+    named = {o.split("=", 1)[0].lstrip("+~") for o in row}
+    return [o for o in base if o not in kept and o.split("=", 1)[0].lstrip("+~") not in named]
+
+
 BELIEF_KEYS = ("filter", "num_particles")
 """The config keys that make a belief: the filter group and its particle count."""
 

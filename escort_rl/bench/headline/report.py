@@ -101,6 +101,8 @@ def headline_markdown(result: dict) -> str:
         lines.append(f"| {f} | " + " | ".join(cells[g] for g in spec["gains"]) + " |")
     if spec["overrides"]:
         lines += ["", "Overrides on every row: `" + " ".join(spec["overrides"]) + "`."]
+        lines += [f"Row *{r['policy']}* drops `{' '.join(r['dropped_overrides'])}`: it picks their group."
+                  for r in result["rows"] if r.get("dropped_overrides")]
     lines += ["", "Training minutes: each seed's training wall-clock (collection and updates), "
               f"{spec['threads']} torch thread(s) per cell."]
     return "\n".join(lines) + "\n"

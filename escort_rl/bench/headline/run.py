@@ -11,6 +11,7 @@ from escort_rl.bench.headline.cells import (
     FixedPolicyCell,
     TrainedCell,
     belief_identity,
+    dropped_overrides,
     row_overrides,
     safe_name,
 )
@@ -199,6 +200,11 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
     if not beliefs:
         raise ValueError("--scripted-on: no trained row acts on a filter's belief; name the beliefs the scripted "
                          "controller runs on (a filter config name, or its overrides in one quoted word)")
+    dropped = {label: dropped_overrides(spec.overrides, overrides) for label, overrides in spec.rows}
+    for label, lost in dropped.items():
+        if lost:
+            print(f"headline: row '{label}' picks the group of the run's {' '.join(lost)}, which it drops; give them "
+                  "again in the row to keep them")
     rule = gainless_rule(compose(row_overrides(spec.overrides, ())))
     gains = () if rule else spec.gains  # nothing to search for a controller without a gain
     selection = [fixed_cell(spec, f, g, spec.selection_seed, spec.selection_size) for f in beliefs for g in gains]
@@ -220,6 +226,8 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
         reads = policy_reads(config)
         match = scripted_on.get(belief_identity(config)) if reads is None else None
         row["filter"] = reads or (match[0] if match else row["filter"])
+        if dropped[row["policy"]]:
+            row["dropped_overrides"] = dropped[row["policy"]]
         if match:
             row["vs_scripted"] = paired_difference(by_row[row["policy"]], match[1])
     rows += [fixed_row(f"scripted controller ({rule or f'gain {chosen[f]:g}'})", {**r, "filter": f}, "scripted")
