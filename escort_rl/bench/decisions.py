@@ -14,7 +14,14 @@ row records what the controller reads from the belief:
 - **action agreement**: the fraction of steps at which the action taken on the belief equals the
   action the same rule takes on the true state, overall and near the goal (the controller is a
   function of its inputs only, so a disagreement is the belief misleading it);
-- error over time (mean over the episodes still running at each step), as plots.
+- error over time (mean over the episodes still running at each step), as plots;
+- **where the steps go**: the step at which the true state first comes within ``near`` of the goal
+  (the episode's length where it never does), and, over the episodes that reach the goal, the steps
+  from there to the goal.
+
+``--true-state`` adds the same rule on the simulator's true state (:class:`TrueStateController`), on the
+same episodes beside the first row's belief: the full-information reference, whose steps are what the
+task's dynamics alone ask; the gap to it is what the belief costs the rule, phase by phase.
 
 Every figure is a mean ± standard error over episodes; the success difference of each row to the
 baseline row (``--baseline``, default the first) is paired by episode (same start state), with its
@@ -50,6 +57,8 @@ ROWS: dict[str, tuple[str, ...]] = {
 }
 """The named rows: label -> config overrides (on ``env=<domain> num_particles=<N>``)."""
 DEFAULT_ROWS = tuple(ROWS)
+TRUE_STATE_ROW = "the rule on the true state (full information)"
+"""``--true-state``'s row: the same controller at the same gain on the simulator's state."""
 QUICK = dict(episodes=4, steps=30, rows=("sir", "escort_train"), particles=30)
 """``--quick``: a smoke run."""
 
@@ -75,6 +84,7 @@ class DecisionCell(ConfigCell):
     seed: int
     steps: int | None = None
     near: float = 1.0
+    on_true_state: bool = False
 
     def key(self) -> str:
         return f"{self.domain}/{safe_name(self.label)}"
@@ -89,12 +99,12 @@ class DecisionCell(ConfigCell):
 
     def run(self) -> dict:
         from escort_rl.planners.scripted import belief_mean, controlled_dims, scripted_controller_for
-        from escort_rl.trainers.builders import build_model
+        from escort_rl.trainers.builders import build_model, scripted_gain
         from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes, scripted_policy
 
         cfg = self.config()
         model = build_model(cfg.env, cfg.device)
-        policy = scripted_policy(cfg, model)
+        policy = scripted_policy(cfg, model, on_true_state=self.on_true_state)
         if policy is None:
             raise ValueError(f"bench decisions: {self.domain} has no scripted controller")
         t0 = time.perf_counter()
@@ -109,8 +119,9 @@ class DecisionCell(ConfigCell):
         near = inside & (model.distance_to_goal(truth) < self.near)
         w = torch.softmax(rollout["next", "particle_log_weights"], -1).unsqueeze(-1)
         spread = (w * (rollout["next", "particles"] - est.unsqueeze(-2)) ** 2).sum(-2).sqrt()  # [E, T, d]
-        # the action at step t is taken on the belief after step t - 1; compare it with the rule on the truth
-        controller = scripted_controller_for(model)
+        # the action at step t is taken on the belief after step t - 1; compare it with the rule, at the row's own
+        # gain, on the truth
+        controller = scripted_controller_for(model, scripted_gain(cfg))
         agree = (rollout["action"] == controller(rollout["true_state"])).double()
 
         def per_episode(x: torch.Tensor, mask: torch.Tensor) -> list[float]:
@@ -125,6 +136,11 @@ class DecisionCell(ConfigCell):
             sd = torch.sqrt(torch.nanmean((x - mean) ** 2, 0) * count / (count - 1).clamp_min(1))
             return mean.tolist(), (sd / count.clamp_min(1).sqrt()).tolist()
 
+        distance = model.distance_to_goal(truth)  # [E, T]
+        came_near = inside & (distance < self.near)
+        steps_to_near = torch.where(came_near.any(1), came_near.double().argmax(1) + 1, m["steps"].double())
+        arrived = m["success"].bool()
+        near_to_goal = torch.where(arrived, m["steps"].double() - steps_to_near, torch.nan)
         pos_err = torch.linalg.vector_norm(est[..., pos] - truth[..., pos], dim=-1)
         vel_err = torch.linalg.vector_norm(est[..., vel] - truth[..., vel], dim=-1)
         return {
@@ -133,6 +149,9 @@ class DecisionCell(ConfigCell):
             "success": m["success"].double().tolist(),
             "final_distance": m["final_distance"].double().tolist(),
             "steps": m["steps"].double().tolist(),
+            "steps_to_near": steps_to_near.tolist(),
+            "steps_near_to_goal": near_to_goal.tolist(),
+            "on_true_state": self.on_true_state,
             "position_error": per_episode(pos_err, inside),
             "velocity_error": per_episode(vel_err, inside),
             "position_error_near": per_episode(pos_err, near),
@@ -148,6 +167,7 @@ class DecisionCell(ConfigCell):
 
 
 COLUMNS = (("success", "success"), ("final_distance", "final distance"), ("steps", "steps"),
+           ("steps_to_near", "steps to near"), ("steps_near_to_goal", "steps near → goal"),
            ("position_error", "pos. error"), ("velocity_error", "vel. error"),
            ("position_error_near", "pos. error near"), ("velocity_error_near", "vel. error near"),
            ("position_spread", "pos. spread"), ("velocity_spread", "vel. spread"),
@@ -172,7 +192,9 @@ def decisions_markdown(result: dict) -> str:
         f"position and velocity inputs, averaged over each episode's steps; *near*: over its steps with the true "
         f"state within {result['near']} of the goal. Spread: the belief's per-coordinate standard deviation, "
         "averaged over the inputs and steps. Action agreement: the fraction of steps at which the action "
-        "taken on the belief equals the rule's action on the true state. The success difference to the "
+        "taken on the belief equals the rule's action on the true state. *Steps to near*: the first step with the "
+        f"true state within {result['near']} of the goal (the episode's length where it never comes); *steps near → "
+        "goal*: from there to the goal, over the episodes that reach it. The success difference to the "
         f"{base['label']} row is paired by episode.",
         "",
         "| " + " | ".join(head) + " |",
@@ -181,26 +203,31 @@ def decisions_markdown(result: dict) -> str:
     for r in rows:
         cells = [r["label"], str(r["particles"])]
         for key, _ in COLUMNS:
-            digits = 0 if key == "steps" else 3
+            digits = {"steps": 0, "steps_to_near": 1, "steps_near_to_goal": 1}.get(key, 3)
             cells.append(format_mean_se(mean_se(r[key]), digits))
         cells.append("—" if r is base else format_mean_se(paired_difference(r["success"], base["success"])))
         cells.append(f"{1e3 * r['seconds_per_step']:.1f}")
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "Rows (config overrides on `env=" + result["domain"] + f" num_particles={result['particles']}`):", ""]
-    lines += [f"- {r['label']}: `{' '.join(r['overrides'])}`" for r in rows]
+    lines += [f"- {r['label']}: `{' '.join(r['overrides'])}`"
+              + (" (the rule on the true state; the belief beside it is not read)" if r.get("on_true_state") else "")
+              for r in rows]
     return "\n".join(lines) + "\n"
 
 
 def run_decisions(domain: str = "lightdark10d", rows=DEFAULT_ROWS, episodes: int = 100, particles: int = 100,
                   seed: int | None = None, steps: int | None = None, near: float = 1.0,
                   output="outputs/bench/decisions", backend=None, threads: int = 1,
-                  baseline: str | None = None) -> dict:
+                  baseline: str | None = None, true_state: bool = False) -> dict:
     """Run the rows (labels of :data:`ROWS` or ``(label, overrides)`` pairs) and write
-    ``decisions.md``, ``decisions.json`` and the error-over-time plots into ``output``."""
+    ``decisions.md``, ``decisions.json`` and the error-over-time plots into ``output``. ``true_state``: add
+    :data:`TRUE_STATE_ROW`, the rule on the true state with the first row's overrides."""
     from escort_rl.bench.core.runner import make_backend
     from escort_rl.config import compose
 
     specs = [parse_row(r) if isinstance(r, str) else (r[0], tuple(r[1])) for r in rows]
+    if true_state and specs:
+        specs.append((TRUE_STATE_ROW, specs[0][1]))
     labels = [label for label, _ in specs]
     if len(set(labels)) != len(labels):
         raise ValueError(f"--rows: labels must differ, got {labels}")
@@ -215,7 +242,8 @@ def run_decisions(domain: str = "lightdark10d", rows=DEFAULT_ROWS, episodes: int
         seed = int(compose([f"env={domain}"]).evaluate.seed)
     out = Path(output)
     cells = [DecisionCell(label=label, domain=domain, overrides=o, particles=particles, episodes=episodes, seed=seed,
-                          steps=steps, near=near, threads=threads) for label, o in specs]
+                          steps=steps, near=near, threads=threads, on_true_state=label == TRUE_STATE_ROW)
+             for label, o in specs]
     for cell in cells:
         cell.config()  # a bad override fails here, with its one line, before anything runs
     t0 = time.perf_counter()
@@ -256,6 +284,9 @@ def register(subparsers) -> None:
     p.add_argument("--baseline", default=None, metavar="LABEL",
                    help="the row each row's success is compared with, paired by episode (default: the first row)")
     p.add_argument("--near", type=float, default=1.0, help="distance to goal that counts as near")
+    p.add_argument("--true-state", action="store_true",
+                   help="also run the rule on the true state (full information) with the first row's overrides: "
+                   "the steps the dynamics alone ask, beside what each belief costs")
     options.add_quick_option(p, f"rows {' '.join(QUICK['rows'])}, {QUICK['episodes']} episodes of "
                      f"{QUICK['steps']} steps, N={QUICK['particles']}")
     options.add_runner_options(p, seeds_per_cell=False)
@@ -281,8 +312,9 @@ def main(args) -> None:
     for domain in args.domains:
         output = args.output if len(args.domains) == 1 else str(Path(args.output) / domain)
         run_decisions(domain=domain, rows=rows, near=args.near, seed=args.seed, output=output,
-                      baseline=args.baseline, backend=backend_from_args(args), threads=args.threads or 1, **kw)
+                      baseline=args.baseline, backend=backend_from_args(args), threads=args.threads or 1,
+                      true_state=args.true_state, **kw)
 
 
-__all__ = ["DEFAULT_ROWS", "DecisionCell", "ROWS", "decisions_markdown", "paired_difference", "parse_row",
+__all__ = ["DEFAULT_ROWS", "DecisionCell", "ROWS", "TRUE_STATE_ROW", "decisions_markdown", "paired_difference", "parse_row",
            "run_decisions"]

@@ -175,6 +175,28 @@ def test_bench_decisions_rows_share_episodes_and_report_what_the_controller_read
     assert paired_difference([1.0, 0.0, 1.0], [0.0, 0.0, 1.0]) == pytest.approx((1 / 3, 1 / 3))
 
 
+def test_bench_decisions_true_state_row_says_where_the_steps_go(tmp_path):
+    """``--true-state``: the rule on the simulator's state beside the belief rows, on the same episodes. It agrees
+    with itself at every step (the agreement compares at the row's own gain), and an episode's steps split into
+    the steps to come near the goal and the steps from there."""
+    from escort_rl.bench.decisions import TRUE_STATE_ROW
+
+    argv = ["bench", "decisions", "--rows", "sir", "--true-state", "env.model.goal=1.0", "env.scripted_gain=0.25",
+            "--episodes", "6", "--steps", "60", "--particles", "16", "--output", str(tmp_path)]
+    assert main(argv) == 0
+    rows = json.loads((tmp_path / "decisions.json").read_text())["rows"]
+    assert [r["label"] for r in rows] == ["sir", TRUE_STATE_ROW]
+    belief, state = rows
+    assert state["on_true_state"] and not belief["on_true_state"]
+    assert state["agreement"] == [1.0] * 6
+    assert any(s == 1.0 for s in state["success"])  # the goal lies beside the start box: some episodes arrive
+    for r in rows:
+        for steps, near, rest, arrived in zip(r["steps"], r["steps_to_near"], r["steps_near_to_goal"], r["success"]):
+            assert 1 <= near <= steps
+            assert (rest == steps - near) if arrived else math.isnan(rest)
+    assert "steps near → goal" in (tmp_path / "decisions.md").read_text()
+
+
 @pytest.mark.parametrize("rows, message", [(["--rows", "nonsense"], "--rows: unknown row 'nonsense'"),
                                            (["--add-row", "label"], "--add-row: 'label' needs overrides"),
                                            (["--add-row", "filter=sir"], "--add-row: give a label first"),
