@@ -316,5 +316,5 @@ def main(args) -> None:
                       true_state=args.true_state, **kw)
 
 
-__all__ = ["DEFAULT_ROWS", "DecisionCell", "ROWS", "TRUE_STATE_ROW", "decisions_markdown", "paired_difference", "parse_row",
-           "run_decisions"]
+__all__ = ["DEFAULT_ROWS", "DecisionCell", "ROWS", "TRUE_STATE_ROW", "decisions_markdown", "paired_difference",
+           "parse_row", "run_decisions"]
