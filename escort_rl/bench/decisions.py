@@ -228,6 +228,7 @@ def run_decisions(domain: str = "lightdark10d", rows=DEFAULT_ROWS, episodes: int
     specs = [parse_row(r) if isinstance(r, str) else (r[0], tuple(r[1])) for r in rows]
     if true_state and specs:
         specs.append((TRUE_STATE_ROW, specs[0][1]))
+    on_state = [true_state and i == len(specs) - 1 for i in range(len(specs))]
     labels = [label for label, _ in specs]
     if len(set(labels)) != len(labels):
         raise ValueError(f"--rows: labels must differ, got {labels}")
@@ -242,8 +243,8 @@ def run_decisions(domain: str = "lightdark10d", rows=DEFAULT_ROWS, episodes: int
         seed = int(compose([f"env={domain}"]).evaluate.seed)
     out = Path(output)
     cells = [DecisionCell(label=label, domain=domain, overrides=o, particles=particles, episodes=episodes, seed=seed,
-                          steps=steps, near=near, threads=threads, on_true_state=label == TRUE_STATE_ROW)
-             for label, o in specs]
+                          steps=steps, near=near, threads=threads, on_true_state=state)
+             for (label, o), state in zip(specs, on_state)]
     for cell in cells:
         cell.config()  # a bad override fails here, with its one line, before anything runs
     t0 = time.perf_counter()
