@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional
@@ -94,6 +95,13 @@ def check_number_or_list(value) -> str | None:
     if not items or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in items):
         return f"expected a number or a list of numbers, got {value!r}"
     return None
+
+
+def check_options(value) -> str | None:
+    """``null`` or a mapping of option names to values (``env.teacher_options``)."""
+    if value is None or isinstance(value, Mapping):
+        return None
+    return f"expected a mapping of option names to values, e.g. {{confidence: 0.9}}, or null, got {value!r}"
 
 
 # ------------------------------------------------------------------- schemas of classes
@@ -171,6 +179,9 @@ class EnvConfig:
     # the velocity gain of the kickstart teacher (trainer.teacher), where it differs from the evaluation's
     # best gain; null: scripted_gain
     teacher_gain: Optional[float] = _f(None, ge=0)
+    # keyword options of the kickstart teacher's controller beyond its gain, e.g. the hidden goal's look-first
+    # rule {confidence: 0.9} where the evaluation's controller commits at once; {}: none
+    teacher_options: Any = _f(None, check=check_options)
     # whether trainer.teacher=auto (PPO's default) kickstarts from the scripted controller in this env:
     # true where the controller is a good policy on the belief (Light-Dark), not where it is a baseline
     # to beat (the hidden goal's, which commits to a mode)

@@ -273,28 +273,38 @@ class HeaviestModeController:
         return pd_action(position, torch.zeros_like(position), target, gain_v=0.0)
 
 
-def scripted_controller_for(model, gain_v: float = DEFAULT_GAIN_V) -> Callable[[Tensor], Tensor]:
+def scripted_controller_for(model, gain_v: float = DEFAULT_GAIN_V, **options) -> Callable[[Tensor], Tensor]:
     """The scripted controller of ``model``'s domain: a callable from a state estimate ``[*B, d]`` to
     actions int64 ``[*B]`` (float ``[*B, action_dim]`` for continuous actions).
 
     - :class:`~escort_rl.models.LightDark10D` -> :class:`LightDarkPD`;
     - :class:`~escort_rl.models.LightDark10DContinuous` -> :class:`LightDarkContinuousPD` (real actions);
     - :class:`~escort_rl.models.MultiTargetTracking20D` -> :class:`MultiTargetPD`;
-    - :class:`~escort_rl.models.HiddenGoal` -> :class:`HeaviestModeController` committing at once (it has
-      no velocity: ``gain_v`` does not apply);
+    - :class:`~escort_rl.models.HiddenGoal` -> :class:`HeaviestModeController`, committing at once unless
+      ``options`` give its ``confidence`` (it has no velocity: ``gain_v`` does not apply);
     - :class:`~escort_rl.models.KidnappedRobot20D` -> ``ValueError``: the domain has no goal, a
       constant reward and no terminal state, so there is nothing for a goal-seeking rule to do;
     - anything else -> ``ValueError``.
+
+    ``options``: keyword arguments of the domain's controller beyond the gain (the hidden goal's
+    ``confidence``); a controller that takes none, or an unknown name, is a ``ValueError`` naming it.
     """
     gain_v = _check_gain(gain_v)
+    if isinstance(model, HiddenGoal):
+        unknown = sorted(set(options) - {"confidence"})
+        if unknown:
+            raise ValueError(f"scripted_controller_for: HeaviestModeController takes the option 'confidence', "
+                             f"not {', '.join(map(repr, unknown))}")
+        return HeaviestModeController(model, **options)
+    if options:
+        raise ValueError(f"scripted_controller_for: the scripted controller of {type(model).__name__} takes no "
+                         f"options beyond its gain, got {', '.join(map(repr, sorted(options)))}")
     if isinstance(model, LightDark10DContinuous):
         return LightDarkContinuousPD(model, gain_v)
     if isinstance(model, LightDark10D):
         return LightDarkPD(model, gain_v)
     if isinstance(model, MultiTargetTracking20D):
         return MultiTargetPD(model, gain_v)
-    if isinstance(model, HiddenGoal):
-        return HeaviestModeController(model)
     name = type(model).__name__
     if isinstance(model, KidnappedRobot20D):
         raise ValueError(

@@ -17,7 +17,7 @@ from escort_rl.models.protocol import is_continuous
 from escort_rl.modules import DeepSetsActor, DeepSetsCritic, make_deepsets_policy, policy_outputs
 from escort_rl.modules.action_heads import DEFAULT_MIN_SCALE, SAVED_RUN_DISTRIBUTION
 from escort_rl.planners import ScriptedBeliefController, TrueStateController
-from escort_rl.planners.scripted import DEFAULT_GAIN_V
+from escort_rl.planners.scripted import DEFAULT_GAIN_V, scripted_controller_for
 from escort_rl.transforms import ActionRepeat, BeliefTransform
 
 
@@ -336,18 +336,35 @@ def teacher_gain(cfg) -> float:
     return scripted_gain(cfg) if gain is None else float(gain)
 
 
+def teacher_options(cfg) -> dict:
+    """The kickstart teacher's controller options beyond its gain: ``env.teacher_options`` (e.g. the hidden
+    goal's look-first rule, ``{confidence: 0.9}``), or none."""
+    options = OmegaConf.select(cfg, "env.teacher_options", default=None)
+    if options is None:
+        return {}
+    return dict(OmegaConf.to_container(options)) if OmegaConf.is_config(options) else dict(options)
+
+
 def scripted_policy(cfg, model, action_key: str = "action", gain_v: float | None = None,
-                    on_true_state: bool = False):
+                    on_true_state: bool = False, options: dict | None = None, options_field: str = "options"):
     """The domain's scripted controller at velocity gain ``gain_v`` (default :func:`scripted_gain`) on the
     belief of ``cfg``'s filter (``on_true_state``: on the simulator's ``true_state`` instead, which only a
     training env exposes), writing ``action_key``, or ``None`` where the domain has none (Kidnapped Robot:
-    no goal to drive to)."""
+    no goal to drive to). ``options``: the controller's keyword options beyond the gain
+    (:func:`~escort_rl.planners.scripted.scripted_controller_for`); options it does not take raise a
+    ``ConfigError`` naming ``options_field``, the config key they came from."""
     gain_v = scripted_gain(cfg) if gain_v is None else gain_v
+    controller = None
+    if options:
+        try:
+            controller = scripted_controller_for(model, gain_v, **options)
+        except ValueError as err:
+            raise ConfigError(f"{options_field}: {err}") from None
     try:
         if on_true_state:
-            return TrueStateController(model, action_key=action_key, gain_v=gain_v)
+            return TrueStateController(model, action_key=action_key, gain_v=gain_v, controller=controller)
         particles_key, log_weights_key = belief_keys(cfg)
         return ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key,
-                                        action_key=action_key, gain_v=gain_v)
+                                        action_key=action_key, gain_v=gain_v, controller=controller)
     except ValueError:
         return None
