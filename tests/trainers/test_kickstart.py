@@ -159,6 +159,43 @@ def test_the_teacher_acts_at_its_own_gain_and_the_evaluation_at_the_best_one(ove
     assert scripted_policy(cfg, model).controller.gain_v == evaluation
 
 
+def test_teacher_options_give_the_teacher_its_own_rule_and_leave_the_evaluation_alone():
+    """``env.teacher_options``: the hidden goal's teacher looks at the beacon first ({confidence: 0.9}) while the
+    evaluation's controller commits at once; on a belief split evenly over two modes the two act differently."""
+    from escort_rl.models import HiddenGoal
+    from escort_rl.trainers.builders import scripted_policy
+
+    cfg = compose([*TINY, "env=hidden_goal", "env.model.dim=3", "env.model.modes=2", "trainer.teacher=scripted",
+                   "env.teacher_options={confidence:0.9}"])
+    model = HiddenGoal(dim=3, modes=2)
+    teacher = kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer))
+    assert teacher.controller.confidence == 0.9 and scripted_policy(cfg, model).controller.confidence == 0.0
+    goals = model.candidate_goals  # [2, 3]
+    particles = torch.cat([torch.zeros(2, 3), goals], -1).unsqueeze(0)  # at the origin, one particle per mode
+    look, commit = teacher.controller(particles, None), scripted_policy(cfg, model).controller(particles, None)
+    beacon_push = scripted_policy(cfg, model).controller.model.beacon.abs().argmax()
+    assert look.item() // 2 == beacon_push.item() and commit.item() != look.item()
+
+
+@pytest.mark.parametrize("env, options, message", [
+    ("env=hidden_goal", "{confidence:2}", "env.teacher_options: HeaviestModeController.confidence: must lie in"),
+    ("env=hidden_goal", "{gain:1}", "env.teacher_options: .*takes the option 'confidence', not 'gain'"),
+    ("env=lightdark10d", "{confidence:0.9}", "env.teacher_options: .*LightDark10D takes no options"),
+])
+def test_teacher_options_the_controller_does_not_take_name_the_key(env, options, message):
+    from escort_rl.models import HiddenGoal
+
+    cfg = compose([*TINY, env, "trainer.teacher=scripted", f"env.teacher_options={options}"])
+    model = HiddenGoal() if env == "env=hidden_goal" else LightDark10D()
+    with pytest.raises(ConfigError, match=message):
+        kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer))
+
+
+def test_teacher_options_must_be_a_mapping():
+    with pytest.raises(ConfigError, match="env.teacher_options: expected a mapping of option names"):
+        compose([*TINY, "env.teacher_options=3"])
+
+
 def test_the_state_teacher_acts_on_the_true_state_of_each_training_frame():
     """``trainer.teacher=state``: the controller's action on each frame's ``true_state`` (a one-particle belief),
     whatever the particles say; the belief teacher's actions on the same frames differ where the belief is off."""
