@@ -98,7 +98,7 @@ def check_number_or_list(value) -> str | None:
 
 
 def check_options(value) -> str | None:
-    """``null`` or a mapping of option names to values (``env.teacher_options``)."""
+    """``null`` or a mapping of option names to values (``env.scripted_options``, ``env.teacher_options``)."""
     if value is None or isinstance(value, Mapping):
         return None
     return f"expected a mapping of option names to values, e.g. {{confidence: 0.9}}, or null, got {value!r}"
@@ -179,8 +179,10 @@ class EnvConfig:
     # the velocity gain of the kickstart teacher (trainer.teacher), where it differs from the evaluation's
     # best gain; null: scripted_gain
     teacher_gain: Optional[float] = _f(None, ge=0)
-    # keyword options of the kickstart teacher's controller beyond its gain, e.g. the hidden goal's look-first
-    # rule {confidence: 0.9} where the evaluation's controller commits at once; {}: none
+    # keyword options of the evaluation's scripted controller beyond its gain, e.g. the hidden goal's look-first
+    # rule {confidence: 0.9} (its default commits at once); null: none
+    scripted_options: Any = _f(None, check=check_options)
+    # the same for the kickstart teacher, where it differs from the evaluation's controller; null: scripted_options
     teacher_options: Any = _f(None, check=check_options)
     # whether trainer.teacher=auto (PPO's default) kickstarts from the scripted controller in this env:
     # true where the controller is a good policy on the belief (Light-Dark), not where it is a baseline

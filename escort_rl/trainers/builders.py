@@ -336,30 +336,37 @@ def teacher_gain(cfg) -> float:
     return scripted_gain(cfg) if gain is None else float(gain)
 
 
-def teacher_options(cfg) -> dict:
-    """The kickstart teacher's controller options beyond its gain: ``env.teacher_options`` (e.g. the hidden
-    goal's look-first rule, ``{confidence: 0.9}``), or none."""
-    options = OmegaConf.select(cfg, "env.teacher_options", default=None)
-    if options is None:
-        return {}
-    return dict(OmegaConf.to_container(options)) if OmegaConf.is_config(options) else dict(options)
+def controller_options(cfg, role: str = "scripted") -> tuple[dict, str]:
+    """The scripted controller's keyword options beyond its gain, and the config key they came from: for the
+    evaluation's controller (``role="scripted"``) ``env.scripted_options``; for the kickstart teacher
+    (``role="teacher"``) ``env.teacher_options``, else the evaluation's. E.g. the hidden goal's look-first rule,
+    ``{confidence: 0.9}``; none: ``{}``."""
+    if role not in ("scripted", "teacher"):
+        raise ValueError(f"controller_options: role must be 'scripted' or 'teacher', got {role!r}")
+    keys = ["env.teacher_options", "env.scripted_options"] if role == "teacher" else ["env.scripted_options"]
+    for key in keys:
+        options = OmegaConf.select(cfg, key, default=None)
+        if options is not None:
+            return (dict(OmegaConf.to_container(options)) if OmegaConf.is_config(options) else dict(options)), key
+    return {}, keys[-1]
 
 
 def scripted_policy(cfg, model, action_key: str = "action", gain_v: float | None = None,
-                    on_true_state: bool = False, options: dict | None = None, options_field: str = "options"):
+                    on_true_state: bool = False, role: str = "scripted"):
     """The domain's scripted controller at velocity gain ``gain_v`` (default :func:`scripted_gain`) on the
     belief of ``cfg``'s filter (``on_true_state``: on the simulator's ``true_state`` instead, which only a
     training env exposes), writing ``action_key``, or ``None`` where the domain has none (Kidnapped Robot:
-    no goal to drive to). ``options``: the controller's keyword options beyond the gain
+    no goal to drive to). Its options beyond the gain are :func:`controller_options` of ``role``
     (:func:`~escort_rl.planners.scripted.scripted_controller_for`); options it does not take raise a
-    ``ConfigError`` naming ``options_field``, the config key they came from."""
+    ``ConfigError`` naming the key they came from."""
+    options, options_key = controller_options(cfg, role)
     gain_v = scripted_gain(cfg) if gain_v is None else gain_v
     controller = None
     if options:
         try:
             controller = scripted_controller_for(model, gain_v, **options)
         except ValueError as err:
-            raise ConfigError(f"{options_field}: {err}") from None
+            raise ConfigError(f"{options_key}: {err}") from None
     try:
         if on_true_state:
             return TrueStateController(model, action_key=action_key, gain_v=gain_v, controller=controller)

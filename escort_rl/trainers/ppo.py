@@ -50,7 +50,6 @@ from escort_rl.trainers.builders import (
     env_factory,
     scripted_policy,
     teacher_gain,
-    teacher_options,
 )
 from escort_rl.trainers.params import PPOParams
 from escort_rl.trainers.scaffold import CollectorAlgorithm, episode_stats, make_collector
@@ -103,7 +102,7 @@ TEACHER_ACTION = "teacher_action"
 def kickstart_teacher(cfg: DictConfig, model, params: PPOParams):
     """The policy PPO kickstarts from (``trainer.teacher``), writing :data:`TEACHER_ACTION`, or ``None``: the
     env's scripted controller on the belief (at ``env.teacher_gain``, else ``env.scripted_gain``, with the
-    options of ``env.teacher_options``) for
+    options of ``env.teacher_options``, else ``env.scripted_options``) for
     ``scripted``, on the simulator's true state for ``state``, and for ``auto`` where the env group sets
     ``scripted_teacher``; ``None`` for ``none`` or a zero ``kickstart_coef``."""
     if params.teacher == "none" or params.kickstart_coef == 0:
@@ -111,8 +110,7 @@ def kickstart_teacher(cfg: DictConfig, model, params: PPOParams):
     if params.teacher == "auto" and not OmegaConf.select(cfg, "env.scripted_teacher", default=False):
         return None
     teacher = scripted_policy(cfg, model, action_key=TEACHER_ACTION, gain_v=teacher_gain(cfg),
-                              on_true_state=params.teacher == "state", options=teacher_options(cfg),
-                              options_field="env.teacher_options")
+                              on_true_state=params.teacher == "state", role="teacher")
     if teacher is None:
         raise ConfigError(f"trainer.teacher: env '{cfg.env.name}' has no scripted controller to learn from; set "
                           "trainer.teacher=none")

@@ -200,6 +200,27 @@ def test_a_run_override_after_scripted_on_is_refused_not_taken_for_a_belief(caps
     HeadlineSpec(scripted_filters=("sir", "filter=sir num_particles=3000", "filter=escort filter.num_steps=5"))
 
 
+def test_a_second_controller_on_one_belief_is_its_own_row_and_the_first_is_the_pair(tmp_path):
+    """``--scripted-on`` may give the controller's options (``env.scripted_options``): the hidden goal's look-first
+    rule beside the committing one on the same belief, each row named by its rule; the trained row is paired with
+    the first."""
+    from escort_rl.bench.headline.cli import spec_from_args
+    from escort_rl.cli import _parser
+
+    belief = "filter=sir num_particles=24"
+    args = _parser().parse_args(["bench", "headline", "--quick", "--seeds", "1", "--episodes", "2",
+                                 "--output", str(tmp_path), "env=hidden_goal", "--row", "PPO", *belief.split(),
+                                 "trainer.warm_start_iterations=0", "--scripted-on", belief,
+                                 f"{belief} env.scripted_options={{confidence:0.9}}"])
+    result = run_headline(spec_from_args(args), make_backend("inprocess"))
+    trained = next(r for r in result["rows"] if r["kind"] == "trained")
+    commit, look = [r for r in result["rows"] if r["kind"] == "scripted"]
+    assert "after the beacon" not in commit["policy"]
+    assert look["policy"].endswith("after the beacon while no mode weighs 0.9)")
+    for key in ("episode_return", "steps"):
+        assert trained["vs_scripted"][key][0] == pytest.approx(trained[key] - commit[key], abs=1e-6)
+
+
 def test_frontier_rows_train_on_each_filter_s_closest_configuration_within_the_budget(tmp_path):
     import json
 

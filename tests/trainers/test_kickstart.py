@@ -191,6 +191,19 @@ def test_teacher_options_the_controller_does_not_take_name_the_key(env, options,
         kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer))
 
 
+def test_scripted_options_set_the_evaluation_s_controller_and_the_teacher_falls_back_to_them():
+    from escort_rl.models import HiddenGoal
+    from escort_rl.trainers.builders import scripted_policy
+
+    model = HiddenGoal()
+    cfg = compose([*TINY, "env=hidden_goal", "trainer.teacher=scripted", "env.scripted_options={confidence:0.5}"])
+    assert scripted_policy(cfg, model).controller.confidence == 0.5
+    assert kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer)).controller.confidence == 0.5
+    cfg = compose([*TINY, "env=hidden_goal", "env.scripted_options={confidence:5}"])
+    with pytest.raises(ConfigError, match="env.scripted_options: HeaviestModeController.confidence"):
+        scripted_policy(cfg, model)
+
+
 def test_teacher_options_must_be_a_mapping():
     with pytest.raises(ConfigError, match="env.teacher_options: expected a mapping of option names"):
         compose([*TINY, "env.teacher_options=3"])

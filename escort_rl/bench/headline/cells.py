@@ -38,6 +38,9 @@ def dropped_overrides(base, row) -> list[str]:
 
 BELIEF_KEYS = ("filter", "num_particles")
 """The config keys that make a belief: the filter group and its particle count."""
+CONTROLLER_KEY = "env.scripted_options"
+"""The one other key a ``--scripted-on`` entry may set: the controller's options on that belief (the hidden
+goal's look-first rule, ``env.scripted_options={confidence:0.9}``), for a second controller on the same belief."""
 
 
 def belief_overrides(belief: str) -> tuple[str, ...]:
@@ -70,10 +73,10 @@ def check_belief(belief: str) -> None:
     """
     for word in belief_overrides(belief):
         key = word.split("=", 1)[0].lstrip("+~")
-        if key.split(".", 1)[0] not in BELIEF_KEYS:
+        if key.split(".", 1)[0] not in BELIEF_KEYS and key != CONTROLLER_KEY:
             raise ValueError(f"--scripted-on: '{belief}' sets {key}, which is not part of a belief (a filter name, or "
-                             f"overrides of filter, filter.* and num_particles); put the run's own overrides "
-                             f"({key}=...) before --scripted-on")
+                             f"overrides of filter, filter.* and num_particles) nor the controller's "
+                             f"{CONTROLLER_KEY}; put the run's own overrides ({key}=...) before --scripted-on")
 
 
 def belief_identity(config: dict) -> str:
@@ -194,17 +197,14 @@ class FixedPolicyCell(ConfigCell):
         return f"fixed/{safe_name(self.filter)}/{policy}-seed{self.eval_seed}"
 
     def run(self) -> dict:
-        from escort_rl.planners import ScriptedBeliefController
-        from escort_rl.trainers.builders import belief_keys, build_model
+        from escort_rl.trainers.builders import build_model, scripted_policy
         from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes
 
         cfg = self.config()
         model = build_model(cfg.env, cfg.device)
-        policy = None
-        if self.gain is not None:
-            particles_key, log_weights_key = belief_keys(cfg)
-            policy = ScriptedBeliefController(model, particles_key=particles_key, log_weights_key=log_weights_key,
-                                              gain_v=self.gain)
+        policy = None if self.gain is None else scripted_policy(cfg, model, gain_v=self.gain)  # env.scripted_options
+        if self.gain is not None and policy is None:
+            raise ValueError(f"bench headline: {type(model).__name__} has no scripted controller")
         rollout, step_s = run_episodes(cfg, policy, self.episodes, self.eval_seed)
         return {"filter": self.filter, "gain": self.gain, "eval_seed": self.eval_seed,
                 **per_episode(first_episode_metrics(rollout, model)), "seconds_per_step": step_s}

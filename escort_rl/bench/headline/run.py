@@ -46,9 +46,11 @@ def gainless_rule(cfg) -> str | None:
     goal's :class:`~escort_rl.planners.scripted.HeaviestModeController`), else ``None``: a PD rule, whose
     velocity gain the headline searches."""
     from escort_rl.planners.scripted import scripted_controller_for
-    from escort_rl.trainers.builders import build_model
+    from escort_rl.trainers.builders import build_model, scripted_policy
 
-    controller = scripted_controller_for(build_model(cfg.env, "cpu"))
+    model = build_model(cfg.env, "cpu")
+    policy = scripted_policy(cfg, model)  # with the env's scripted_options
+    controller = policy.controller if policy is not None else scripted_controller_for(model)  # raises the reason
     return None if hasattr(controller, "gain_v") else controller.rule
 
 
@@ -219,8 +221,10 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
     for cell, result in zip(trained, results[len(selection):]):
         by_row.setdefault(cell.label, []).append(result)
     rows = [trained_row(label, by_row[label]) for label, _ in spec.rows]
-    scripted_on = {belief_identity(_plain(cell.config())): (cell.filter, result)  # the last cell is random's
-                   for cell, result in zip(final[:-1], fixed[:-1])}
+    scripted_on: dict[str, tuple[str, dict]] = {}
+    for cell, result in zip(final[:-1], fixed[:-1]):  # the last cell is random's
+        # several controllers on one belief (e.g. env.scripted_options in --scripted-on): the first is the pair
+        scripted_on.setdefault(belief_identity(_plain(cell.config())), (cell.filter, result))
     for row in rows:
         config = by_row[row["policy"]][0]["config"]
         reads = policy_reads(config)
@@ -230,7 +234,8 @@ def run_headline(spec: HeadlineSpec, backend) -> dict:
             row["dropped_overrides"] = dropped[row["policy"]]
         if match:
             row["vs_scripted"] = paired_difference(by_row[row["policy"]], match[1])
-    rows += [fixed_row(f"scripted controller ({rule or f'gain {chosen[f]:g}'})", {**r, "filter": f}, "scripted")
+    rules = {f: gainless_rule(cell.config()) for f, cell in zip(beliefs, final)} if rule else {}
+    rows += [fixed_row(f"scripted controller ({rules.get(f) or f'gain {chosen[f]:g}'})", {**r, "filter": f}, "scripted")
              for f, r in zip(beliefs, fixed)]
     rows.append(fixed_row("random", fixed[-1], "random"))
     env = str(compose(row_overrides(spec.overrides, ())).env.name)
