@@ -185,8 +185,8 @@ class EnvConfig:
     # the same for the kickstart teacher, where it differs from the evaluation's controller; null: scripted_options
     teacher_options: Any = _f(None, check=check_options)
     # whether trainer.teacher=auto (PPO's default) kickstarts from the scripted controller in this env:
-    # true where the controller is a good policy on the belief (Light-Dark), not where it is a baseline
-    # to beat (the hidden goal's, which commits to a mode)
+    # true where the controller (with teacher_options) is a good policy on the belief (Light-Dark; the hidden
+    # goal's look-first rule), not where it is only a baseline to beat
     scripted_teacher: bool = _f(False)
 
 

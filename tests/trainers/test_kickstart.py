@@ -185,10 +185,21 @@ def test_teacher_options_give_the_teacher_its_own_rule_and_leave_the_evaluation_
 def test_teacher_options_the_controller_does_not_take_name_the_key(env, options, message):
     from escort_rl.models import HiddenGoal
 
-    cfg = compose([*TINY, env, "trainer.teacher=scripted", f"env.teacher_options={options}"])
+    # null first: the hidden goal's group sets its own options, and a mapping given on top merges into them
+    cfg = compose([*TINY, env, "trainer.teacher=scripted", "env.teacher_options=null", f"env.teacher_options={options}"])
     model = HiddenGoal() if env == "env=hidden_goal" else LightDark10D()
     with pytest.raises(ConfigError, match=message):
         kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer))
+
+
+def test_the_hidden_goal_teaches_with_its_look_first_rule_and_evaluates_the_committing_one():
+    from escort_rl.models import HiddenGoal
+    from escort_rl.trainers.builders import scripted_policy
+
+    cfg = compose([*TINY, "env=hidden_goal"])  # teacher=auto: the group marks its rule a teacher
+    model = HiddenGoal()
+    assert kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer)).controller.confidence == 0.999
+    assert scripted_policy(cfg, model).controller.confidence == 0.0
 
 
 def test_scripted_options_set_the_evaluation_s_controller_and_the_teacher_falls_back_to_them():
@@ -196,7 +207,8 @@ def test_scripted_options_set_the_evaluation_s_controller_and_the_teacher_falls_
     from escort_rl.trainers.builders import scripted_policy
 
     model = HiddenGoal()
-    cfg = compose([*TINY, "env=hidden_goal", "trainer.teacher=scripted", "env.scripted_options={confidence:0.5}"])
+    cfg = compose([*TINY, "env=hidden_goal", "trainer.teacher=scripted", "env.scripted_options={confidence:0.5}",
+                   "env.teacher_options=null"])  # the group's own teacher looks first at 0.999
     assert scripted_policy(cfg, model).controller.confidence == 0.5
     assert kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer)).controller.confidence == 0.5
     cfg = compose([*TINY, "env=hidden_goal", "env.scripted_options={confidence:5}"])
