@@ -186,7 +186,8 @@ def test_teacher_options_the_controller_does_not_take_name_the_key(env, options,
     from escort_rl.models import HiddenGoal
 
     # null first: the hidden goal's group sets its own options, and a mapping given on top merges into them
-    cfg = compose([*TINY, env, "trainer.teacher=scripted", "env.teacher_options=null", f"env.teacher_options={options}"])
+    cfg = compose([*TINY, env, "trainer.teacher=scripted", "env.teacher_options=null",
+                   f"env.teacher_options={options}"])
     model = HiddenGoal() if env == "env=hidden_goal" else LightDark10D()
     with pytest.raises(ConfigError, match=message):
         kickstart_teacher(cfg, model, trainer_params(PPOParams, cfg.trainer))
