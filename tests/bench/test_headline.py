@@ -219,6 +219,9 @@ def test_a_second_controller_on_one_belief_is_its_own_row_and_the_first_is_the_p
     assert look["policy"].endswith("after the beacon while no mode weighs 0.9)")
     for key in ("episode_return", "steps"):
         assert trained["vs_scripted"][key][0] == pytest.approx(trained[key] - commit[key], abs=1e-6)
+    from escort_rl.bench.headline.report import headline_markdown
+
+    assert "Rows naming another rule run it" in headline_markdown(result)
 
 
 def test_frontier_rows_train_on_each_filter_s_closest_configuration_within_the_budget(tmp_path):

@@ -40,10 +40,16 @@ def curve_markdown(rows: list[dict]) -> list[str]:
     return lines
 
 
-def _controller_sentence(spec: dict) -> str:
-    """How the scripted controller was set: the gain search, or the rule of a controller without a gain."""
+def _controller_sentence(spec: dict, rows: list[dict]) -> str:
+    """How the scripted controller was set: the gain search, or the rule of a controller without a gain (and
+    where other rows run another rule, that they do)."""
     if spec.get("scripted_rule"):
-        return f"The scripted controller has no gain to choose: it pushes {spec['scripted_rule']}."
+        own = f"scripted controller ({spec['scripted_rule']})"
+        others = any(r["kind"] == "scripted" and r["policy"] != own for r in rows)
+        return (f"The scripted controller has no gain to choose: it pushes {spec['scripted_rule']}."
+                + (" Rows naming another rule run it with the options in their belief's overrides "
+                   "(`env.scripted_options`); a trained row is compared with the first controller on its belief."
+                   if others else ""))
     return ("The scripted controller's velocity gain was chosen among "
             f"{', '.join(f'{g:g}' for g in spec['gains'])} by success on {spec['selection_episodes']} other episodes "
             f"(env seeds {spec['selection_seed']}..), ties by return.")
@@ -57,7 +63,7 @@ def headline_markdown(result: dict) -> str:
              f"Trained rows: {spec['seeds']} training seeds each, every seed's final policy greedy on the same "
              f"{spec['episodes']} episodes (env seeds {spec['eval_seed']}..); mean ± s.e. **across training seeds** "
              "of the per-seed means. Scripted and random rows: the same episodes, mean ± s.e. **over episodes**. "
-             + _controller_sentence(spec), "",
+             + _controller_sentence(spec, result["rows"]), "",
              "| policy | belief | success | final distance | return | steps | frames | training minutes |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in result["rows"]:
