@@ -46,7 +46,9 @@ def register(subparsers) -> None:
                    "frontier) found closest to its reference within MS ms an update; --row adds rows beside them")
     p.add_argument("--scripted-on", nargs="+", default=None, metavar="BELIEF",
                    help="the beliefs the scripted controller runs on: filter config names, or a belief's overrides "
-                   "in one quoted word ('filter=sir num_particles=3000') (default: escort_train sir_rough for the "
+                   "in one quoted word ('filter=sir num_particles=3000'), which may add the controller's options "
+                   "for a second rule on the same belief ('filter=sir env.scripted_options={confidence:0.999}'; a "
+                   "trained row meets the first controller on its belief) (default: escort_train sir_rough for the "
                    "named row sets; with --row, each row's belief)")
     p.add_argument("--curve-every", type=int, default=None, metavar="K",
                    help="also evaluate every trained seed's checkpoint of every K-th iteration on the same episodes: "
