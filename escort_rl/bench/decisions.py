@@ -98,8 +98,8 @@ class DecisionCell(ConfigCell):
                         *extra, *self.overrides])
 
     def run(self) -> dict:
-        from escort_rl.planners.scripted import belief_mean, controlled_dims, scripted_controller_for
-        from escort_rl.trainers.builders import build_model, scripted_gain
+        from escort_rl.planners.scripted import belief_mean, controlled_dims
+        from escort_rl.trainers.builders import build_model
         from escort_rl.trainers.evaluate import first_episode_metrics, run_episodes, scripted_policy
 
         cfg = self.config()
@@ -119,10 +119,9 @@ class DecisionCell(ConfigCell):
         near = inside & (model.distance_to_goal(truth) < self.near)
         w = torch.softmax(rollout["next", "particle_log_weights"], -1).unsqueeze(-1)
         spread = (w * (rollout["next", "particles"] - est.unsqueeze(-2)) ** 2).sum(-2).sqrt()  # [E, T, d]
-        # the action at step t is taken on the belief after step t - 1; compare it with the rule, at the row's own
-        # gain, on the truth
-        controller = scripted_controller_for(model, scripted_gain(cfg))
-        agree = (rollout["action"] == controller(rollout["true_state"])).double()
+        # the action at step t is taken on the belief after step t - 1; compare it with the row's own rule (its gain
+        # and options) on the truth
+        agree = (rollout["action"] == policy.controller(rollout["true_state"])).double()
 
         def per_episode(x: torch.Tensor, mask: torch.Tensor) -> list[float]:
             x = torch.where(mask, x.double(), torch.zeros((), dtype=torch.float64))
